@@ -1,0 +1,224 @@
+"""The particle filter as an iterator: each ``next()`` is one filter step.
+
+::
+
+    from entity import models
+    from entity.filter import ParticleFilter
+    model = models.get("ungm")
+    truth, observations = model.simulate(100, rng)
+    pf = ParticleFilter(model, observations, n_particles=1000, seed=7)
+    for step in pf:
+        print(step.step, step.mean, step.ess)
+
+One step k (DESIGN.md, "One filter step"):
+
+1. propagate: x_k ~ p(x_k | x_(k-1)) (k = 1: draw from the prior);
+2. weight: log w_k = log w_(k-1) + log p(z_k | x_k) (Eq. 23, in logs, so
+   nothing underflows at N = 1e6 or on an outlier), normalise, ESS (Eq. 25);
+3. if resampling is due (every step, or when ESS < threshold N): hand the
+   set to the ``preprocessor`` (the digital twin's Eq. 28-30, in process or
+   over Zenoh); if it gives no answer the step is *degraded* and plain
+   resampling goes on;
+4. estimate from the weighted set about to be resampled: posterior mean,
+   variance and a 95% interval (mean +- 1.96 sd, per dimension);
+5. resample with the configured traditional scheme; weights become uniform.
+
+Random numbers of step k come from ``stream(seed, twin, k, "entity")``:
+propagation first, then resampling.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+
+from entity import resampling
+from entity.models import StateSpaceModel
+from messages.arrays import check_particles, check_weights
+from messages.streams import stream
+
+__all__ = ["ParticleFilter", "FilterStep", "Preprocessor", "Preprocessed", "FilterError"]
+
+#: z value of a two-sided 95% normal interval.
+Z95 = 1.959963984540054
+
+
+class FilterError(ValueError):
+    """The filter cannot go on (for example every weight is zero at a step)."""
+
+
+@dataclass(frozen=True)
+class Preprocessed:
+    """What a preprocessor hands back: the set to resample, and its report."""
+
+    particles: np.ndarray
+    weights: np.ndarray
+    report: object = None
+
+
+class Preprocessor(Protocol):
+    """Runs before resampling; returns None when it has no answer (degraded step)."""
+
+    def __call__(self, step: int, particles: np.ndarray, weights: np.ndarray,
+                 observation: np.ndarray) -> Preprocessed | None: ...
+
+
+@dataclass(frozen=True)
+class FilterStep:
+    """The outcome of one filter step.
+
+    Attributes
+    ----------
+    step : int
+        k, from 1.
+    particles, weights : (N, d), (N,) ndarray
+        The weighted set before preprocessing and resampling.
+    ess : float
+        Effective sample size of ``weights`` (Eq. 25).
+    mean, var, lower, upper : (d,) ndarray
+        Posterior mean, variance and 95% interval of the set that was
+        resampled (after preprocessing where it ran).
+    resampled : bool
+        Whether resampling ran at this step.
+    degraded : bool
+        Resampling was due but the preprocessor gave no answer.
+    report : object or None
+        The preprocessor's report, if it ran.
+    ancestors : (N,) ndarray or None
+        Ancestor indices of the resampling, if it ran.
+    """
+
+    step: int
+    particles: np.ndarray
+    weights: np.ndarray
+    ess: float
+    mean: np.ndarray
+    var: np.ndarray
+    lower: np.ndarray
+    upper: np.ndarray
+    resampled: bool
+    degraded: bool
+    report: object
+    ancestors: np.ndarray | None
+
+
+def normalise(log_weights: np.ndarray) -> np.ndarray:
+    """Normalised weights from log-weights, shifted by the maximum (no underflow of the largest)."""
+    top = float(np.max(log_weights))
+    if not np.isfinite(top):
+        raise FilterError(f"every log-weight is {top}: no particle explains the observation")
+    weights = np.exp(log_weights - top)
+    weights /= weights.sum()
+    return weights
+
+
+def moments(particles: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Weighted mean and variance per dimension: (d,), (d,)."""
+    mean = weights @ particles
+    centred = particles - mean
+    var = weights @ (centred * centred)
+    return mean, var
+
+
+class ParticleFilter:
+    """A bootstrap particle filter over a :class:`~entity.models.StateSpaceModel`.
+
+    Parameters
+    ----------
+    model : StateSpaceModel
+    observations : (T, m) array_like
+        z_1 .. z_T; the filter runs T steps.
+    n_particles : int
+        N.
+    resampler : str
+        Name of a traditional scheme in :data:`entity.resampling.RESAMPLERS`.
+    resample_below : float or None
+        None (default, the paper's setting): resample at every step.
+        A fraction in (0, 1]: resample when ESS < resample_below * N.
+    seed : int
+        Root seed of the run's random streams.
+    twin : str
+        Twin id, part of the random streams' key.
+    preprocessor : Preprocessor, optional
+        Runs before each resampling (the digital twin); None: plain resampling.
+    """
+
+    def __init__(self, model: StateSpaceModel, observations, n_particles: int, *,
+                 resampler: str = "systematic", resample_below: float | None = None,
+                 seed: int = 0, twin: str = "twin", preprocessor: Preprocessor | None = None):
+        z = np.asarray(observations, dtype=np.float64)
+        if z.ndim == 1:
+            z = z[:, None]
+        if z.ndim != 2 or z.shape[0] == 0:
+            raise ValueError(f"observations must have shape (T,) or (T, m) with T >= 1, got {z.shape}")
+        if not np.isfinite(z).all():
+            raise ValueError("observations contain non-finite values")
+        if int(n_particles) < 1:
+            raise ValueError(f"n_particles must be at least 1, got {n_particles!r}")
+        if resample_below is not None and not 0.0 < float(resample_below) <= 1.0:
+            raise ValueError(f"resample_below must be in (0, 1] or None, got {resample_below!r}")
+        self.model = model
+        self.observations = z
+        self.n = int(n_particles)
+        self.resampler_name = resampler
+        self.resample = resampling.get(resampler)
+        self.resample_below = resample_below
+        self.seed = int(seed)
+        self.twin = twin
+        self.preprocessor = preprocessor
+        self.k = 0
+        self.particles: np.ndarray | None = None
+        self.log_weights = np.zeros(self.n)
+
+    @property
+    def steps(self) -> int:
+        """T, the number of steps the filter runs."""
+        return self.observations.shape[0]
+
+    def __iter__(self):
+        return self
+
+    def __next__(self) -> FilterStep:
+        """One step of the particle filter."""
+        if self.k >= self.steps:
+            raise StopIteration
+        self.k += 1
+        k = self.k
+        rng = stream(self.seed, self.twin, k, "entity")
+        if self.particles is None:
+            self.particles = check_particles(self.model.initial_particles(self.n, rng))
+        else:
+            self.particles = self.model.propagate(self.particles, k, rng)
+        observation = self.observations[k - 1]
+        self.log_weights = self.log_weights + self.model.log_likelihood(self.particles, observation, k)
+        weights = normalise(self.log_weights)
+        self.log_weights -= self.log_weights.max()  # keep log-weights near 0 between resamplings
+        ess = 1.0 / float(np.dot(weights, weights))
+        particles = self.particles
+
+        due = self.resample_below is None or ess < self.resample_below * self.n
+        degraded = False
+        report = None
+        target_particles, target_weights = particles, weights
+        if due and self.preprocessor is not None:
+            answer = self.preprocessor(k, particles, weights, observation)
+            if answer is None:
+                degraded = True
+            else:
+                target_weights = check_weights(answer.weights)
+                target_particles = check_particles(answer.particles, n=target_weights.size)
+                if target_particles.shape != particles.shape:
+                    raise ValueError(f"preprocessed particles have shape {target_particles.shape}, "
+                                     f"expected {particles.shape}")
+                report = answer.report
+
+        mean, var = moments(target_particles, target_weights)
+        half = Z95 * np.sqrt(var)
+        ancestors = None
+        if due:
+            ancestors = self.resample(target_weights, rng)
+            self.particles = target_particles[ancestors]
+            self.log_weights = np.zeros(self.n)
+        return FilterStep(k, particles, weights, ess, mean, var, mean - half, mean + half,
+                          due, degraded, report, ancestors)

@@ -1,0 +1,87 @@
+"""The information layer, without transport.
+
+It mirrors each particle set the entity sends, applies the preprocessing
+rules (Eq. 28-30) with the PS in force and returns the preprocessed set and
+the weight-state summary. The Zenoh service and the in-process pipeline both
+drive this object, so both compute the same numbers::
+
+    layer = InformationLayer(model, ps=0.81, seed=7, twin="ungm-1")
+    out = layer.process(step, particles, weights, observation)
+    layer.set_ps(decision.ps, decision.applies_from_step)
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from entity.models import StateSpaceModel
+from information import rules
+from information.mirror import WeightSummary, summarise
+from messages.arrays import check_probability
+from messages.streams import stream
+
+__all__ = ["InformationLayer", "InformationOutput"]
+
+
+@dataclass(frozen=True)
+class InformationOutput:
+    """The preprocessed set (for the entity) and the summary (for the system layer)."""
+
+    step: int
+    preprocessed: rules.PreprocessResult
+    summary: WeightSummary
+
+
+class InformationLayer:
+    """Mirror plus preprocessing rules for one twin.
+
+    Parameters
+    ----------
+    model : StateSpaceModel
+        Gives the observation likelihood for the ``"likelihood"`` weight rule.
+    ps : float
+        PS in force until the system layer says otherwise.
+    threshold_rule, weight_rule :
+        Options of :func:`information.rules.preprocess`.
+    seed, twin :
+        Key of the random streams: step k draws from
+        ``stream(seed, twin, k, "information")``.
+    """
+
+    def __init__(self, model: StateSpaceModel, *, ps: float, threshold_rule: str | float = "neff",
+                 weight_rule: str = "inherit", seed: int = 0, twin: str = "twin"):
+        self.model = model
+        self.ps = check_probability(ps, "PS")
+        self.pending: list[tuple[int, float]] = []
+        self.threshold_rule = threshold_rule
+        if weight_rule not in rules.WEIGHT_RULES:
+            raise ValueError(f"unknown weight rule {weight_rule!r}; expected one of {', '.join(rules.WEIGHT_RULES)}")
+        self.weight_rule = weight_rule
+        self.seed = seed
+        self.twin = twin
+
+    def set_ps(self, ps: float, applies_from_step: int) -> None:
+        """Schedule a new PS from the system layer, in force from ``applies_from_step``."""
+        self.pending.append((int(applies_from_step), check_probability(ps, "PS")))
+        self.pending.sort(key=lambda item: item[0])
+
+    def ps_for(self, step: int) -> float:
+        """The PS in force at ``step``: the latest scheduled one that applies by then."""
+        while self.pending and self.pending[0][0] <= step:
+            self.ps = self.pending.pop(0)[1]
+        return self.ps
+
+    def process(self, step: int, particles, weights, observation) -> InformationOutput:
+        """Mirror and preprocess the entity's particle set of ``step``."""
+        ps = self.ps_for(step)
+        summary = summarise(particles, weights, self.threshold_rule)
+        z = np.asarray(observation, dtype=np.float64)
+        log_likelihood = None
+        if self.weight_rule == "likelihood":
+            def log_likelihood(x):
+                return self.model.log_likelihood(x, z, step)
+        result = rules.preprocess(particles, weights, ps, stream(self.seed, self.twin, step, "information"),
+                                  threshold_rule=self.threshold_rule, weight_rule=self.weight_rule,
+                                  log_likelihood=log_likelihood)
+        return InformationOutput(step, result, summary)

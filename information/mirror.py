@@ -1,0 +1,95 @@
+"""The mirror: a summary of the entity's particle-weight state.
+
+The information layer keeps this summary of every particle set it receives
+and sends it to the system layer, which predicts degradation from it::
+
+    from information.mirror import summarise
+    state = summarise(particles, weights)
+    state.ess_ratio, state.distinct
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from information.rules import threshold as threshold_of
+from messages.arrays import check_particles, check_weights
+
+__all__ = ["WeightSummary", "summarise", "ess"]
+
+#: Weight quantiles reported, by field name.
+QUANTILES = {"q10": 0.10, "q50": 0.50, "q90": 0.90, "q99": 0.99}
+
+
+def ess(weights: np.ndarray) -> float:
+    """Effective sample size 1 / sum(w^2) of normalised weights (Eq. 25)."""
+    return 1.0 / float(np.dot(weights, weights))
+
+
+@dataclass(frozen=True)
+class WeightSummary:
+    """Weight state of one particle set.
+
+    Attributes
+    ----------
+    n : int
+        Number of particles N.
+    ess, ess_ratio : float
+        Effective sample size (Eq. 25) and ESS / N.
+    entropy, entropy_ratio : float
+        Shannon entropy of the weights in nats, and entropy / log N (1 for
+        uniform weights, 0 when one particle holds all the weight).
+    max_weight : float
+        The largest normalised weight.
+    threshold : float
+        W of Eq. 28 under the threshold rule in force.
+    n_above_threshold : int
+        Particles with weight > W (the large set of Eq. 28).
+    distinct : int
+        Number of distinct particle states (impoverishment after resampling).
+    q10, q50, q90, q99 : float
+        Quantiles of the normalised weights.
+    """
+
+    n: int
+    ess: float
+    ess_ratio: float
+    entropy: float
+    entropy_ratio: float
+    max_weight: float
+    threshold: float
+    n_above_threshold: int
+    distinct: int
+    q10: float
+    q50: float
+    q90: float
+    q99: float
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+def summarise(particles, weights, threshold_rule: str | float = "neff") -> WeightSummary:
+    """The :class:`WeightSummary` of a particle set (N, d) with normalised weights (N,)."""
+    w = check_weights(weights)
+    x = check_particles(particles, n=w.size)
+    n = w.size
+    effective = ess(w)
+    positive = w[w > 0]
+    entropy = float(-np.dot(positive, np.log(positive)))
+    limit = threshold_of(w, threshold_rule)
+    distinct = np.unique(x[:, 0]).size if x.shape[1] == 1 else np.unique(x, axis=0).shape[0]
+    quantiles = np.quantile(w, list(QUANTILES.values()))
+    return WeightSummary(
+        n=n,
+        ess=effective,
+        ess_ratio=effective / n,
+        entropy=entropy,
+        entropy_ratio=entropy / np.log(n) if n > 1 else 1.0,
+        max_weight=float(w.max()),
+        threshold=limit,
+        n_above_threshold=int(np.count_nonzero(w > limit)),
+        distinct=int(distinct),
+        **{name: float(q) for name, q in zip(QUANTILES, quantiles)},
+    )

@@ -1,0 +1,295 @@
+"""Digital-twin preprocessing rules (paper section 3, Eq. 28-30).
+
+Before the traditional resampling runs, the particles with small weights are
+moved towards particles with large weights::
+
+    from information import rules
+    result = rules.preprocess(particles, weights, ps=0.81, rng=rng)
+    result.particles, result.weights, result.report
+
+1. Split (Eq. 28): a particle is *large* if its weight exceeds the
+   threshold W, *small* otherwise. Large particles are never changed.
+2. Move (Eq. 29): each small particle x_l is paired with x_m, drawn
+   uniformly from the large set, and r ~ U(0, 1)::
+
+       x_hat = x_m + (2 r - 1) x_l
+
+3. Update (Eq. 30): with u ~ U(0, 1) and the degree factor PS::
+
+       x_tilde = (1 - r) x_m + r x_hat    if u <= PS   ("mixed" branch)
+       x_tilde = x_hat                    if u >  PS   ("plain" branch)
+
+   The same r serves Eq. 29 and Eq. 30, as the theorem of section 3
+   requires; then |x_tilde - x_m| <= |x_l| component-wise. A
+   d-dimensional state applies the rule to the whole particle vector with
+   one (x_m, r, u) per particle.
+
+Interpretations the paper leaves open (see DESIGN.md), each an option:
+
+- ``threshold``: ``"neff"`` (default; the paper: "W is usually selected as
+  the N_eff value"): W is the (k+1)-th largest weight with k = round(ESS),
+  so k particles are large; ``"inverse-n"``: W = 1/N; or a float W.
+- ``weight_rule``: ``"inherit"`` (default): processed particles keep their
+  old weights, the paper moves positions only; ``"likelihood"``: the weight
+  is re-evaluated at the new position,
+  w_l <- w_l p(z | x_tilde_l) / p(z | x_l), then all weights renormalised.
+  A particle whose weight underflowed to exactly 0 stays at 0.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable, Literal
+
+import numba
+import numpy as np
+
+from messages.arrays import check_particles, check_probability, check_weights
+
+__all__ = [
+    "THRESHOLD_RULES",
+    "WEIGHT_RULES",
+    "PreprocessReport",
+    "PreprocessResult",
+    "threshold",
+    "apply_rules",
+    "kth_largest",
+    "preprocess",
+]
+
+THRESHOLD_RULES = ("neff", "inverse-n")
+WEIGHT_RULES = ("inherit", "likelihood")
+
+LogLikelihood = Callable[[np.ndarray], np.ndarray]
+
+
+@dataclass(frozen=True)
+class PreprocessReport:
+    """What one preprocessing did.
+
+    Attributes
+    ----------
+    threshold : float
+        W of Eq. 28.
+    n_large : int
+        M, particles with weight > W (kept unchanged).
+    n_processed : int
+        N - M, particles moved by Eq. 29-30.
+    n_mixed : int
+        Processed particles that took the first branch of Eq. 30 (u <= PS).
+    n_plain : int
+        Processed particles that took the second branch (u > PS).
+    ps : float
+        The degree factor used.
+    """
+
+    threshold: float
+    n_large: int
+    n_processed: int
+    n_mixed: int
+    n_plain: int
+    ps: float
+
+
+@dataclass(frozen=True)
+class PreprocessResult:
+    """Preprocessed particle set: particles (N, d), weights (N,), and the report."""
+
+    particles: np.ndarray
+    weights: np.ndarray
+    report: PreprocessReport
+
+
+def threshold(weights: np.ndarray, rule: str | float = "neff") -> float:
+    """The threshold W of Eq. 28 for normalised ``weights``.
+
+    ``"neff"``: with k = round(1 / sum w^2) (Eq. 25) clipped to [1, N], W is
+    the (k+1)-th largest weight, so the k heaviest particles are large (ties
+    at W count as small). With k = N every positive weight is large: W = 0.
+    ``"inverse-n"``: W = 1 / N. A float is used as W itself.
+    """
+    w = weights
+    n = w.size
+    if isinstance(rule, str):
+        if rule == "neff":
+            k = int(np.clip(round(1.0 / float(np.dot(w, w))), 1, n))
+            if k >= n:
+                return 0.0
+            return kth_largest(w, k + 1)
+        if rule == "inverse-n":
+            return 1.0 / n
+        raise ValueError(
+            f"unknown threshold rule {rule!r}; expected one of {', '.join(THRESHOLD_RULES)} or a number"
+        )
+    value = float(rule)
+    if not np.isfinite(value) or value < 0:
+        raise ValueError(f"threshold W must be a finite non-negative number, got {rule!r}")
+    return value
+
+
+@numba.njit(cache=True, nogil=True)
+def _kth_largest(values, k):  # pragma: no cover - compiled
+    # Radix select on the bit patterns of non-negative float64 values, which
+    # order like the values: histogram the top 16 bits, find the bucket that
+    # holds the k-th largest, then select inside that bucket only.
+    bits = values.view(np.int64)
+    shift = 48
+    counts = np.zeros(1 << 15, dtype=np.int64)
+    for i in range(bits.shape[0]):
+        counts[bits[i] >> shift] += 1
+    above = 0
+    bucket = counts.shape[0] - 1
+    while above + counts[bucket] < k:
+        above += counts[bucket]
+        bucket -= 1
+    members = np.empty(counts[bucket], dtype=np.float64)
+    j = 0
+    for i in range(bits.shape[0]):
+        if bits[i] >> shift == bucket:
+            members[j] = values[i]
+            j += 1
+    members.sort()
+    return members[members.shape[0] - (k - above)]
+
+
+def kth_largest(values: np.ndarray, k: int) -> float:
+    """The k-th largest of non-negative float64 ``values`` (k = 1 is the maximum), in O(N)."""
+    if not 1 <= k <= values.size:
+        raise ValueError(f"k must be in [1, {values.size}], got {k}")
+    return float(_kth_largest(np.ascontiguousarray(values, dtype=np.float64), k))
+
+
+@numba.njit(cache=True, nogil=True)
+def _split(weights, limit):  # pragma: no cover - compiled
+    # Eq. 28 in one branch-free pass: indices of large (weight > W) and small particles.
+    n = weights.shape[0]
+    large = np.empty(n, dtype=np.int64)
+    small = np.empty(n, dtype=np.int64)
+    n_large = 0
+    for i in range(n):
+        is_large = weights[i] > limit
+        large[n_large] = i
+        small[i - n_large] = i
+        n_large += is_large
+    return large[:n_large], small[: n - n_large]
+
+
+@numba.njit(cache=True, nogil=True)
+def _factor(r, u, ps):  # pragma: no cover - compiled
+    # f with x_tilde = x_m + f x_l: Eq. 29 into Eq. 30 gives r (2r - 1) on the
+    # mixed branch u <= PS (Eq. 33) and 2r - 1 on the plain branch (Eq. 34).
+    return (2.0 * r - 1.0) * (r if u <= ps else 1.0)
+
+
+@numba.njit(cache=True, nogil=True)
+def _factors(r, u, ps):  # pragma: no cover - compiled
+    factors = np.empty(r.shape[0])
+    for l in range(r.shape[0]):
+        factors[l] = _factor(r[l], u[l], ps)
+    return factors
+
+
+@numba.njit(cache=True, nogil=True)
+def _move(particles, small, partners, r, u, ps, out):  # pragma: no cover - compiled
+    # out[small[l]] = x_m + f_l x_l for every small particle; returns the
+    # number that took the mixed branch.
+    d = particles.shape[1]
+    n_mixed = 0
+    for l in range(small.shape[0]):
+        i = small[l]
+        m = partners[l]
+        f = _factor(r[l], u[l], ps)
+        n_mixed += u[l] <= ps
+        for c in range(d):
+            out[i, c] = particles[m, c] + f * particles[i, c]
+    return n_mixed
+
+
+def apply_rules(x_m: np.ndarray, x_l: np.ndarray, r: np.ndarray, u: np.ndarray, ps: float) -> np.ndarray:
+    """Eq. 29 and Eq. 30 for given random numbers.
+
+    Parameters
+    ----------
+    x_m : (L, d) ndarray
+        The large particle paired with each small one.
+    x_l : (L, d) ndarray
+        The small particles.
+    r, u : (L,) ndarray
+        r of Eq. 29-30 and u of Eq. 30, one per small particle.
+    ps : float
+        Degree factor PS in [0, 1].
+
+    Returns
+    -------
+    x_tilde : (L, d) ndarray
+    """
+    # Eq. 29 into Eq. 30 simplifies to x_tilde = x_m + f x_l (Eq. 33, 34).
+    factors = _factors(np.asarray(r, dtype=np.float64), np.asarray(u, dtype=np.float64), float(ps))
+    return x_m + factors[:, None] * x_l
+
+
+def preprocess(
+    particles,
+    weights,
+    ps: float,
+    rng: np.random.Generator,
+    *,
+    threshold_rule: str | float = "neff",
+    weight_rule: Literal["inherit", "likelihood"] = "inherit",
+    log_likelihood: LogLikelihood | None = None,
+) -> PreprocessResult:
+    """Move small-weight particles towards large-weight ones (Eq. 28-30).
+
+    Parameters
+    ----------
+    particles : (N,) or (N, d) array_like
+    weights : (N,) array_like, normalised
+    ps : float
+        Degree factor PS in [0, 1] (Eq. 30).
+    rng : numpy.random.Generator
+        Draws, in this order: the index of x_m for every small particle,
+        then r, then u.
+    threshold_rule : "neff", "inverse-n" or float
+        How W of Eq. 28 is chosen; see :func:`threshold`.
+    weight_rule : "inherit" or "likelihood"
+        Weights of processed particles; see the module docstring.
+    log_likelihood : callable, optional
+        ``(M, d) -> (M,)`` log p(z_k | x); required by ``"likelihood"``.
+
+    Returns
+    -------
+    PreprocessResult
+        New arrays (the inputs are not modified) and the report.
+    """
+    w = check_weights(weights)
+    x = check_particles(particles, n=w.size)
+    ps = check_probability(ps, "PS")
+    if weight_rule not in WEIGHT_RULES:
+        raise ValueError(f"unknown weight rule {weight_rule!r}; expected one of {', '.join(WEIGHT_RULES)}")
+    if weight_rule == "likelihood" and log_likelihood is None:
+        raise ValueError("weight rule 'likelihood' needs the observation's log_likelihood")
+
+    limit = threshold(w, threshold_rule)
+    large_idx, small_idx = _split(w, limit)
+    n_small = small_idx.size
+    if large_idx.size == 0 or n_small == 0:
+        report = PreprocessReport(limit, int(large_idx.size), 0, 0, 0, ps)
+        return PreprocessResult(x.copy(), w.copy(), report)
+
+    partners = large_idx[rng.integers(large_idx.size, size=n_small)]
+    r = rng.random(n_small)
+    u = rng.random(n_small)
+    new_particles = x.copy()
+    n_mixed = int(_move(x, small_idx, partners, r, u, ps, new_particles))
+
+    if weight_rule == "inherit":
+        new_weights = w.copy()
+    else:
+        with np.errstate(divide="ignore"):
+            log_w = np.log(w)
+        log_small = log_w[small_idx]
+        delta = log_likelihood(new_particles[small_idx]) - log_likelihood(x[small_idx])
+        log_w[small_idx] = np.where(np.isneginf(log_small), -np.inf, log_small + delta)
+        new_weights = np.exp(log_w - log_w.max())
+        new_weights /= new_weights.sum()
+    report = PreprocessReport(limit, int(large_idx.size), n_small, n_mixed, n_small - n_mixed, ps)
+    return PreprocessResult(new_particles, new_weights, report)

@@ -1,0 +1,98 @@
+"""Validation of the arrays every layer exchanges: weights and particles.
+
+The algorithms (resampling, preprocessing rules, mirror) and the message
+decoders share these checks, so a bad weight vector is rejected with the same
+words wherever it appears::
+
+    from messages.arrays import check_weights, check_particles
+    weights = check_weights(weights)            # (N,) float64, sums to 1
+    particles = check_particles(particles, n=len(weights))   # (N, d) float64
+
+Every failure raises :class:`ValueError` naming the problem and the value.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+#: Relative tolerance on ``sum(weights) == 1`` for normalised weights.
+#: Summing N float64 values loses at most about N * 2**-53 relative, so 1e-6
+#: leaves room for N up to 1e9 while still catching unnormalised input.
+SUM_TOLERANCE = 1e-6
+
+
+def _describe(values: np.ndarray, mask: np.ndarray) -> str:
+    """Say where the first bad entries are: 'at index 3 (value nan)'."""
+    bad = np.flatnonzero(mask)
+    first = int(bad[0])
+    more = f" and {bad.size - 1} more" if bad.size > 1 else ""
+    return f"at index {first} (value {values.flat[first]!r}){more}"
+
+
+def check_weights(weights, *, normalised: bool = True, name: str = "weights") -> np.ndarray:
+    """Return ``weights`` as a 1-D float64 array, or raise ValueError.
+
+    Parameters
+    ----------
+    weights : array_like, (N,)
+        Non-negative, finite, not all zero.
+    normalised : bool
+        Also require ``sum(weights) == 1`` within :data:`SUM_TOLERANCE`.
+    name : str
+        What to call the array in error messages.
+    """
+    w = np.asarray(weights, dtype=np.float64)
+    if w.ndim != 1:
+        raise ValueError(f"{name} must be 1-D, got shape {w.shape}")
+    if w.size == 0:
+        raise ValueError(f"{name} is empty")
+    finite = np.isfinite(w)
+    if not finite.all():
+        kind = "NaN" if np.isnan(w).any() else "infinite"
+        raise ValueError(f"{name} contain {kind} values {_describe(w, ~finite)}")
+    negative = w < 0
+    if negative.any():
+        raise ValueError(f"{name} contain negative values {_describe(w, negative)}")
+    total = float(w.sum())
+    if total <= 0.0:
+        raise ValueError(f"{name} are all zero (N={w.size})")
+    if normalised and abs(total - 1.0) > SUM_TOLERANCE:
+        raise ValueError(f"{name} must sum to 1 (within {SUM_TOLERANCE:g}), got sum {total!r}")
+    return w
+
+
+def check_particles(particles, *, n: int | None = None, name: str = "particles") -> np.ndarray:
+    """Return ``particles`` as an (N, d) float64 array, or raise ValueError.
+
+    A 1-D array of length N is read as N particles of dimension 1.
+
+    Parameters
+    ----------
+    particles : array_like, (N,) or (N, d)
+        Finite states.
+    n : int, optional
+        Required number of particles (the length of the weights).
+    """
+    x = np.asarray(particles, dtype=np.float64)
+    if x.ndim == 1:
+        x = x[:, None]
+    if x.ndim != 2:
+        raise ValueError(f"{name} must have shape (N,) or (N, d), got shape {x.shape}")
+    if x.shape[0] == 0 or x.shape[1] == 0:
+        raise ValueError(f"{name} is empty (shape {x.shape})")
+    if n is not None and x.shape[0] != n:
+        raise ValueError(f"{name} and weights differ in length: {x.shape[0]} particles, {n} weights")
+    finite = np.isfinite(x)
+    if not finite.all():
+        raise ValueError(f"{name} contain non-finite values {_describe(x, ~finite)}")
+    return x
+
+
+def check_probability(value, name: str) -> float:
+    """Return ``value`` as a float in [0, 1], or raise ValueError (used for PS)."""
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a number in [0, 1], got {value!r}") from None
+    if not (0.0 <= v <= 1.0):  # also rejects NaN
+        raise ValueError(f"{name} must be in [0, 1], got {value!r}")
+    return v

@@ -1,0 +1,80 @@
+"""Run configuration shared by the in-process pipeline and the services.
+
+Every field is declared with its meaning and validated at construction, so a
+bad resampler or model name fails at startup, not at step 500::
+
+    from messages.config import RunConfig
+    config = RunConfig(particles=1000, steps=100, seed=7)
+"""
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+__all__ = ["RunConfig", "ID_PATTERN"]
+
+#: Run and twin ids: safe inside a Zenoh key expression and a file name.
+ID_PATTERN = r"^[A-Za-z0-9_.-]+$"
+
+
+class RunConfig(BaseModel):
+    """One digital-twin run: scenario, filter, preprocessing and PS policy."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    scenario: str = Field("ungm", description="State-space model: 'ungm' (Eq. 35 with 25, the standard "
+                                                "benchmark) or 'ungm-printed' (Eq. 35 as printed, 0.25).")
+    particles: int = Field(1000, ge=1, description="Number of particles N.")
+    steps: int = Field(100, ge=1, description="Number of time points T (k = 1 .. T).")
+    resampler: str = Field("systematic", description="Traditional resampling scheme run after preprocessing: "
+                                                      "multinomial, stratified, systematic or residual.")
+    resample_below: float | None = Field(None, gt=0.0, le=1.0, description="Resample when ESS < this "
+                                         "fraction of N; None resamples at every step (the paper).")
+    preprocess: bool = Field(True, description="Run the digital-twin preprocessing (Eq. 28-30) before "
+                                               "resampling; False gives the plain traditional filter.")
+    threshold: str | float = Field("neff", description="Threshold W of Eq. 28: 'neff' (the round(ESS)+1-th "
+                                   "largest weight), 'inverse-n' (1/N) or a number.")
+    weight_rule: Literal["inherit", "likelihood"] = Field("inherit", description="Weights of processed "
+                                                          "particles: keep them, or re-evaluate the likelihood.")
+    policy: str = Field("fixed", description="PS policy of the system layer.")
+    ps: float = Field(0.81, ge=0.0, le=1.0, description="PS of the fixed policy, and the initial PS.")
+    seed: int = Field(0, ge=0, description="Root seed of every random stream of the run.")
+    twin: str = Field("ungm-1", pattern=ID_PATTERN, description="Twin id (key expressions dtpf/<twin>/...).")
+    run_id: str = Field("run", pattern=ID_PATTERN, description="Run id carried by every message.")
+
+    @field_validator("scenario")
+    @classmethod
+    def _known_scenario(cls, value: str) -> str:
+        from entity import models
+        models.get(value)
+        return value
+
+    @field_validator("resampler")
+    @classmethod
+    def _known_resampler(cls, value: str) -> str:
+        from entity import resampling
+        resampling.get(value)
+        return value
+
+    @field_validator("policy")
+    @classmethod
+    def _known_policy(cls, value: str) -> str:
+        from system import policy
+        if value not in policy.POLICIES:
+            raise ValueError(f"unknown PS policy {value!r}; expected one of {', '.join(policy.POLICIES)}")
+        return value
+
+    @field_validator("threshold")
+    @classmethod
+    def _known_threshold(cls, value: str | float) -> str | float:
+        from information.rules import THRESHOLD_RULES
+        if isinstance(value, str) and value not in THRESHOLD_RULES:
+            try:
+                value = float(value)
+            except ValueError:
+                raise ValueError(f"unknown threshold rule {value!r}; expected one of "
+                                 f"{', '.join(THRESHOLD_RULES)} or a number") from None
+        if not isinstance(value, str) and not value >= 0:
+            raise ValueError(f"threshold W must be non-negative, got {value!r}")
+        return value

@@ -1,0 +1,1 @@
+"""Command-line tools and the in-process composition of the three layers."""

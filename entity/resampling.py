@@ -145,6 +145,12 @@ def _stratified(weights, v):  # pragma: no cover - compiled
     return ancestors
 
 
+#: N w_i this close below an integer counts as that integer in residual
+#: resampling: 49 * (1/49) is 0.9999999999999999 in float64, and equal
+#: weights must give one copy each, not a multinomial draw.
+_ROUNDING = 1e-9
+
+
 @numba.njit(cache=True, nogil=True)
 def _residual(weights, rng):  # pragma: no cover - compiled
     # Pass 1: R = N - sum floor(N w_j) and the total residual mass.
@@ -153,10 +159,12 @@ def _residual(weights, rng):  # pragma: no cover - compiled
     residual_total = 0.0
     for j in range(n):
         scaled = weights[j] * n
-        whole = np.floor(scaled)
+        whole = np.floor(scaled + _ROUNDING)
         kept += int(whole)
-        residual_total += scaled - whole
-    remaining = n - kept
+        residual_total += max(scaled - whole, 0.0)
+    # Weights may sum to 1 +- SUM_TOLERANCE, so the floors may overshoot N
+    # by a few; never write past the end.
+    remaining = max(n - kept, 0)
     # Pass 2: floor(N w_j) copies of j, then j's share of the R multinomial
     # draws (uniform spacings over the residuals), so the output stays sorted.
     exponentials = rng.standard_exponential(remaining + 1)
@@ -171,12 +179,12 @@ def _residual(weights, rng):  # pragma: no cover - compiled
     cumulative = 0.0
     for j in range(n):
         scaled = weights[j] * n
-        whole = np.floor(scaled)
-        for _ in range(int(whole)):
+        whole = np.floor(scaled + _ROUNDING)
+        for _ in range(min(int(whole), n - k)):
             ancestors[k] = j
             k += 1
-        cumulative += (scaled - whole) * scale
-        while drawn < remaining and point < cumulative:
+        cumulative += max(scaled - whole, 0.0) * scale
+        while drawn < remaining and k < n and point < cumulative:
             ancestors[k] = j
             k += 1
             drawn += 1

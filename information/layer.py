@@ -81,7 +81,8 @@ class InformationLayer:
         if self.weight_rule == "likelihood":
             def log_likelihood(x):
                 return self.model.log_likelihood(x, z, step)
+        # The mirror already found W under the layer's rule; pass it on as a number.
         result = rules.preprocess(particles, weights, ps, stream(self.seed, self.twin, step, "information"),
-                                  threshold_rule=self.threshold_rule, weight_rule=self.weight_rule,
+                                  threshold_rule=summary.threshold, weight_rule=self.weight_rule,
                                   log_likelihood=log_likelihood)
         return InformationOutput(step, result, summary)

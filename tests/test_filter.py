@@ -1,0 +1,173 @@
+"""Models, the filter iterator and the in-process pipeline."""
+import math
+
+import numpy as np
+import pytest
+
+from entity import models
+from entity.filter import FilterError, ParticleFilter, Preprocessed
+from messages.config import RunConfig
+from messages.streams import stream
+from scripts import inprocess
+
+
+# --- models ----------------------------------------------------------------------
+
+def test_growth_models_have_distinct_names_and_constants():
+    assert models.get("ungm").growth == 25.0
+    assert models.get("ungm-printed").growth == 0.25
+    with pytest.raises(ValueError, match="unknown model 'ungm25'; expected one of ungm, ungm-printed"):
+        models.get("ungm25")
+
+
+def test_simulation_follows_eq35_and_eq36():
+    model = models.get("ungm")
+    truth, z = model.simulate(100, np.random.default_rng(0))
+    assert truth.shape == (100, 1) and z.shape == (100, 1)
+    assert truth[0, 0] == 0.1
+    drift = np.array([model.transition_mean(truth[k - 2], k)[0] for k in range(2, 101)])
+    process_noise = truth[1:, 0] - drift
+    observation_noise = z[:, 0] - truth[:, 0] ** 2 / 20
+    # Sample variances of 99 / 100 normal draws: standard error sigma^2 sqrt(2 / (n - 1)).
+    assert abs(process_noise.var() - 10.0) <= 5 * 10.0 * math.sqrt(2 / 98)
+    assert abs(observation_noise.var() - 1.0) <= 5 * 1.0 * math.sqrt(2 / 99)
+
+
+def test_the_two_growth_forms_differ():
+    rng = np.random.default_rng
+    a, _ = models.get("ungm").simulate(20, rng(1))
+    b, _ = models.get("ungm-printed").simulate(20, rng(1))
+    assert not np.allclose(a[1:], b[1:])
+
+
+# --- filter ------------------------------------------------------------------------
+
+def bootstrap_reference(z, n, seed, model):
+    """An independent bootstrap filter: numpy only, multinomial resampling with rng.choice."""
+    rng = np.random.default_rng(seed)
+    x = rng.normal(model.prior_mean, math.sqrt(model.prior_var), n)
+    means = []
+    for k in range(1, len(z) + 1):
+        if k > 1:
+            x = 0.5 * x + 25 * x / (1 + x ** 2) + 8 * np.cos(1.2 * (k - 1)) + rng.normal(0, math.sqrt(10), n)
+        lw = -0.5 * (z[k - 1, 0] - x ** 2 / 20) ** 2
+        w = np.exp(lw - lw.max())
+        w /= w.sum()
+        means.append(w @ x)
+        x = x[rng.choice(n, n, p=w)]
+    return np.array(means)
+
+
+def test_rmse_matches_an_independent_bootstrap_filter():
+    model = models.get("ungm")
+    ours, reference = [], []
+    for seed in range(20):
+        truth, z = model.simulate(100, np.random.default_rng(1000 + seed))
+        pf = ParticleFilter(model, z, 500, resampler="multinomial", seed=seed)
+        means = np.array([step.mean[0] for step in pf])
+        ours.append(np.sqrt(np.mean((means - truth[:, 0]) ** 2)))
+        ref = bootstrap_reference(z, 500, seed, model)
+        reference.append(np.sqrt(np.mean((ref - truth[:, 0]) ** 2)))
+    difference = np.array(ours) - np.array(reference)
+    # Paired over the same 20 data sets: the mean difference is within 4 standard errors of 0.
+    standard_error = difference.std(ddof=1) / math.sqrt(len(difference))
+    assert abs(difference.mean()) <= 4 * standard_error, (np.mean(ours), np.mean(reference))
+    assert 2.0 < np.mean(ours) < 8.0
+
+
+def test_same_seed_same_numbers_and_streams_are_per_step():
+    model = models.get("ungm")
+    _, z = model.simulate(30, np.random.default_rng(0))
+    a = [s.mean for s in ParticleFilter(model, z, 200, seed=3)]
+    b = [s.mean for s in ParticleFilter(model, z, 200, seed=3)]
+    c = [s.mean for s in ParticleFilter(model, z, 200, seed=4)]
+    np.testing.assert_array_equal(a, b)
+    assert not np.array_equal(a, c)
+    first = ParticleFilter(model, z, 200, seed=3)
+    step = next(first)
+    expected = model.initial_particles(200, stream(3, "twin", 1, "entity"))
+    np.testing.assert_array_equal(step.particles, expected)
+
+
+def test_log_weights_survive_an_outlier_at_large_n():
+    model = models.get("ungm")
+    z = np.array([[0.5], [1e4], [2.0]])  # an observation no particle explains: log-likelihoods near -5e7
+    pf = ParticleFilter(model, z, 1_000_000, seed=0)
+    for step in pf:
+        assert np.isfinite(step.weights).all()
+        assert step.weights.sum() == pytest.approx(1.0)
+        assert 1.0 <= step.ess <= 1_000_000
+
+
+def test_every_step_reports_moments_and_interval():
+    model = models.get("ungm")
+    _, z = model.simulate(10, np.random.default_rng(0))
+    for step in ParticleFilter(model, z, 300, seed=0):
+        np.testing.assert_allclose(step.mean, step.weights @ step.particles)
+        assert np.all(step.lower <= step.mean) and np.all(step.mean <= step.upper)
+        np.testing.assert_allclose(step.upper - step.mean, 1.959963984540054 * np.sqrt(step.var))
+
+
+def test_resample_below_skips_resampling_when_ess_is_high():
+    model = models.get("ungm")
+    _, z = model.simulate(50, np.random.default_rng(0))
+    steps = list(ParticleFilter(model, z, 300, seed=0, resample_below=0.5))
+    assert all(s.resampled == (s.ess < 150) for s in steps)
+    assert 0 < sum(s.resampled for s in steps) < 50
+
+
+def test_missing_preprocessor_answer_degrades_the_step_and_resamples_plainly():
+    model = models.get("ungm")
+    _, z = model.simulate(6, np.random.default_rng(0))
+
+    def flaky(step, particles, weights, observation):
+        return None if step % 2 else Preprocessed(particles, weights, "ok")
+
+    steps = list(ParticleFilter(model, z, 100, seed=1, preprocessor=flaky))
+    assert [s.degraded for s in steps] == [True, False] * 3
+    assert all(s.resampled for s in steps)
+    plain = list(ParticleFilter(model, z, 100, seed=1))
+    np.testing.assert_array_equal([s.mean for s in steps], [s.mean for s in plain])
+
+
+def test_filter_rejects_bad_configuration():
+    model = models.get("ungm")
+    with pytest.raises(ValueError, match="unknown resampler 'best'"):
+        ParticleFilter(model, np.zeros(3), 10, resampler="best")
+    with pytest.raises(ValueError, match="n_particles must be at least 1"):
+        ParticleFilter(model, np.zeros(3), 0)
+    with pytest.raises(ValueError, match="observations contain non-finite values"):
+        ParticleFilter(model, np.array([1.0, np.nan]), 10)
+
+
+def test_filter_error_when_every_weight_is_zero():
+    class Impossible(models.GrowthModel):
+        def log_likelihood(self, particles, observation, k):
+            return np.full(particles.shape[0], -np.inf)
+
+    with pytest.raises(FilterError, match="no particle explains the observation"):
+        next(ParticleFilter(Impossible(), np.zeros(2), 10))
+
+
+# --- in-process pipeline ----------------------------------------------------------------
+
+def test_inprocess_pipeline_is_deterministic_and_runs_every_layer():
+    config = RunConfig(particles=300, steps=40, seed=5)
+    a, b = inprocess.run(config), inprocess.run(config)
+    np.testing.assert_array_equal(a.means, b.means)
+    assert len(a.steps) == 40 and a.resamplings == 40 and a.degraded == 0
+    assert all(s.report is not None and s.report.ps == 0.81 for s in a.steps)
+    plain = inprocess.run(config.model_copy(update={"preprocess": False}))
+    np.testing.assert_array_equal(plain.truth, a.truth)  # same scenario stream
+    assert not np.array_equal(plain.means, a.means)      # preprocessing changed the estimates
+
+
+def test_run_config_fails_at_construction():
+    with pytest.raises(ValueError, match="unknown resampler 'fast'"):
+        RunConfig(resampler="fast")
+    with pytest.raises(ValueError, match="unknown model 'lorenz'"):
+        RunConfig(scenario="lorenz")
+    with pytest.raises(ValueError, match="less than or equal to 1"):
+        RunConfig(ps=1.2)
+    with pytest.raises(ValueError, match="should match pattern"):
+        RunConfig(twin="a/b")

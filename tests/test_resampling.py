@@ -1,0 +1,167 @@
+"""Resampling schemes: probability-one facts, then seeded statistics.
+
+Statistical tolerances come from the variance of what is estimated: the mean
+of R i.i.d. offspring counts has standard error sd / sqrt(R), and every
+scheme's per-particle variance is at most the multinomial one,
+N w (1 - w). With Z = 5 and the fixed seeds below, a correct scheme fails
+with probability below 1e-5 per particle.
+"""
+import numpy as np
+import pytest
+
+from entity import resampling as rs
+
+SCHEMES = sorted(rs.RESAMPLERS)
+Z = 5.0
+REPEATS = 4000
+
+
+def skewed_weights(n=40, seed=1):
+    """Strongly skewed weights: a few particles carry most of the mass."""
+    lw = np.random.default_rng(seed).normal(scale=2.0, size=n)
+    w = np.exp(lw)
+    return w / w.sum()
+
+
+def offspring(scheme, weights, repeats, seed):
+    """(repeats, N) offspring counts of ``scheme`` on ``weights``."""
+    rng = np.random.default_rng(seed)
+    n = weights.size
+    return np.array([np.bincount(rs.RESAMPLERS[scheme](weights, rng), minlength=n) for _ in range(repeats)])
+
+
+# --- probability-one facts -------------------------------------------------
+
+@pytest.mark.parametrize("scheme", SCHEMES)
+@pytest.mark.parametrize("n", [1, 2, 7, 49, 1000])
+def test_output_contract(scheme, n):
+    rng = np.random.default_rng(0)
+    w = skewed_weights(n) if n > 1 else np.ones(1)
+    ancestors = rs.RESAMPLERS[scheme](w, rng)
+    assert ancestors.shape == (n,)
+    assert ancestors.dtype == np.int64
+    assert ancestors.min() >= 0 and ancestors.max() < n
+    assert np.all(np.diff(ancestors) >= 0), "ancestors are sorted"
+
+
+@pytest.mark.parametrize("scheme", ["stratified", "systematic", "residual"])
+@pytest.mark.parametrize("n", [3, 49, 1000])
+def test_equal_weights_give_identity(scheme, n):
+    ancestors = rs.RESAMPLERS[scheme](np.full(n, 1.0 / n), np.random.default_rng(3))
+    np.testing.assert_array_equal(ancestors, np.arange(n))
+
+
+@pytest.mark.parametrize("scheme", SCHEMES)
+def test_single_weight_takes_everything(scheme):
+    w = np.zeros(10)
+    w[6] = 1.0
+    np.testing.assert_array_equal(rs.RESAMPLERS[scheme](w, np.random.default_rng(0)), np.full(10, 6))
+
+
+@pytest.mark.parametrize("scheme", SCHEMES)
+def test_zero_weights_are_never_drawn(scheme):
+    rng = np.random.default_rng(5)
+    w = np.zeros(51)
+    w[::2] = skewed_weights(26, seed=2)  # even indices only, including the first and last
+    for _ in range(200):
+        assert np.all(rs.RESAMPLERS[scheme](w, rng) % 2 == 0)
+
+
+def test_systematic_counts_stay_within_floor_and_ceil():
+    w = skewed_weights(40)
+    counts = offspring("systematic", w, 2000, seed=11)
+    n = w.size
+    assert np.all(counts >= np.floor(n * w))
+    assert np.all(counts <= np.ceil(n * w))
+
+
+def test_residual_keeps_the_integer_part():
+    w = skewed_weights(40)
+    counts = offspring("residual", w, 2000, seed=12)
+    assert np.all(counts >= np.floor(w.size * w))
+
+
+@pytest.mark.parametrize("scheme", SCHEMES)
+def test_same_seed_same_ancestors(scheme):
+    w = skewed_weights(500)
+    a = rs.RESAMPLERS[scheme](w, np.random.default_rng(42))
+    b = rs.RESAMPLERS[scheme](w, np.random.default_rng(42))
+    np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.parametrize("scheme", SCHEMES)
+def test_weights_summing_slightly_above_one_stay_in_bounds(scheme):
+    n = 1000
+    w = np.full(n, (1.0 + 9e-7) / n)  # within the accepted tolerance of 1e-6
+    ancestors = rs.RESAMPLERS[scheme](w, np.random.default_rng(0))
+    assert ancestors.shape == (n,) and ancestors.max() < n
+
+
+# --- statistics --------------------------------------------------------------
+
+@pytest.mark.parametrize("scheme", SCHEMES)
+def test_offspring_counts_are_unbiased(scheme):
+    w = skewed_weights(40)
+    n = w.size
+    counts = offspring(scheme, w, REPEATS, seed=100 + SCHEMES.index(scheme))
+    expected = n * w
+    standard_error = np.sqrt(n * w * (1 - w) / REPEATS)
+    deviation = np.abs(counts.mean(axis=0) - expected)
+    worst = int(np.argmax(deviation / np.maximum(standard_error, 1e-12)))
+    assert np.all(deviation <= Z * standard_error + 1e-12), (
+        f"particle {worst}: mean {counts.mean(axis=0)[worst]:.4f}, expected {expected[worst]:.4f}"
+    )
+
+
+def test_multinomial_variance_matches_theory_and_is_the_largest():
+    w = skewed_weights(40)
+    n = w.size
+    variance = {s: offspring(s, w, REPEATS, seed=7).var(axis=0, ddof=1).sum() for s in SCHEMES}
+    theory = float(np.sum(n * w * (1 - w)))
+    # A sample variance over R draws has relative standard error about
+    # sqrt(2 / (R - 1)) for near-normal counts; the sum over particles is no worse.
+    tolerance = Z * np.sqrt(2.0 / (REPEATS - 1)) * theory
+    assert abs(variance["multinomial"] - theory) <= tolerance, (variance, theory)
+    for scheme in ("residual", "stratified", "systematic"):
+        assert variance[scheme] < variance["multinomial"] - tolerance, (scheme, variance)
+    # Systematic counts are floor or ceil of N w_i: the smallest possible variance.
+    frac = n * w - np.floor(n * w)
+    assert variance["systematic"] <= np.sum(frac * (1 - frac)) + tolerance
+
+
+def test_multinomial_draws_are_iid_from_the_weights():
+    """Eq. 26 ordered uniforms: draws of one call follow W (total-variation check)."""
+    w = skewed_weights(20)
+    n_draws = 200_000
+    ancestors = rs.multinomial(np.repeat(w / 10_000, 10_000), np.random.default_rng(9)) // 10_000
+    freq = np.bincount(ancestors, minlength=w.size) / n_draws
+    se = np.sqrt(w * (1 - w) / n_draws)
+    assert np.all(np.abs(freq - w) <= Z * se)
+
+
+# --- bad input ---------------------------------------------------------------
+
+@pytest.mark.parametrize("scheme", SCHEMES)
+@pytest.mark.parametrize("weights, message", [
+    ([], "weights is empty"),
+    ([[0.5, 0.5]], r"weights must be 1-D, got shape \(1, 2\)"),
+    ([0.5, np.nan, 0.5], r"weights contain NaN values at index 1 \(value nan\)"),
+    ([0.5, np.inf], r"weights contain infinite values at index 1"),
+    ([0.7, -0.2, 0.5], r"weights contain negative values at index 1 \(value -0.2\)"),
+    ([0.0, 0.0], r"weights are all zero \(N=2\)"),
+    ([0.2, 0.2], r"weights must sum to 1 .* got sum 0.4"),
+])
+def test_bad_weights_are_named(scheme, weights, message):
+    with pytest.raises(ValueError, match=message):
+        rs.RESAMPLERS[scheme](np.asarray(weights, dtype=float), np.random.default_rng(0))
+
+
+def test_unknown_scheme_is_named():
+    with pytest.raises(ValueError, match="unknown resampler 'sistematic'; expected one of"):
+        rs.get("sistematic")
+
+
+def test_inverse_cdf_picks_the_interval_of_each_point():
+    w = np.array([0.1, 0.0, 0.4, 0.5])
+    points = np.array([0.0, 0.0999, 0.1, 0.49, 0.5, 0.99999])
+    np.testing.assert_array_equal(rs.inverse_cdf(points, w), [0, 0, 2, 2, 3, 3])

@@ -1,0 +1,195 @@
+"""DT preprocessing rules (Eq. 28-30) and the mirror summary."""
+import numpy as np
+import pytest
+
+from information import rules
+from information.mirror import summarise
+
+Z = 5.0
+
+
+def weighted_set(n=2000, d=1, seed=0):
+    rng = np.random.default_rng(seed)
+    w = np.exp(rng.normal(scale=1.5, size=n))
+    return rng.normal(scale=3.0, size=(n, d)), w / w.sum()
+
+
+def redraw(particles, weights, ps, seed, threshold_rule="neff"):
+    """The draws preprocess makes, replayed: partners, r, u, and the split."""
+    rng = np.random.default_rng(seed)
+    limit = rules.threshold(weights, threshold_rule)
+    large = np.flatnonzero(weights > limit)
+    small = np.flatnonzero(weights <= limit)
+    partners = large[rng.integers(large.size, size=small.size)]
+    r = rng.random(small.size)
+    u = rng.random(small.size)
+    return large, small, partners, r, u
+
+
+@pytest.mark.parametrize("d", [1, 3])
+def test_large_weight_particles_are_unchanged(d):
+    x, w = weighted_set(d=d)
+    result = rules.preprocess(x, w, 0.81, np.random.default_rng(1))
+    large = w > result.report.threshold
+    assert large.sum() == result.report.n_large > 0
+    np.testing.assert_array_equal(result.particles[large], x[large])
+    assert result.report.n_processed == (~large).sum() > 0
+    assert np.any(result.particles[~large] != x[~large])
+
+
+def test_inputs_are_not_modified():
+    x, w = weighted_set()
+    x0, w0 = x.copy(), w.copy()
+    rules.preprocess(x, w, 0.5, np.random.default_rng(1), weight_rule="likelihood",
+                     log_likelihood=lambda p: -0.5 * p[:, 0] ** 2)
+    np.testing.assert_array_equal(x, x0)
+    np.testing.assert_array_equal(w, w0)
+
+
+def test_ps_zero_and_r_half_replace_small_particles_by_their_partner():
+    rng = np.random.default_rng(2)
+    x_m, x_l = rng.normal(size=(100, 2)), rng.normal(size=(100, 2))
+    out = rules.apply_rules(x_m, x_l, np.full(100, 0.5), rng.random(100), 0.0)
+    np.testing.assert_array_equal(out, x_m)
+
+
+def test_apply_rules_is_eq29_then_eq30():
+    rng = np.random.default_rng(3)
+    x_m, x_l = rng.normal(size=(1000, 2)), rng.normal(size=(1000, 2))
+    r, u, ps = rng.random(1000), rng.random(1000), 0.6
+    x_hat = x_m + (2 * r[:, None] - 1) * x_l                                      # Eq. 29
+    x_tilde = np.where((u <= ps)[:, None], (1 - r[:, None]) * x_m + r[:, None] * x_hat, x_hat)  # Eq. 30
+    np.testing.assert_allclose(rules.apply_rules(x_m, x_l, r, u, ps), x_tilde, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("d", [1, 2])
+def test_preprocess_applies_the_rules_with_its_documented_draws(d):
+    x, w = weighted_set(d=d)
+    result = rules.preprocess(x, w, 0.3, np.random.default_rng(4))
+    large, small, partners, r, u = redraw(x, w, 0.3, seed=4)
+    expected = x.copy()
+    expected[small] = rules.apply_rules(x[partners], x[small], r, u, 0.3)
+    np.testing.assert_array_equal(result.particles, expected)
+    assert result.report.n_mixed == int(np.sum(u <= 0.3))
+
+
+@pytest.mark.parametrize("ps", [0.0, 0.81, 1.0])
+def test_processed_particles_lie_in_the_theorem_interval(ps):
+    """Section 3: x_tilde lies between x_m - |x_l| and x_m + |x_l| (per component)."""
+    x, w = weighted_set(d=2, seed=5)
+    result = rules.preprocess(x, w, ps, np.random.default_rng(6))
+    _, small, partners, _, _ = redraw(x, w, ps, seed=6)
+    distance = np.abs(result.particles[small] - x[partners])
+    assert np.all(distance <= np.abs(x[small]) * (1 + 1e-12))
+
+
+@pytest.mark.parametrize("ps", [0.1, 0.5, 0.81])
+def test_fraction_on_the_first_branch_matches_ps(ps):
+    x, w = weighted_set(n=20_000, seed=7)
+    report = rules.preprocess(x, w, ps, np.random.default_rng(8)).report
+    n = report.n_processed
+    assert report.n_mixed + report.n_plain == n
+    assert abs(report.n_mixed / n - ps) <= Z * np.sqrt(ps * (1 - ps) / n)
+
+
+def test_ps_bounds_are_all_or_nothing():
+    x, w = weighted_set()
+    assert rules.preprocess(x, w, 1.0, np.random.default_rng(0)).report.n_plain == 0
+    assert rules.preprocess(x, w, 0.0, np.random.default_rng(0)).report.n_mixed <= 1  # u == 0 has prob 2**-53
+
+
+def test_partners_are_uniform_over_the_large_set():
+    x = np.arange(4000, dtype=float)
+    w = np.where(np.arange(4000) < 10, 1.0, 1e-9)
+    w /= w.sum()
+    _, _, partners, _, _ = redraw(x[:, None], w, 0.5, seed=9, threshold_rule=1e-6)
+    counts = np.bincount(partners, minlength=10)[:10]
+    expected = partners.size / 10
+    assert np.all(np.abs(counts - expected) <= Z * np.sqrt(expected * 0.9))
+
+
+def test_same_seed_same_numbers():
+    x, w = weighted_set()
+    a = rules.preprocess(x, w, 0.81, np.random.default_rng(10))
+    b = rules.preprocess(x, w, 0.81, np.random.default_rng(10))
+    np.testing.assert_array_equal(a.particles, b.particles)
+    assert a.report == b.report
+
+
+def test_neff_threshold_marks_round_ess_particles_as_large():
+    x, w = weighted_set(n=1000)
+    limit = rules.threshold(w, "neff")
+    assert np.sum(w > limit) == round(1.0 / np.sum(w ** 2))
+
+
+def test_threshold_rules():
+    w = np.array([0.1, 0.2, 0.3, 0.4])
+    assert rules.threshold(w, "inverse-n") == 0.25
+    assert rules.threshold(w, 0.15) == 0.15
+    assert rules.threshold(np.full(8, 1 / 8), "neff") == 0.0  # ESS = N: all large, nothing to process
+    with pytest.raises(ValueError, match="unknown threshold rule 'median'"):
+        rules.threshold(w, "median")
+
+
+@pytest.mark.parametrize("n", [1000, 100_000])
+@pytest.mark.parametrize("k", [1, 2, 17, 500, 1000])
+def test_kth_largest_matches_sorting(n, k):
+    values = np.random.default_rng(11).exponential(size=n) ** 3
+    values[::7] = 0.0
+    assert rules.kth_largest(values, k) == np.sort(values)[-k]
+
+
+def test_likelihood_rule_reweights_processed_particles_by_the_likelihood_ratio():
+    x, w = weighted_set(n=500, seed=12)
+
+    def log_likelihood(p):
+        return -0.5 * (p[:, 0] - 1.0) ** 2
+
+    result = rules.preprocess(x, w, 0.81, np.random.default_rng(13), weight_rule="likelihood",
+                              log_likelihood=log_likelihood)
+    small = w <= result.report.threshold
+    unnormalised = w.copy()
+    unnormalised[small] *= np.exp(log_likelihood(result.particles[small]) - log_likelihood(x[small]))
+    np.testing.assert_allclose(result.weights, unnormalised / unnormalised.sum(), rtol=1e-10)
+    inherit = rules.preprocess(x, w, 0.81, np.random.default_rng(13))
+    np.testing.assert_array_equal(inherit.weights, w)
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    (dict(ps=1.5), r"PS must be in \[0, 1\], got 1.5"),
+    (dict(ps=float("nan")), r"PS must be in \[0, 1\], got nan"),
+    (dict(weights=np.array([0.5, np.nan, 0.5])), "weights contain NaN values at index 1"),
+    (dict(particles=np.zeros(4)), "particles and weights differ in length: 4 particles, 3 weights"),
+    (dict(weight_rule="bayes"), "unknown weight rule 'bayes'"),
+    (dict(weight_rule="likelihood"), "weight rule 'likelihood' needs the observation's log_likelihood"),
+])
+def test_bad_input_is_named(kwargs, message):
+    args = dict(particles=np.zeros(3), weights=np.full(3, 1 / 3), ps=0.5)
+    args.update(kwargs)
+    weight_rule = args.pop("weight_rule", "inherit")
+    with pytest.raises(ValueError, match=message):
+        rules.preprocess(args["particles"], args["weights"], args["ps"], np.random.default_rng(0),
+                         weight_rule=weight_rule)
+
+
+# --- mirror --------------------------------------------------------------------
+
+def test_mirror_of_uniform_weights():
+    s = summarise(np.arange(100.0), np.full(100, 0.01))
+    assert s.ess == pytest.approx(100) and s.ess_ratio == pytest.approx(1)
+    assert s.entropy_ratio == pytest.approx(1)
+    assert s.distinct == 100 and s.n_above_threshold == 100
+
+
+def test_mirror_of_a_collapsed_set():
+    w = np.zeros(100)
+    w[3] = 1.0
+    s = summarise(np.repeat([[1.0, 2.0]], 100, axis=0), w)
+    assert s.ess == 1.0 and s.entropy == 0.0 and s.max_weight == 1.0
+    assert s.distinct == 1 and s.n_above_threshold == 1
+    assert s.q50 == 0.0
+
+
+def test_mirror_rejects_bad_weights():
+    with pytest.raises(ValueError, match="weights contain negative values"):
+        summarise(np.zeros(2), np.array([1.5, -0.5]))

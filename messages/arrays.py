@@ -25,7 +25,7 @@ def _describe(values: np.ndarray, mask: np.ndarray) -> str:
     bad = np.flatnonzero(mask)
     first = int(bad[0])
     more = f" and {bad.size - 1} more" if bad.size > 1 else ""
-    return f"at index {first} (value {values.flat[first]!r}){more}"
+    return f"at index {first} (value {float(values.flat[first])!r}){more}"
 
 
 def check_weights(weights, *, normalised: bool = True, name: str = "weights") -> np.ndarray:

@@ -8,11 +8,12 @@ bad resampler or model name fails at startup, not at step 500::
 """
 from __future__ import annotations
 
+import argparse
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
-__all__ = ["RunConfig", "ID_PATTERN"]
+__all__ = ["RunConfig", "ID_PATTERN", "add_run_arguments", "config_from_args"]
 
 #: Run and twin ids: safe inside a Zenoh key expression and a file name.
 ID_PATTERN = r"^[A-Za-z0-9_.-]+$"
@@ -78,3 +79,50 @@ class RunConfig(BaseModel):
         if not isinstance(value, str) and not value >= 0:
             raise ValueError(f"threshold W must be non-negative, got {value!r}")
         return value
+
+
+def add_run_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of one run, shared by every command that starts a run."""
+    from entity import models, resampling
+    from information.rules import WEIGHT_RULES
+    from system import policy
+
+    defaults = RunConfig()
+    group = parser.add_argument_group("scenario and filter")
+    group.add_argument("--scenario", default=defaults.scenario, choices=sorted(models.MODELS),
+                       help="state-space model: 'ungm' is Eq. 35 with 25 (the standard benchmark), "
+                            "'ungm-printed' Eq. 35 as printed with 0.25 (default: %(default)s)")
+    group.add_argument("--particles", "-n", type=int, default=defaults.particles,
+                       help="number of particles N (default: %(default)s)")
+    group.add_argument("--steps", "-T", type=int, default=defaults.steps,
+                       help="number of time points (default: %(default)s)")
+    group.add_argument("--resampler", default=defaults.resampler, choices=sorted(resampling.RESAMPLERS),
+                       help="traditional resampling run after preprocessing (default: %(default)s)")
+    group.add_argument("--resample-below", type=float, default=None, metavar="FRACTION",
+                       help="resample only when ESS < FRACTION * N (default: every step, as the paper)")
+    group.add_argument("--seed", type=int, default=defaults.seed, help="root seed (default: %(default)s)")
+    group.add_argument("--twin", default=defaults.twin, help="twin id (default: %(default)s)")
+    group.add_argument("--run-id", default=defaults.run_id, help="run id (default: %(default)s)")
+    group = parser.add_argument_group("digital twin")
+    group.add_argument("--no-preprocess", dest="preprocess", action="store_false",
+                       help="turn the DT preprocessing off: the plain traditional filter")
+    group.add_argument("--threshold", default=defaults.threshold,
+                       help="W of Eq. 28: 'neff', 'inverse-n' or a number (default: %(default)s)")
+    group.add_argument("--weight-rule", default=defaults.weight_rule, choices=WEIGHT_RULES,
+                       help="weights of processed particles (default: %(default)s)")
+    group.add_argument("--policy", default=defaults.policy, choices=sorted(policy.POLICIES),
+                       help="PS policy of the system layer (default: %(default)s)")
+    group.add_argument("--ps", type=float, default=defaults.ps,
+                       help="PS of the fixed policy, initial PS of the others (default: %(default)s)")
+
+
+def config_from_args(args: argparse.Namespace) -> RunConfig:
+    """The RunConfig of parsed arguments; raises ValueError naming a bad option."""
+    try:
+        return RunConfig(scenario=args.scenario, particles=args.particles, steps=args.steps,
+                         resampler=args.resampler, resample_below=args.resample_below,
+                         preprocess=args.preprocess, threshold=args.threshold, weight_rule=args.weight_rule,
+                         policy=args.policy, ps=args.ps, seed=args.seed, twin=args.twin, run_id=args.run_id)
+    except ValidationError as error:
+        problems = "; ".join(f"--{'-'.join(str(p) for p in e['loc'])}: {e['msg']}" for e in error.errors())
+        raise ValueError(problems.replace("_", "-")) from None

@@ -6,59 +6,13 @@ summary. ``dtpf --help`` and ``dtpf run --help`` explain every option.
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
+from pathlib import Path
 
-from pydantic import ValidationError
+from messages.config import add_run_arguments, config_from_args
 
-from entity import models, resampling
-from information.rules import WEIGHT_RULES
-from messages.config import RunConfig
-from system import policy
-
-__all__ = ["main", "add_run_arguments", "config_from_args"]
-
-
-def add_run_arguments(parser: argparse.ArgumentParser) -> None:
-    """Options of one run, shared by every command that starts a run."""
-    defaults = RunConfig()
-    group = parser.add_argument_group("scenario and filter")
-    group.add_argument("--scenario", default=defaults.scenario, choices=sorted(models.MODELS),
-                       help="state-space model: 'ungm' is Eq. 35 with 25 (the standard benchmark), "
-                            "'ungm-printed' Eq. 35 as printed with 0.25 (default: %(default)s)")
-    group.add_argument("--particles", "-n", type=int, default=defaults.particles,
-                       help="number of particles N (default: %(default)s)")
-    group.add_argument("--steps", "-T", type=int, default=defaults.steps,
-                       help="number of time points (default: %(default)s)")
-    group.add_argument("--resampler", default=defaults.resampler, choices=sorted(resampling.RESAMPLERS),
-                       help="traditional resampling run after preprocessing (default: %(default)s)")
-    group.add_argument("--resample-below", type=float, default=None, metavar="FRACTION",
-                       help="resample only when ESS < FRACTION * N (default: every step, as the paper)")
-    group.add_argument("--seed", type=int, default=defaults.seed, help="root seed (default: %(default)s)")
-    group.add_argument("--twin", default=defaults.twin, help="twin id (default: %(default)s)")
-    group.add_argument("--run-id", default=defaults.run_id, help="run id (default: %(default)s)")
-    group = parser.add_argument_group("digital twin")
-    group.add_argument("--no-preprocess", dest="preprocess", action="store_false",
-                       help="turn the DT preprocessing off: the plain traditional filter")
-    group.add_argument("--threshold", default=defaults.threshold,
-                       help="W of Eq. 28: 'neff', 'inverse-n' or a number (default: %(default)s)")
-    group.add_argument("--weight-rule", default=defaults.weight_rule, choices=WEIGHT_RULES,
-                       help="weights of processed particles (default: %(default)s)")
-    group.add_argument("--policy", default=defaults.policy, choices=sorted(policy.POLICIES),
-                       help="PS policy of the system layer (default: %(default)s)")
-    group.add_argument("--ps", type=float, default=defaults.ps,
-                       help="PS of the fixed policy, initial PS of the others (default: %(default)s)")
-
-
-def config_from_args(args: argparse.Namespace) -> RunConfig:
-    """The RunConfig of parsed arguments; raises ValueError naming a bad option."""
-    try:
-        return RunConfig(scenario=args.scenario, particles=args.particles, steps=args.steps,
-                         resampler=args.resampler, resample_below=args.resample_below,
-                         preprocess=args.preprocess, threshold=args.threshold, weight_rule=args.weight_rule,
-                         policy=args.policy, ps=args.ps, seed=args.seed, twin=args.twin, run_id=args.run_id)
-    except ValidationError as error:
-        problems = "; ".join(f"--{'-'.join(str(p) for p in e['loc'])}: {e['msg']}" for e in error.errors())
-        raise ValueError(problems.replace("_", "-")) from None
+__all__ = ["main"]
 
 
 class Progress:
@@ -102,6 +56,28 @@ def cmd_run(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_launch(args: argparse.Namespace) -> int:
+    from scripts.launch import LaunchError, launch
+
+    config = config_from_args(args)
+    signal.signal(signal.SIGTERM, _interrupt)
+    print(f"dtpf: launching recorder, system, information and entity for twin {config.twin} "
+          f"(embedded Zenoh on 127.0.0.1)", file=sys.stderr)
+    try:
+        result = launch(config, log_path=args.log, port=args.port, timeout=args.timeout,
+                        startup_timeout=args.startup_timeout, log_level=args.log_level,
+                        progress=None if args.quiet else Progress())
+    except LaunchError as error:
+        print(f"dtpf launch: error: {error}", file=sys.stderr)
+        return 1
+    print(result.summary())
+    return 130 if result.interrupted else 0
+
+
+def _interrupt(signum, frame):
+    raise KeyboardInterrupt
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="dtpf",
@@ -115,6 +91,27 @@ def build_parser() -> argparse.ArgumentParser:
     add_run_arguments(run)
     run.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
     run.set_defaults(handler=cmd_run)
+
+    launch = commands.add_parser(
+        "launch", help="launch the three layer services and the recorder over an embedded Zenoh",
+        description="Start the recorder, system, information and entity services as separate processes, "
+                    "connected through a Zenoh router embedded in this process on a free loopback port, run "
+                    "the scenario in lockstep, record every message to MCAP and print a summary. Ctrl-C stops "
+                    "every service and leaves a readable log.")
+    add_run_arguments(launch)
+    group = launch.add_argument_group("launch")
+    group.add_argument("--log", "-o", type=Path, default=None, metavar="PATH",
+                       help="MCAP file to write (default: runs/<twin>-<run-id>-<date-time>.mcap)")
+    group.add_argument("--port", type=int, default=None,
+                       help="loopback port of the embedded Zenoh router (default: a free one)")
+    group.add_argument("--timeout", type=float, default=2.0, metavar="SECONDS",
+                       help="lockstep wait before a step goes on without the other layer (default: %(default)s)")
+    group.add_argument("--startup-timeout", type=float, default=20.0, metavar="SECONDS",
+                       help="wait at most this long for the services to come up (default: %(default)s)")
+    group.add_argument("--log-level", default="WARNING", choices=["DEBUG", "INFO", "WARNING", "ERROR"],
+                       help="logging level of the services on stderr (default: %(default)s)")
+    group.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
+    launch.set_defaults(handler=cmd_launch)
     return parser
 
 

@@ -1,0 +1,104 @@
+"""Entity service: the particle filter as a process of its own.
+
+Each step it publishes the propagated particle set on
+``dtpf/<twin>/entity/particles``, waits (up to ``--timeout``) for the
+preprocessed set of the same run and step on
+``dtpf/<twin>/information/preprocessed``, resamples, and publishes the
+estimate on ``dtpf/<twin>/entity/estimate``. A missing or late answer never
+stalls the filter: that step falls back to plain resampling and its estimate
+says ``degraded``.
+
+Run ``python -m entity.service --help`` for the options.
+"""
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+import zenoh
+
+from entity import models
+from entity.filter import ParticleFilter, Preprocessed
+from information.rules import PreprocessReport
+from messages.bus import add_zenoh_arguments
+from messages.config import RunConfig, add_run_arguments
+from messages.models import Estimate, ParticleSet, ParticleSetKind
+from messages.service import ServiceShell, add_service_arguments, run_service
+from messages.streams import stream
+
+__all__ = ["ZenohTwin", "main"]
+
+
+class ZenohTwin:
+    """The filter's preprocessor hook over Zenoh: publish the set, wait for the answer."""
+
+    def __init__(self, shell: ServiceShell, timeout: float):
+        self.shell = shell
+        self.timeout = timeout
+        self.answers = shell.inbox("information", "preprocessed")
+
+    def __call__(self, step, particles, weights, observation) -> Preprocessed | None:
+        shell = self.shell
+        shell.publish(ParticleSet(**shell.header(step), kind=ParticleSetKind.PROPAGATED, particles=particles,
+                                  weights=weights, observation=[float(v) for v in observation]))
+        deadline = time.monotonic() + self.timeout
+        while not shell.stopping:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                break
+            answer = shell.receive(self.answers.get(timeout=min(remaining, 0.2)), ParticleSet)
+            if answer is None:
+                continue
+            if answer.step != step:
+                shell.log.debug("ignored a late preprocessed set of step %d at step %d", answer.step, step)
+                continue
+            report = PreprocessReport(answer.threshold, answer.n_large, answer.n_processed,
+                                      answer.n_mixed, answer.n_plain, answer.ps)
+            return Preprocessed(answer.particles, answer.weights, report)
+        shell.log.warning("step %d: no preprocessed set within %.1f s, plain resampling", step, self.timeout)
+        return None
+
+
+def main(config: RunConfig, zenoh_config: zenoh.Config, args: argparse.Namespace) -> int:
+    """Run the filter of ``config`` to the end (or until SIGINT/SIGTERM)."""
+    model = models.get(config.scenario)
+    truth, observations = model.simulate(config.steps, stream(config.seed, config.twin, 0, "scenario"))
+    with ServiceShell("entity", config, zenoh_config) as shell:
+        wait_for = args.wait_for if args.wait_for is not None else (
+            ["information", "system"] if config.preprocess else [])
+        shell.wait_for_layers(wait_for, args.startup_timeout)
+        twin = ZenohTwin(shell, args.timeout) if config.preprocess else None
+        pf = ParticleFilter(model, observations, config.particles, resampler=config.resampler,
+                            resample_below=config.resample_below, seed=config.seed, twin=config.twin,
+                            preprocessor=twin)
+        shell.running()
+        for step in pf:
+            report = step.report
+            shell.publish(Estimate(
+                **shell.header(step.step), mean=step.mean.tolist(), var=step.var.tolist(),
+                lower=step.lower.tolist(), upper=step.upper.tolist(), ess=step.ess,
+                ess_ratio=step.ess / config.particles, resampled=step.resampled, degraded=step.degraded,
+                truth=truth[step.step - 1].tolist(), observation=observations[step.step - 1].tolist(),
+                ps=report.ps if report is not None else None))
+            if shell.stopping:
+                shell.log.info("stopped after step %d of %d", step.step, pf.steps)
+                return 130
+        shell.log.info("finished %d steps", pf.steps)
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="python -m entity.service",
+        description="dtpf entity layer: runs the particle filter on a scenario, publishes each step's "
+                    "particle set and estimate, and resamples the preprocessed set the information layer "
+                    "sends back.")
+    add_run_arguments(parser)
+    add_service_arguments(parser)
+    add_zenoh_arguments(parser)
+    return parser
+
+
+if __name__ == "__main__":
+    raise SystemExit(run_service("entity", main, build_parser()))

@@ -1,0 +1,109 @@
+"""Information service: the mirror and the preprocessing rules as a process.
+
+For each particle set on ``dtpf/<twin>/entity/particles`` it applies Eq. 28-30
+with the PS in force and publishes the preprocessed set on
+``dtpf/<twin>/information/preprocessed`` and the weight state on
+``dtpf/<twin>/information/weight_state``. PS commands arrive on
+``dtpf/<twin>/system/ps``; before step k it waits (up to ``--timeout``) for
+the decision the system layer made at step k - 1, and keeps the last PS if
+none comes.
+
+Run ``python -m information.service --help`` for the options.
+"""
+from __future__ import annotations
+
+import argparse
+import time
+
+import zenoh
+
+from entity import models
+from information.layer import InformationLayer
+from messages.bus import add_zenoh_arguments
+from messages.config import RunConfig, add_run_arguments
+from messages.models import ParticleSet, ParticleSetKind, PSCommand, WeightState
+from messages.service import ServiceShell, add_service_arguments, run_service
+
+__all__ = ["main"]
+
+
+class PSInbox:
+    """PS commands of this run, applied to the layer in the order of their steps."""
+
+    def __init__(self, shell: ServiceShell, layer: InformationLayer):
+        self.shell = shell
+        self.layer = layer
+        self.inbox = shell.inbox("system", "ps")
+        self.latest_step = 0  # step of the latest decision received
+
+    def drain(self, timeout: float = 0.0) -> bool:
+        """Apply every queued command; wait up to ``timeout`` for the first. True if any came."""
+        got = False
+        item = self.inbox.get(timeout=timeout) if timeout > 0 else self.inbox.get(timeout=0)
+        while item is not None:
+            command = self.shell.receive(item, PSCommand)
+            if command is not None:
+                self.layer.set_ps(command.ps, command.applies_from_step)
+                self.latest_step = max(self.latest_step, command.step)
+                got = True
+            item = self.inbox.get(timeout=0)
+        return got
+
+    def wait_for_decision(self, step: int, timeout: float) -> bool:
+        """Wait until the decision made at ``step`` has arrived; False on timeout."""
+        deadline = time.monotonic() + timeout
+        self.drain()
+        while self.latest_step < step and not self.shell.stopping:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0 or "system" not in self.shell.presence.alive:
+                return False
+            self.drain(timeout=min(remaining, 0.2))
+        return self.latest_step >= step
+
+
+def main(config: RunConfig, zenoh_config: zenoh.Config, args: argparse.Namespace) -> int:
+    """Serve preprocessing for the twin of ``config`` until SIGINT/SIGTERM."""
+    model = models.get(config.scenario)
+    layer = InformationLayer(model, ps=config.ps, threshold_rule=config.threshold,
+                             weight_rule=config.weight_rule, seed=config.seed, twin=config.twin)
+    with ServiceShell("information", config, zenoh_config) as shell:
+        particle_sets = shell.inbox("entity", "particles")
+        commands = PSInbox(shell, layer)
+        published: set[int] = set()  # steps whose weight state this process sent
+        shell.running()
+        while not shell.stopping:
+            message = shell.receive(particle_sets.get(timeout=0.2), ParticleSet)
+            if message is None:
+                continue
+            step = message.step
+            # The system decides on the weight state we sent; after a restart there is none to wait for.
+            if step - 1 in published and not commands.wait_for_decision(step - 1, args.timeout):
+                shell.log.warning("step %d: no PS decision of step %d within %.1f s, keeping PS = %g",
+                                  step, step - 1, args.timeout, layer.ps)
+            out = layer.process(step, message.particles, message.weights, message.observation)
+            result, summary, report = out.preprocessed, out.summary, out.preprocessed.report
+            counts = dict(n_large=report.n_large, n_processed=report.n_processed,
+                          n_mixed=report.n_mixed, n_plain=report.n_plain)
+            shell.publish(ParticleSet(**shell.header(step), kind=ParticleSetKind.PREPROCESSED,
+                                      particles=result.particles, weights=result.weights,
+                                      observation=message.observation, ps=report.ps,
+                                      threshold=min(report.threshold, 1.0), **counts))
+            shell.publish(WeightState(**shell.header(step), **summary.as_dict(), ps=report.ps, **counts))
+            published.add(step)
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="python -m information.service",
+        description="dtpf information layer: mirrors the entity's particle sets, moves small-weight "
+                    "particles towards large-weight ones (Eq. 28-30) with the PS in force, and reports "
+                    "the weight state to the system layer.")
+    add_run_arguments(parser)
+    add_service_arguments(parser)
+    add_zenoh_arguments(parser)
+    return parser
+
+
+if __name__ == "__main__":
+    raise SystemExit(run_service("information", main, build_parser()))

@@ -1,0 +1,129 @@
+"""Zenoh key expressions ``dtpf/<twin>/<layer>/<topic>`` and what travels on them.
+
+The key expression of a message is also its MCAP topic. Build and read keys
+here rather than with f-strings, so a bad twin id or an unknown layer fails
+with a message that says so::
+
+    from messages import keys
+    keys.key("ungm-1", "entity", "particles")   # 'dtpf/ungm-1/entity/particles'
+    keys.parse("dtpf/ungm-1/entity/particles")  # ('ungm-1', Layer.ENTITY, 'particles')
+    keys.topic_of("dtpf/ungm-1/entity/particles").message   # ParticleSet
+    keys.twin_pattern("ungm-1")                 # 'dtpf/ungm-1/**'
+
+:data:`TOPICS` is the table of known topics and their message class.
+"""
+from __future__ import annotations
+
+from typing import NamedTuple
+
+from messages.models import (
+    Estimate,
+    Layer,
+    Message,
+    ParticleSet,
+    ParticleSetKind,
+    PSCommand,
+    Status,
+    WeightState,
+    check_id,
+)
+
+#: First chunk of every dtpf key expression.
+PREFIX = "dtpf"
+#: Subscribe pattern for every message of every twin.
+ALL = f"{PREFIX}/**"
+
+
+class Topic(NamedTuple):
+    """One known topic: where it lives and what travels on it."""
+
+    layer: Layer
+    name: str
+    message: type[Message]
+    kind: ParticleSetKind | None = None  #: for ParticleSet topics, the kind they carry
+
+    def key(self, twin: str) -> str:
+        """The key expression of this topic for one twin."""
+        return key(twin, self.layer, self.name)
+
+
+#: The known topics, by (layer, topic name).
+TOPICS: dict[tuple[Layer, str], Topic] = {
+    (t.layer, t.name): t
+    for t in (
+        Topic(Layer.ENTITY, "particles", ParticleSet, ParticleSetKind.PROPAGATED),
+        Topic(Layer.INFORMATION, "preprocessed", ParticleSet, ParticleSetKind.PREPROCESSED),
+        Topic(Layer.INFORMATION, "weight_state", WeightState),
+        Topic(Layer.SYSTEM, "ps", PSCommand),
+        Topic(Layer.ENTITY, "estimate", Estimate),
+        *(Topic(layer, "status", Status) for layer in Layer),
+    )
+}
+
+
+def check_layer(layer: str) -> Layer:
+    """``layer`` as a :class:`Layer`, or ValueError listing the valid ones."""
+    try:
+        return Layer(layer)
+    except ValueError:
+        valid = ", ".join(item.value for item in Layer)
+        raise ValueError(f"unknown layer {layer!r}; expected one of {valid}") from None
+
+
+def check_topic_name(topic: str) -> str:
+    """``topic`` if it is a valid topic chunk (same characters as ids), else ValueError."""
+    return check_id(topic, "topic")
+
+
+def key(twin: str, layer: str, topic: str) -> str:
+    """The key expression ``dtpf/<twin>/<layer>/<topic>``.
+
+    ``topic`` need not be in :data:`TOPICS` (e.g. liveliness tokens), but
+    must be a single chunk of letters, digits, '_', '.', '-'.
+    """
+    return f"{PREFIX}/{check_id(twin, 'twin id')}/{check_layer(layer).value}/{check_topic_name(topic)}"
+
+
+def parse(key_expr: str) -> tuple[str, Layer, str]:
+    """Split ``dtpf/<twin>/<layer>/<topic>`` into (twin, layer, topic).
+
+    Raises
+    ------
+    ValueError
+        Naming what is wrong: not a string, wrong prefix, wrong number of
+        chunks, bad twin id, unknown layer or bad topic.
+    """
+    if not isinstance(key_expr, str):
+        raise ValueError(f"key expression must be a string, got {key_expr!r}")
+    chunks = key_expr.split("/")
+    if chunks[0] != PREFIX:
+        raise ValueError(f"key expression must start with '{PREFIX}/', got {key_expr!r}")
+    if len(chunks) != 4:
+        raise ValueError(f"key expression must be '{PREFIX}/<twin>/<layer>/<topic>' (4 chunks), "
+                         f"got {len(chunks)} chunks in {key_expr!r}")
+    _, twin, layer, topic = chunks
+    return check_id(twin, "twin id"), check_layer(layer), check_topic_name(topic)
+
+
+def topic_of(key_expr: str) -> Topic:
+    """The :data:`TOPICS` entry of a key expression, or ValueError if it is not a known topic."""
+    _, layer, topic = parse(key_expr)
+    try:
+        return TOPICS[(layer, topic)]
+    except KeyError:
+        known = ", ".join(f"{t.layer.value}/{t.name}" for t in TOPICS.values())
+        raise ValueError(f"unknown topic {layer.value}/{topic} in {key_expr!r}; known topics: {known}") from None
+
+
+def key_for(message: Message) -> str:
+    """The key expression a message is published on (from its class, layer, kind and twin)."""
+    kind = getattr(message, "kind", None)
+    for topic in TOPICS.values():
+        if isinstance(message, topic.message) and topic.layer == message.layer and topic.kind == kind:
+            return topic.key(message.twin_id)
+    raise ValueError(f"no topic carries a {type(message).__name__} from the {message.layer.value} layer")
+
+
+def twin_pattern(twin: str) -> str:
+    """Subscribe pattern for every message of one twin: ``dtpf/<twin>/**``."""
+    return f"{PREFIX}/{check_id(twin, 'twin id')}/**"

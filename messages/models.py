@@ -1,0 +1,436 @@
+"""The messages the three layers exchange, as validated pydantic models.
+
+Every message carries the same header (:class:`Message`): who sent it (run,
+twin, layer), for which filter step, and when. Construction validates every
+field, so a bad message fails where it is made, not where it is read::
+
+    from messages.models import ParticleSet
+    ps = ParticleSet(run_id="r1", twin_id="ungm-1", step=3, kind="propagated",
+                     particles=x, weights=w, observation=[z])
+
+``stamp`` defaults to :meth:`Time.now` and ``layer`` to the only layer that
+produces the message, but only when a message is built in Python: a decoded
+message must carry both.
+
+Conventions
+-----------
+- Floats are finite everywhere (NaN and inf are rejected at construction:
+  JSON has no spelling for them).
+- Closed sets are string enums (:class:`Layer`, :class:`ParticleSetKind`,
+  :class:`ServiceState`); plain strings with the same value are accepted.
+- Messages are frozen. The arrays of a :class:`ParticleSet` are read-only
+  views; ``ps.particles.copy()`` gives a writable array.
+"""
+from __future__ import annotations
+
+import enum
+import re
+import time
+from typing import Annotated, Any, ClassVar
+
+import numpy as np
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    ConfigDict,
+    Field,
+    PlainSerializer,
+    PlainValidator,
+    ValidationInfo,
+    WithJsonSchema,
+    model_validator,
+)
+
+from messages.arrays import check_particles, check_probability, check_weights
+
+UINT32_MAX = 2**32 - 1
+
+#: Characters allowed in run and twin ids (they become key-expression chunks).
+ID_PATTERN = r"^[A-Za-z0-9_.-]+$"
+_ID_RE = re.compile(ID_PATTERN)
+
+
+class Layer(enum.StrEnum):
+    """The processes that publish messages (a closed set)."""
+
+    ENTITY = "entity"
+    INFORMATION = "information"
+    SYSTEM = "system"
+    RECORDER = "recorder"
+
+
+class ParticleSetKind(enum.StrEnum):
+    """Which point of the filter step a :class:`ParticleSet` comes from."""
+
+    PROPAGATED = "propagated"      #: entity, after propagate + weight + normalise
+    PREPROCESSED = "preprocessed"  #: information, after the rules of Eq. 28-30
+
+
+class ServiceState(enum.StrEnum):
+    """Life cycle of a layer process, as reported by :class:`Status`."""
+
+    STARTING = "starting"
+    RUNNING = "running"
+    FINISHED = "finished"
+    FAILED = "failed"
+
+
+def check_id(value: str, name: str = "id") -> str:
+    """Return ``value`` if it is a valid run or twin id, else raise ValueError.
+
+    Ids are non-empty and use only letters, digits, '_', '.' and '-', so they
+    are safe as one chunk of a Zenoh key expression (no '/', '*', '$', '?', '#').
+    """
+    if not isinstance(value, str):
+        raise ValueError(f"{name} must be a string, got {value!r}")
+    if not _ID_RE.match(value):
+        raise ValueError(f"{name} must be non-empty and use only letters, digits, '_', '.', '-'; got {value!r}")
+    return value
+
+
+def _run_id(value: str) -> str:
+    return check_id(value, "run_id")
+
+
+def _twin_id(value: str) -> str:
+    return check_id(value, "twin_id")
+
+
+def _probability(name: str):
+    def check(value: float | None) -> float | None:
+        return None if value is None else check_probability(value, name)
+    return AfterValidator(check)
+
+
+def _read_only(array: np.ndarray) -> np.ndarray:
+    """A read-only, C-contiguous view (never a write to the caller's flags)."""
+    view = np.ascontiguousarray(array).view()
+    view.flags.writeable = False
+    return view
+
+
+def _particles(value: Any) -> np.ndarray:
+    return _read_only(check_particles(value))
+
+
+def _weights(value: Any) -> np.ndarray:
+    return _read_only(check_weights(value))
+
+
+def _to_list(array: np.ndarray) -> list:
+    return array.tolist()
+
+
+#: (N, d) float64 states; a 1-D input of length N becomes (N, 1).
+ParticlesArray = Annotated[
+    np.ndarray,
+    PlainValidator(_particles),
+    PlainSerializer(_to_list, when_used="json"),
+    WithJsonSchema({"type": "array", "items": {"type": "array", "items": {"type": "number"}}}),
+]
+#: (N,) float64 normalised weights.
+WeightsArray = Annotated[
+    np.ndarray,
+    PlainValidator(_weights),
+    PlainSerializer(_to_list, when_used="json"),
+    WithJsonSchema({"type": "array", "items": {"type": "number"}}),
+]
+RunId = Annotated[str, AfterValidator(_run_id), Field(json_schema_extra={"pattern": ID_PATTERN})]
+TwinId = Annotated[str, AfterValidator(_twin_id), Field(json_schema_extra={"pattern": ID_PATTERN})]
+Count = Annotated[int, Field(ge=0, le=UINT32_MAX)]
+
+_CONFIG = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+
+class Time(BaseModel):
+    """Wall-clock time as Foxglove's ``{sec, nsec}`` (both uint32)."""
+
+    model_config = _CONFIG
+
+    sec: int = Field(ge=0, le=UINT32_MAX, description="Whole seconds since the Unix epoch.")
+    nsec: int = Field(ge=0, le=999_999_999, description="Nanoseconds within the second.")
+
+    @classmethod
+    def from_ns(cls, ns: int) -> "Time":
+        """The time ``ns`` nanoseconds after the Unix epoch."""
+        sec, nsec = divmod(int(ns), 1_000_000_000)
+        return cls(sec=sec, nsec=nsec)
+
+    @classmethod
+    def now(cls) -> "Time":
+        """The current wall-clock time."""
+        return cls.from_ns(time.time_ns())
+
+    def to_ns(self) -> int:
+        """Nanoseconds since the Unix epoch (what MCAP's ``log_time`` takes)."""
+        return self.sec * 1_000_000_000 + self.nsec
+
+
+class Message(BaseModel):
+    """The header every message carries.
+
+    Subclasses with a single producing layer set :attr:`producer`; ``layer``
+    then defaults to it and any other value is rejected.
+    """
+
+    model_config = _CONFIG
+
+    #: The layer that publishes this message class (None: any layer).
+    producer: ClassVar[Layer | None] = None
+
+    run_id: RunId = Field(description="Id of the run (one execution of a scenario).")
+    twin_id: TwinId = Field(description="Id of the digital twin (one filter).")
+    step: Count = Field(description="Filter step k, 1..T; 0 for run-level messages.")
+    stamp: Time = Field(description="Wall-clock time the message was made (publish time).")
+    layer: Layer = Field(description="The layer that produced the message.")
+
+    @classmethod
+    def _expected_layer(cls, data: Any) -> Layer | None:
+        """The only layer allowed to produce this message, given its field values."""
+        return cls.producer
+
+    @model_validator(mode="before")
+    @classmethod
+    def _fill_defaults(cls, data: Any, info: ValidationInfo) -> Any:
+        # Defaults only for messages built in Python: a decoded message that
+        # lacks its stamp or layer is malformed, not "now" or "guessed".
+        if info.mode != "python" or not isinstance(data, dict):
+            return data
+        if "stamp" in data and "layer" in data:
+            return data
+        data = dict(data)
+        if "stamp" not in data:
+            data["stamp"] = Time.now()
+        if "layer" not in data:
+            layer = cls._expected_layer(data)
+            if layer is not None:
+                data["layer"] = layer
+        return data
+
+    @model_validator(mode="after")
+    def _check_layer(self) -> "Message":
+        expected = self._expected_layer(self.__dict__)
+        if expected is not None and self.layer != expected:
+            raise ValueError(
+                f"{type(self).__name__} is produced by the {expected.value} layer, got layer={self.layer.value!r}")
+        return self
+
+
+#: What the rules of Eq. 28-30 did at one step; optional on every message that carries them.
+_COUNT_DOCS = {
+    "n_large": "M: particles with weight above the threshold W, kept as they are (Eq. 28).",
+    "n_processed": "N - M: small-weight particles moved by Eq. 29 (n_mixed + n_plain).",
+    "n_mixed": "Processed particles that took the first branch of Eq. 30 (u <= PS).",
+    "n_plain": "Processed particles that took the second branch of Eq. 30 (u > PS).",
+}
+
+
+def _count(name: str):
+    return Field(default=None, description=_COUNT_DOCS[name])
+
+
+def _check_counts(message: BaseModel, n: int | None) -> None:
+    """n_mixed + n_plain == n_processed and n_large + n_processed <= n, where given."""
+    large, processed, mixed, plain = message.n_large, message.n_processed, message.n_mixed, message.n_plain
+    if None not in (processed, mixed, plain) and mixed + plain != processed:
+        raise ValueError(
+            f"n_mixed + n_plain must equal n_processed, got {mixed} + {plain} != {processed}")
+    if n is not None and None not in (large, processed) and large + processed > n:
+        raise ValueError(f"n_large + n_processed must be at most N={n}, got {large} + {processed}")
+
+
+class ParticleSetHeader(Message):
+    """Everything of a :class:`ParticleSet` but its arrays.
+
+    This is the ``fields`` object of the binary envelope's JSON header (see
+    :mod:`messages.codec`).
+    """
+
+    kind: ParticleSetKind = Field(
+        description="'propagated' (entity, before resampling) or 'preprocessed' (information, after Eq. 28-30).")
+    observation: list[float] = Field(default_factory=list, description="z_k, the observation of this step; may be empty.")
+    ps: Annotated[float | None, _probability("ps")] = Field(
+        default=None, description="PS used to preprocess this set, in [0, 1]; required for preprocessed sets, "
+                                  "absent for propagated ones.")
+    threshold: float | None = Field(
+        default=None, ge=0.0, le=1.0, description="The weight threshold W of Eq. 28 used for preprocessed sets.")
+    n_large: Count | None = _count("n_large")
+    n_processed: Count | None = _count("n_processed")
+    n_mixed: Count | None = _count("n_mixed")
+    n_plain: Count | None = _count("n_plain")
+
+    @classmethod
+    def _expected_layer(cls, data: Any) -> Layer | None:
+        kind = data.get("kind") if isinstance(data, dict) else None
+        if not isinstance(kind, str):
+            return None
+        return {ParticleSetKind.PROPAGATED: Layer.ENTITY,
+                ParticleSetKind.PREPROCESSED: Layer.INFORMATION}.get(kind)
+
+    @model_validator(mode="after")
+    def _check_preprocessing(self) -> "ParticleSetHeader":
+        extras = [name for name in ("ps", "threshold", "n_large", "n_processed", "n_mixed", "n_plain")
+                  if getattr(self, name) is not None]
+        if self.kind == ParticleSetKind.PROPAGATED and extras:
+            raise ValueError(f"a propagated particle set carries no preprocessing fields, got {', '.join(extras)}")
+        if self.kind == ParticleSetKind.PREPROCESSED and self.ps is None:
+            raise ValueError("a preprocessed particle set must say which ps was used, got ps=None")
+        _check_counts(self, None)
+        return self
+
+
+class ParticleSet(ParticleSetHeader):
+    """The particle set of one step: entity -> information (propagated) and back (preprocessed).
+
+    Travels in the binary envelope of :mod:`messages.codec`, not as JSON.
+    ``particles`` is (N, d) float64, ``weights`` (N,) float64, normalised.
+    Both are read-only, C-contiguous views; if the input already was float64
+    and C-contiguous, they share its memory, so do not modify the input after
+    construction.
+    """
+
+    particles: ParticlesArray = Field(description="(N, d) float64 particle states x_k^i.")
+    weights: WeightsArray = Field(description="(N,) float64 normalised weights w_k^i, non-negative, summing to 1.")
+
+    @model_validator(mode="after")
+    def _check_lengths(self) -> "ParticleSet":
+        n_particles, n_weights = self.particles.shape[0], self.weights.shape[0]
+        if n_particles != n_weights:
+            raise ValueError(
+                f"particles and weights differ in length: {n_particles} particles, {n_weights} weights")
+        _check_counts(self, n_weights)
+        return self
+
+    @property
+    def n(self) -> int:
+        """Number of particles N."""
+        return self.weights.shape[0]
+
+    @property
+    def dim(self) -> int:
+        """State dimension d."""
+        return self.particles.shape[1]
+
+    def __eq__(self, other: object) -> bool:
+        # pydantic compares __dict__, which is ambiguous for arrays.
+        if type(other) is not type(self):
+            return NotImplemented
+        for name in type(self).model_fields:
+            mine, theirs = getattr(self, name), getattr(other, name)
+            if isinstance(mine, np.ndarray):
+                if mine.shape != theirs.shape or not np.array_equal(mine, theirs):
+                    return False
+            elif mine != theirs:
+                return False
+        return True
+
+    __hash__ = None  # type: ignore[assignment]
+
+
+class WeightState(Message):
+    """Summary of the mirrored weights at one step: information -> system."""
+
+    producer: ClassVar[Layer] = Layer.INFORMATION
+
+    n: int = Field(ge=1, le=UINT32_MAX, description="Number of particles N.")
+    ess: float = Field(ge=0.0, description="Effective sample size 1 / sum(w^2) (Eq. 25).")
+    ess_ratio: float = Field(ge=0.0, description="ess / N.")
+    entropy: float = Field(ge=0.0, description="Weight entropy -sum(w log w), in nats.")
+    entropy_ratio: float = Field(ge=0.0, description="entropy / log N (1 when N = 1).")
+    max_weight: float = Field(ge=0.0, le=1.0, description="Largest normalised weight.")
+    threshold: float = Field(ge=0.0, le=1.0, description="Weight threshold W of Eq. 28.")
+    n_above_threshold: Count = Field(description="Particles with weight > W.")
+    distinct: int = Field(ge=1, le=UINT32_MAX, description="Number of distinct particle states.")
+    q10: float = Field(ge=0.0, le=1.0, description="10% quantile of the normalised weights.")
+    q50: float = Field(ge=0.0, le=1.0, description="Median of the normalised weights.")
+    q90: float = Field(ge=0.0, le=1.0, description="90% quantile of the normalised weights.")
+    q99: float = Field(ge=0.0, le=1.0, description="99% quantile of the normalised weights.")
+    ps: Annotated[float, _probability("ps")] = Field(description="PS in force at this step, in [0, 1].")
+    n_large: Count | None = _count("n_large")
+    n_processed: Count | None = _count("n_processed")
+    n_mixed: Count | None = _count("n_mixed")
+    n_plain: Count | None = _count("n_plain")
+
+    @model_validator(mode="after")
+    def _check_summary(self) -> "WeightState":
+        for name in ("n_above_threshold", "distinct"):
+            if getattr(self, name) > self.n:
+                raise ValueError(f"{name} must be at most n={self.n}, got {getattr(self, name)}")
+        quantiles = [("q10", self.q10), ("q50", self.q50), ("q90", self.q90), ("q99", self.q99),
+                     ("max_weight", self.max_weight)]
+        for (low_name, low), (high_name, high) in zip(quantiles, quantiles[1:]):
+            if low > high:
+                raise ValueError(f"weight quantiles must not decrease, got {low_name}={low!r} > {high_name}={high!r}")
+        _check_counts(self, self.n)
+        return self
+
+
+class PSCommand(Message):
+    """The PS to use from a given step on, and why: system -> information."""
+
+    producer: ClassVar[Layer] = Layer.SYSTEM
+
+    ps: Annotated[float, _probability("ps")] = Field(description="Preprocessing degree PS, in [0, 1].")
+    applies_from_step: Count = Field(description="First filter step that uses this PS (>= step).")
+    policy: str = Field(min_length=1, description="Name of the policy that chose the PS.")
+    reason: str = Field(description="Why the PS was chosen or changed, in words.")
+    predicted_ess_ratio: float | None = Field(
+        default=None, ge=0.0, description="ESS / N the policy predicts for the next step.")
+    predicted_distinct_ratio: float | None = Field(
+        default=None, ge=0.0, le=1.0, description="Distinct particles / N the policy predicts after resampling.")
+
+    @model_validator(mode="after")
+    def _check_step(self) -> "PSCommand":
+        if self.applies_from_step < self.step:
+            raise ValueError(
+                f"applies_from_step must be >= step, got applies_from_step={self.applies_from_step} < step={self.step}")
+        return self
+
+
+class Estimate(Message):
+    """The state estimate of one step, after resampling: entity -> everyone."""
+
+    producer: ClassVar[Layer] = Layer.ENTITY
+
+    mean: list[float] = Field(min_length=1, description="(d,) weighted mean of the particles.")
+    var: list[Annotated[float, Field(ge=0.0)]] = Field(min_length=1, description="(d,) weighted variance.")
+    lower: list[float] = Field(min_length=1, description="(d,) lower end of the 95% interval.")
+    upper: list[float] = Field(min_length=1, description="(d,) upper end of the 95% interval.")
+    ess: float = Field(ge=0.0, description="Effective sample size before resampling.")
+    ess_ratio: float = Field(ge=0.0, description="ess / N.")
+    resampled: bool = Field(description="True if the particles were resampled at this step.")
+    degraded: bool = Field(
+        description="True if lockstep fell back to plain resampling (no preprocessed set in time).")
+    truth: list[float] | None = Field(default=None, description="(d,) true state, when simulated.")
+    observation: list[float] | None = Field(default=None, description="z_k used at this step.")
+    ps: Annotated[float | None, _probability("ps")] = Field(
+        default=None, description="PS of the preprocessed set that was resampled, if any.")
+
+    @model_validator(mode="after")
+    def _check_shapes(self) -> "Estimate":
+        d = len(self.mean)
+        for name in ("var", "lower", "upper", "truth"):
+            values = getattr(self, name)
+            if values is not None and len(values) != d:
+                raise ValueError(f"{name} must have length d={len(self.mean)} like mean, got {len(values)}")
+        for i, (low, high) in enumerate(zip(self.lower, self.upper)):
+            if low > high:
+                raise ValueError(f"lower must not exceed upper, got lower[{i}]={low!r} > upper[{i}]={high!r}")
+        return self
+
+
+class Status(Message):
+    """Health of one layer process, published periodically and on change."""
+
+    state: ServiceState = Field(description="'starting', 'running', 'finished' or 'failed'.")
+    pid: Count = Field(description="Operating-system process id.")
+    received: Count = Field(description="Messages received so far.")
+    rejected: Count = Field(description="Messages rejected so far (failed to decode or out of order).")
+    last_error: str | None = Field(default=None, description="Text of the last error, if any.")
+    peers_alive: list[Layer] = Field(default_factory=list, description="Layers this process currently sees alive.")
+
+
+#: Every message class, by name.
+MESSAGE_CLASSES: dict[str, type[Message]] = {
+    cls.__name__: cls for cls in (ParticleSet, WeightState, PSCommand, Estimate, Status)
+}

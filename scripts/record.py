@@ -1,0 +1,77 @@
+"""Recorder service: every dtpf message of a twin (or of all twins) into MCAP.
+
+Subscribes to ``dtpf/<twin>/**`` (``--all-twins``: ``dtpf/**``) and writes
+each message as received, bytes untouched, one channel per key expression,
+schemas embedded. SIGINT or SIGTERM: the messages already received are
+written and the file is finished (summary and footer), so the log stays
+readable; a SIGKILL loses at most the last ``--flush-interval`` seconds.
+
+Run ``python -m scripts.record --help`` for the options.
+"""
+from __future__ import annotations
+
+import argparse
+import time
+
+import zenoh
+
+from messages import keys
+from messages.bus import Inbox, add_zenoh_arguments
+from messages.config import RunConfig, add_run_arguments
+from messages.recording import COMPRESSION, McapRecording
+from messages.service import ServiceShell, add_service_arguments, run_service
+
+__all__ = ["main"]
+
+
+def main(config: RunConfig, zenoh_config: zenoh.Config, args: argparse.Namespace) -> int:
+    """Record until SIGINT/SIGTERM."""
+    pattern = keys.ALL if args.all_twins else keys.twin_pattern(config.twin)
+    with McapRecording(args.output, compression=args.compression,
+                       flush_interval=args.flush_interval) as recording, \
+            ServiceShell("recorder", config, zenoh_config) as shell:
+        inbox = Inbox(shell.session, pattern)
+        shell.running()
+        shell.log.info("recording %s into %s", pattern, args.output)
+        while not shell.stopping:
+            item = inbox.get(timeout=0.2)
+            if item is not None:
+                recording.write(item.key, item.payload)
+                shell.received += 1
+            else:
+                recording.flush_if_due()
+        # Stopping: write what already arrived (a short grace period for messages in flight).
+        inbox_deadline = time.monotonic() + args.drain
+        while time.monotonic() < inbox_deadline:
+            item = inbox.get(timeout=0.05)
+            if item is None:
+                break
+            recording.write(item.key, item.payload)
+            shell.received += 1
+        inbox.close()
+        shell.log.info("wrote %d messages to %s", recording.messages, args.output)
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="python -m scripts.record",
+        description="dtpf recorder: writes every message of a twin into an MCAP file, one channel per key "
+                    "expression, schemas embedded.")
+    parser.add_argument("--output", "-o", required=True, help="MCAP file to write")
+    parser.add_argument("--all-twins", action="store_true", help="record dtpf/** instead of one twin")
+    parser.add_argument("--compression", default="lz4", choices=sorted(COMPRESSION),
+                        help="chunk compression (default: %(default)s)")
+    parser.add_argument("--flush-interval", type=float, default=1.0, metavar="SECONDS",
+                        help="flush the open chunk at least this often (default: %(default)s)")
+    parser.add_argument("--drain", type=float, default=2.0, metavar="SECONDS",
+                        help="on SIGINT/SIGTERM, keep writing messages still arriving for at most this "
+                             "long (default: %(default)s)")
+    add_run_arguments(parser)
+    add_service_arguments(parser)
+    add_zenoh_arguments(parser)
+    return parser
+
+
+if __name__ == "__main__":
+    raise SystemExit(run_service("recorder", main, build_parser()))

@@ -37,11 +37,20 @@ class ZenohTwin:
         self.shell = shell
         self.timeout = timeout
         self.answers = shell.inbox("information", "preprocessed")
+        self.information_was_alive = True
 
     def __call__(self, step, particles, weights, observation) -> Preprocessed | None:
         shell = self.shell
+        alive = "information" in shell.presence.alive
+        if not alive and self.information_was_alive:
+            shell.log.warning("step %d: the information layer is gone, plain resampling until it is back", step)
+        elif alive and not self.information_was_alive:
+            shell.log.info("step %d: the information layer is alive, preprocessing again", step)
+        self.information_was_alive = alive
         shell.publish(ParticleSet(**shell.header(step), kind=ParticleSetKind.PROPAGATED, particles=particles,
                                   weights=weights, observation=[float(v) for v in observation]))
+        if not alive:
+            return None  # nobody to wait for: do not stall the filter
         deadline = time.monotonic() + self.timeout
         while not shell.stopping:
             remaining = deadline - time.monotonic()
@@ -73,6 +82,8 @@ def main(config: RunConfig, zenoh_config: zenoh.Config, args: argparse.Namespace
                             resample_below=config.resample_below, seed=config.seed, twin=config.twin,
                             preprocessor=twin)
         shell.running()
+        period = 1.0 / args.rate if args.rate else 0.0
+        next_tick = time.monotonic()
         for step in pf:
             report = step.report
             shell.publish(Estimate(
@@ -84,6 +95,9 @@ def main(config: RunConfig, zenoh_config: zenoh.Config, args: argparse.Namespace
             if shell.stopping:
                 shell.log.info("stopped after step %d of %d", step.step, pf.steps)
                 return 130
+            if period:
+                next_tick += period
+                time.sleep(max(0.0, next_tick - time.monotonic()))
         shell.log.info("finished %d steps", pf.steps)
     return 0
 
@@ -95,6 +109,9 @@ def build_parser() -> argparse.ArgumentParser:
                     "particle set and estimate, and resamples the preprocessed set the information layer "
                     "sends back.")
     add_run_arguments(parser)
+    parser.add_argument("--rate", type=float, default=None, metavar="STEPS_PER_SECOND",
+                        help="run at most this many steps per second, like a sensor delivering "
+                             "observations in real time (default: as fast as possible)")
     add_service_arguments(parser)
     add_zenoh_arguments(parser)
     return parser

@@ -65,7 +65,7 @@ def cmd_launch(args: argparse.Namespace) -> int:
           f"(embedded Zenoh on 127.0.0.1)", file=sys.stderr)
     try:
         result = launch(config, log_path=args.log, port=args.port, timeout=args.timeout,
-                        startup_timeout=args.startup_timeout, log_level=args.log_level,
+                        startup_timeout=args.startup_timeout, log_level=args.log_level, rate=args.rate,
                         progress=None if args.quiet else Progress())
     except LaunchError as error:
         print(f"dtpf launch: error: {error}", file=sys.stderr)
@@ -108,6 +108,9 @@ def build_parser() -> argparse.ArgumentParser:
                        help="lockstep wait before a step goes on without the other layer (default: %(default)s)")
     group.add_argument("--startup-timeout", type=float, default=20.0, metavar="SECONDS",
                        help="wait at most this long for the services to come up (default: %(default)s)")
+    group.add_argument("--rate", type=float, default=None, metavar="STEPS_PER_SECOND",
+                       help="run the entity at most this many steps per second, like a sensor in real time "
+                            "(default: as fast as possible)")
     group.add_argument("--log-level", default="WARNING", choices=["DEBUG", "INFO", "WARNING", "ERROR"],
                        help="logging level of the services on stderr (default: %(default)s)")
     group.add_argument("--quiet", "-q", action="store_true", help="no progress bar")

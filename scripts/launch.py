@@ -85,7 +85,7 @@ def default_log_path(config: RunConfig) -> Path:
 
 
 def service_command(layer: str, config: RunConfig, endpoint: str, *, timeout: float, log_path: Path,
-                    log_level: str) -> list[str]:
+                    log_level: str, rate: float | None = None) -> list[str]:
     """The command line of one child service."""
     command = [sys.executable, "-m", MODULES[layer],
                "--scenario", config.scenario, "--particles", str(config.particles), "--steps", str(config.steps),
@@ -102,6 +102,8 @@ def service_command(layer: str, config: RunConfig, endpoint: str, *, timeout: fl
         wait = ["recorder"] + (["information", "system"] if config.preprocess else [])
         for other in wait:
             command += ["--wait-for", other]
+        if rate:
+            command += ["--rate", repr(rate)]
     if layer == "recorder":
         command += ["--output", str(log_path)]
     return command
@@ -109,9 +111,10 @@ def service_command(layer: str, config: RunConfig, endpoint: str, *, timeout: fl
 
 def launch(config: RunConfig, *, log_path: Path | None = None, port: int | None = None,
            timeout: float = 2.0, startup_timeout: float = 20.0, log_level: str = "WARNING",
-           progress=None, child_output=None) -> LaunchResult:
+           rate: float | None = None, progress=None, child_output=None) -> LaunchResult:
     """Run ``config`` as four processes around an embedded Zenoh router.
 
+    ``rate`` caps the entity's steps per second (None: as fast as it can).
     ``progress(step, total)`` is called for every estimate received.
     ``child_output`` is where the children's stderr goes (default: inherited).
     Raises LaunchError when the router cannot listen or a service fails to start.
@@ -130,10 +133,12 @@ def launch(config: RunConfig, *, log_path: Path | None = None, port: int | None 
         watch = Inbox(router, keys.twin_pattern(config.twin))
         for layer in LAYERS:
             children[layer] = subprocess.Popen(
-                service_command(layer, config, endpoint, timeout=timeout, log_path=log_path, log_level=log_level),
+                service_command(layer, config, endpoint, timeout=timeout, log_path=log_path, log_level=log_level,
+                                rate=rate),
                 stderr=child_output, start_new_session=True)
         entity = children["entity"]
-        deadline = time.monotonic() + startup_timeout + timeout * config.steps + 60.0
+        per_step = timeout + (1.0 / rate if rate else 0.0)
+        deadline = time.monotonic() + startup_timeout + per_step * config.steps + 60.0
         while True:
             for layer, child in children.items():
                 if layer != "entity" and child.poll() is not None:

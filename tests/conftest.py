@@ -1,0 +1,101 @@
+"""Fixtures for tests that start real processes on loopback.
+
+Every process a test starts goes through the ``processes`` fixture, which
+stops it (SIGKILL to its whole process group) when the test ends, pass or
+fail. Every Zenoh session uses explicit 127.0.0.1 endpoints on a free port
+with multicast and gossip scouting off (messages.bus does so by default).
+"""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from messages.bus import Inbox, free_port, open_session, zenoh_config
+from messages.codec import MessageError, decode_for_key
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+class Processes:
+    """Starts service processes and guarantees they are stopped."""
+
+    def __init__(self, log_dir: Path):
+        self.log_dir = log_dir
+        self.started: list[subprocess.Popen] = []
+
+    def start(self, name: str, args: list[str]) -> subprocess.Popen:
+        log = open(self.log_dir / f"{name}-{len(self.started)}.log", "wb")
+        env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+        process = subprocess.Popen([sys.executable, *args], stdout=log, stderr=subprocess.STDOUT, cwd=ROOT,
+                                   env=env, start_new_session=True)
+        process.name = name
+        process.log_path = log.name
+        self.started.append(process)
+        return process
+
+    def output(self, process: subprocess.Popen) -> str:
+        return Path(process.log_path).read_text(errors="replace")
+
+    def stop_all(self) -> None:
+        for process in self.started:
+            if process.poll() is None:
+                try:
+                    os.killpg(process.pid, signal.SIGKILL)
+                except ProcessLookupError:
+                    pass
+                process.wait(timeout=10)
+
+
+@pytest.fixture
+def processes(tmp_path):
+    procs = Processes(tmp_path)
+    yield procs
+    procs.stop_all()
+
+
+class Router:
+    """A Zenoh router on a free loopback port, with an inbox on dtpf/**."""
+
+    def __init__(self):
+        self.port = free_port()
+        self.endpoint = f"tcp/127.0.0.1:{self.port}"
+        self.session = open_session(zenoh_config(mode="router", listen=[self.endpoint]))
+        self.inbox = Inbox(self.session, "dtpf/**")
+        self.messages = []
+
+    def collect(self, until, timeout: float):
+        """Decode messages into ``self.messages`` until ``until(self.messages)`` or the timeout."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if until(self.messages):
+                return True
+            item = self.inbox.get(timeout=0.1)
+            if item is None:
+                continue
+            try:
+                self.messages.append(decode_for_key(item.key, item.payload))
+            except MessageError:
+                pass
+        return until(self.messages)
+
+    def close(self):
+        self.inbox.close()
+        self.session.close()
+
+
+@pytest.fixture
+def router():
+    r = Router()
+    yield r
+    r.close()
+
+
+def service_args(module: str, endpoint: str, *extra: str) -> list[str]:
+    """Command-line arguments of a layer service connected to ``endpoint``."""
+    return ["-m", module, "--connect", endpoint, "--log-level", "INFO", *extra]

@@ -1,0 +1,210 @@
+"""The three layers as real processes over Zenoh on loopback, recorded to MCAP."""
+from __future__ import annotations
+
+import collections
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+
+from messages.config import RunConfig
+from messages.models import Estimate, ParticleSet, Status
+from scripts import inprocess
+from scripts.launch import LaunchError, launch
+from conftest import ROOT, service_args
+
+PER_STEP_TOPICS = ("entity/particles", "information/preprocessed", "information/weight_state",
+                   "system/ps", "entity/estimate")
+
+
+def read_with_mcap_only(path):
+    """Every message of an MCAP file decoded with only mcap, json, numpy and the schemas in the file."""
+    decoded = collections.defaultdict(list)
+    with open(path, "rb") as f:
+        reader = make_reader(f, validate_crcs=True)
+        for schema, channel, message in reader.iter_messages(log_time_order=False):
+            if channel.message_encoding == "json":
+                decoded[channel.topic].append(json.loads(message.data))
+            else:
+                layout = json.loads(schema.data)["x-dtpf-envelope"]
+                data = message.data
+                assert data[:4] == layout["magic"].encode()
+                size = int.from_bytes(data[8:12], "little")
+                header = json.loads(data[12:12 + size])
+                start = (12 + size + layout["alignment"] - 1) // layout["alignment"] * layout["alignment"]
+                arrays = {a["name"]: np.frombuffer(data, layout["dtype"], count=int(np.prod(a["shape"])),
+                                                   offset=start + a["offset"]).reshape(a["shape"])
+                          for a in header["arrays"]}
+                decoded[channel.topic].append({**header["fields"], **arrays})
+    return decoded
+
+
+def test_launch_records_every_step_and_reproduces_the_inprocess_run(tmp_path):
+    config = RunConfig(particles=300, steps=25, seed=11, twin="t-launch")
+    log = tmp_path / "run.mcap"
+    result = launch(config, log_path=log, timeout=5.0)
+    assert result.exit_codes == {"recorder": 0, "system": 0, "information": 0, "entity": 0}
+    reference = inprocess.run(config)
+    means = np.array([e.mean for e in sorted(result.estimates, key=lambda e: e.step)])
+    np.testing.assert_array_equal(means, reference.means)  # number for number
+    assert not any(e.degraded for e in result.estimates)
+
+    decoded = read_with_mcap_only(log)
+    for topic in PER_STEP_TOPICS:
+        steps = [m["step"] for m in decoded[f"dtpf/t-launch/{topic}"]]
+        assert sorted(steps) == list(range(1, 26)), topic
+    particles = sorted(decoded["dtpf/t-launch/entity/particles"], key=lambda m: m["step"])
+    np.testing.assert_array_equal(particles[0]["particles"], reference.steps[0].particles)
+    estimates = sorted(decoded["dtpf/t-launch/entity/estimate"], key=lambda m: m["step"])
+    np.testing.assert_array_equal([e["mean"] for e in estimates], reference.means)
+    assert all(m["ps"] == 0.81 for m in decoded["dtpf/t-launch/system/ps"])
+
+
+def wait_for_step(router, step, timeout, degraded=None):
+    def seen(messages):
+        return any(isinstance(m, Estimate) and m.step >= step and (degraded is None or m.degraded == degraded)
+                   for m in messages)
+    return router.collect(seen, timeout)
+
+
+def test_entity_survives_the_information_layer_being_killed_and_restarted(processes, router, tmp_path):
+    run = ["--particles", "500", "--steps", "150", "--twin", "t-kill", "--seed", "3"]
+    log = tmp_path / "kill.mcap"
+    processes.start("recorder", service_args("scripts.record", router.endpoint, *run, "--output", str(log)))
+    processes.start("system", service_args("system.service", router.endpoint, *run))
+    information = processes.start("information", service_args("information.service", router.endpoint, *run))
+    entity = processes.start("entity", service_args("entity.service", router.endpoint, *run, "--rate", "40",
+                                                    "--timeout", "0.5", "--wait-for", "recorder",
+                                                    "--wait-for", "information", "--wait-for", "system"))
+    assert wait_for_step(router, 20, timeout=60), processes.output(entity)
+    information.kill()
+    information.wait()
+    assert wait_for_step(router, 1, timeout=30, degraded=True), "no degraded step after the kill"
+    processes.start("information", service_args("information.service", router.endpoint, *run))
+    entity.wait(timeout=120)
+    assert entity.returncode == 0, processes.output(entity)
+    router.collect(lambda m: False, timeout=1.0)
+    estimates = sorted((m for m in router.messages if isinstance(m, Estimate)), key=lambda e: e.step)
+    assert [e.step for e in estimates] == list(range(1, 151))
+    degraded = [e.step for e in estimates if e.degraded]
+    assert degraded and degraded[0] > 20
+    assert any(not e.degraded for e in estimates if e.step > degraded[-1]), "preprocessing never came back"
+    assert all(not e.degraded for e in estimates if e.step < 20)
+
+    for process in processes.started:
+        if process.poll() is None:
+            process.send_signal(signal.SIGINT)
+    for process in processes.started:
+        process.wait(timeout=20)
+    recorded = read_with_mcap_only(log)
+    steps = sorted(m["step"] for m in recorded["dtpf/t-kill/entity/estimate"])
+    assert steps == list(range(1, 151))  # the log holds every step the entity made
+    assert sum(m["degraded"] for m in recorded["dtpf/t-kill/entity/estimate"]) == len(degraded)
+
+
+GARBAGE = [
+    b"",
+    b"\x00\xff not a message",
+    b'{"run_id": "run", "twin_id": "t-bad", "step": 1}',                       # JSON missing fields
+    b'{"run_id": "run", "twin_id": "t-bad", "step": -5, "stamp": {"sec": 0, "nsec": 0}}',
+    b"DTPF\x01\x00\x00\x00\xff\xff\xff\x00{",                                  # envelope, header past the end
+]
+
+
+def test_every_service_survives_garbage_and_counts_it(processes, router):
+    import zenoh
+
+    run = ["--particles", "200", "--steps", "60", "--twin", "t-bad"]
+    processes.start("system", service_args("system.service", router.endpoint, *run))
+    processes.start("information", service_args("information.service", router.endpoint, *run))
+    entity = processes.start("entity", service_args("entity.service", router.endpoint, *run, "--rate", "30",
+                                                    "--wait-for", "information", "--wait-for", "system"))
+    assert wait_for_step(router, 5, timeout=60), processes.output(entity)
+    # A valid envelope cut in half: rejected, never half-decoded.
+    truncated = bytearray(_valid_particle_set_payload())
+    bad_keys = ["dtpf/t-bad/entity/particles", "dtpf/t-bad/system/ps", "dtpf/t-bad/information/weight_state",
+                "dtpf/t-bad/information/preprocessed"]
+    for key in bad_keys:
+        publisher = router.session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK)
+        for payload in [*GARBAGE, bytes(truncated[: len(truncated) // 2])]:
+            publisher.put(payload)
+        publisher.undeclare()
+    entity.wait(timeout=120)
+    assert entity.returncode == 0, processes.output(entity)
+    for process in processes.started[:2]:
+        assert process.poll() is None, f"{process.name} died: {processes.output(process)}"
+        process.send_signal(signal.SIGINT)
+        process.wait(timeout=20)
+        assert process.returncode == 0, processes.output(process)
+    router.collect(lambda m: False, timeout=1.0)
+    final = {}
+    for m in router.messages:
+        if isinstance(m, Status):
+            final[m.layer.value] = m
+    sent = len(GARBAGE) + 1
+    assert final["entity"].rejected >= sent            # information/preprocessed
+    assert final["information"].rejected >= 2 * sent   # entity/particles and system/ps
+    assert final["system"].rejected >= sent            # information/weight_state
+    estimates = [m for m in router.messages if isinstance(m, Estimate)]
+    assert sorted(e.step for e in estimates) == list(range(1, 61))
+
+
+def _valid_particle_set_payload() -> bytes:
+    from messages.codec import encode
+
+    return encode(ParticleSet(run_id="run", twin_id="t-bad", step=7, layer="entity", kind="propagated",
+                              particles=np.zeros((10, 1)), weights=np.full(10, 0.1)))
+
+
+def test_sigint_to_the_launcher_stops_every_child_and_leaves_a_readable_log(processes, tmp_path):
+    log = tmp_path / "interrupted.mcap"
+    launcher = processes.start("launcher", ["-m", "scripts.cli", "launch", "--steps", "1000", "--rate", "20",
+                                            "--twin", "t-int", "-o", str(log), "--quiet"])
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and (not log.exists() or log.stat().st_size < 20_000):
+        time.sleep(0.2)
+    time.sleep(1.0)
+    launcher.send_signal(signal.SIGINT)
+    launcher.wait(timeout=60)
+    assert launcher.returncode == 130, processes.output(launcher)
+    decoded = read_with_mcap_only(log)
+    pids = {m["pid"] for topic, ms in decoded.items() if topic.endswith("/status") for m in ms}
+    assert len(pids) == 4, decoded.keys()
+    for pid in pids:
+        with pytest.raises(ProcessLookupError):
+            os.kill(pid, 0)
+    steps = [m["step"] for m in decoded["dtpf/t-int/entity/estimate"]]
+    assert 5 < len(steps) < 1000 and sorted(steps) == list(range(1, len(steps) + 1))
+    assert "steps" in processes.output(launcher) and "(interrupted)" in processes.output(launcher)
+
+
+def test_launch_says_when_its_port_is_in_use(tmp_path):
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        with pytest.raises(LaunchError, match="cannot start on tcp/127.0.0.1:%d.*already in use" % port):
+            launch(RunConfig(steps=2), log_path=tmp_path / "x.mcap", port=port)
+        completed = subprocess.run([sys.executable, "-m", "scripts.cli", "launch", "--port", str(port),
+                                    "-o", str(tmp_path / "y.mcap")], cwd=ROOT, capture_output=True,
+                                   text=True, timeout=60)
+    assert completed.returncode == 1
+    assert "already in use" in completed.stderr
+
+
+def test_services_reject_bad_configuration_at_startup():
+    completed = subprocess.run([sys.executable, "-m", "information.service", "--resampler", "best"],
+                               cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert completed.returncode == 2
+    assert "invalid choice: 'best'" in completed.stderr
+    completed = subprocess.run([sys.executable, "-m", "system.service", "--ps", "1.5"],
+                               cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert completed.returncode == 2
+    assert "--ps: Input should be less than or equal to 1" in completed.stderr

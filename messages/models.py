@@ -428,6 +428,9 @@ class Status(Message):
     rejected: Count = Field(description="Messages rejected so far (failed to decode or out of order).")
     last_error: str | None = Field(default=None, description="Text of the last error, if any.")
     peers_alive: list[Layer] = Field(default_factory=list, description="Layers this process currently sees alive.")
+    config_json: str | None = Field(
+        default=None, description="The run configuration this process runs (messages.config.RunConfig as JSON), "
+                                  "so a log says how to re-run its layers.")
 
 
 #: Every message class, by name.

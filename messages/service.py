@@ -72,6 +72,7 @@ class ServiceShell:
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._inboxes: list[Inbox] = []
         self._lock = threading.Lock()
+        self._config_json = config.model_dump_json()
         self.session = open_session(zenoh_config)
         self.presence = Presence(self.session, config.twin, self.layer.value)
         self._status_thread = threading.Thread(target=self._report, name="status", daemon=True)
@@ -170,7 +171,7 @@ class ServiceShell:
         with self._lock:
             status = Status(**self.header(0), layer=self.layer, state=self.state, pid=os.getpid(),
                             received=self.received, rejected=self.rejected, last_error=self.last_error,
-                            peers_alive=sorted(self.presence.alive))
+                            peers_alive=sorted(self.presence.alive), config_json=self._config_json)
         try:
             self.publish(status)
         except zenoh.ZError as error:  # the session may be closing

@@ -175,7 +175,7 @@ class Inbox:
 
 
 class Presence:
-    """This process's liveliness token, and the set of live peers of the same twin.
+    """This process's liveliness token (declared by :meth:`announce`), and the live peers of its twin.
 
     Tokens are ``dtpf/<twin>/<layer>/alive``; a peer that dies (even SIGKILL)
     disappears within a few milliseconds (ECOSYSTEM.md).
@@ -187,9 +187,16 @@ class Presence:
         self._alive: set[str] = set()
         self._lock = threading.Lock()
         self._changed = threading.Condition(self._lock)
-        liveliness = session.liveliness()
-        self._token = liveliness.declare_token(f"dtpf/{twin}/{layer}/alive")
-        self._watch = liveliness.declare_subscriber(f"dtpf/{twin}/*/alive", self._on_token, history=True)
+        self._session = session
+        self._token = None
+        self._watch = session.liveliness().declare_subscriber(f"dtpf/{twin}/*/alive", self._on_token,
+                                                              history=True)
+
+    def announce(self) -> None:
+        """Declare this process alive. Call it after declaring the subscribers, so that a peer
+        that waits for this token never publishes before this process listens."""
+        if self._token is None:
+            self._token = self._session.liveliness().declare_token(f"dtpf/{self.twin}/{self.layer}/alive")
 
     def _on_token(self, sample: zenoh.Sample) -> None:
         parts = str(sample.key_expr).split("/")
@@ -217,6 +224,8 @@ class Presence:
 
     def close(self) -> None:
         for handle in (self._watch, self._token):
+            if handle is None:
+                continue
             try:
                 handle.undeclare()
             except zenoh.ZError:

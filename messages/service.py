@@ -112,7 +112,12 @@ class ServiceShell:
         self._stop.set()
 
     def running(self) -> None:
-        """Mark the service as running and say so at once."""
+        """Mark the service as running, declare it alive and say so at once.
+
+        Call it once the service's inboxes exist: peers wait for the liveliness
+        token before they publish, so nothing is sent before it can be received.
+        """
+        self.presence.announce()
         self.state = ServiceState.RUNNING
         self.publish_status()
 
@@ -167,11 +172,15 @@ class ServiceShell:
         """The header fields of a message of this run at ``step``."""
         return {"run_id": self.config.run_id, "twin_id": self.config.twin, "step": step}
 
-    def publish_status(self) -> None:
+    def status(self) -> Status:
+        """This process's status now."""
         with self._lock:
-            status = Status(**self.header(0), layer=self.layer, state=self.state, pid=os.getpid(),
-                            received=self.received, rejected=self.rejected, last_error=self.last_error,
-                            peers_alive=sorted(self.presence.alive), config_json=self._config_json)
+            return Status(**self.header(0), layer=self.layer, state=self.state, pid=os.getpid(),
+                          received=self.received, rejected=self.rejected, last_error=self.last_error,
+                          peers_alive=sorted(self.presence.alive), config_json=self._config_json)
+
+    def publish_status(self) -> None:
+        status = self.status()
         try:
             self.publish(status)
         except zenoh.ZError as error:  # the session may be closing

@@ -115,6 +115,12 @@ def build_parser() -> argparse.ArgumentParser:
                        help="logging level of the services on stderr (default: %(default)s)")
     group.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
     launch.set_defaults(handler=cmd_launch)
+
+    from scripts import inspect_log, play, plot_log, verify
+    inspect_log.register(commands)
+    plot_log.register(commands)
+    play.register(commands)
+    verify.register(commands)
     return parser
 
 
@@ -127,6 +133,9 @@ def main(argv: list[str] | None = None) -> int:
         parser.exit(2, f"dtpf {args.command}: error: {error}\n")
     except KeyboardInterrupt:
         return 130
+    except BrokenPipeError:  # output piped into head and closed
+        sys.stderr.close()
+        return 0
 
 
 if __name__ == "__main__":

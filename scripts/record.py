@@ -17,6 +17,8 @@ import zenoh
 
 from messages import keys
 from messages.bus import Inbox, add_zenoh_arguments
+from messages.codec import encode
+from messages.models import ServiceState
 from messages.config import RunConfig, add_run_arguments
 from messages.recording import COMPRESSION, McapRecording
 from messages.service import ServiceShell, add_service_arguments, run_service
@@ -49,6 +51,10 @@ def main(config: RunConfig, zenoh_config: zenoh.Config, args: argparse.Namespace
             recording.write(item.key, item.payload)
             shell.received += 1
         inbox.close()
+        # The recorder's own last word goes into its log too (its published one would arrive too late).
+        shell.state = ServiceState.FINISHED
+        final = shell.status()
+        recording.write(keys.key_for(final), encode(final))
         shell.log.info("wrote %d messages to %s", recording.messages, args.output)
     return 0
 

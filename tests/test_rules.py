@@ -15,15 +15,12 @@ def weighted_set(n=2000, d=1, seed=0):
 
 
 def redraw(particles, weights, ps, seed, threshold_rule="neff"):
-    """The draws preprocess makes, replayed: partners, r, u, and the split."""
-    rng = np.random.default_rng(seed)
+    """The draws preprocess makes, replayed with rules.draws: the split, partners, r and u."""
     limit = rules.threshold(weights, threshold_rule)
     large = np.flatnonzero(weights > limit)
     small = np.flatnonzero(weights <= limit)
-    partners = large[rng.integers(large.size, size=small.size)]
-    r = rng.random(small.size)
-    u = rng.random(small.size)
-    return large, small, partners, r, u
+    positions, r, u = rules.draws(np.random.default_rng(seed), small.size, large.size)
+    return large, small, large[positions], r, u
 
 
 @pytest.mark.parametrize("d", [1, 3])
@@ -98,6 +95,21 @@ def test_ps_bounds_are_all_or_nothing():
     assert rules.preprocess(x, w, 0.0, np.random.default_rng(0)).report.n_mixed <= 1  # u == 0 has prob 2**-53
 
 
+def test_draws_are_uniform_and_independent():
+    """The rules' xoshiro256** stream: r and u ~ U(0, 1), partners uniform over the large set."""
+    positions, r, u = rules.draws(np.random.default_rng(14), 200_000, 7)
+    n = r.size
+    for values in (r, u):
+        # Mean and variance of U(0, 1): 1/2 and 1/12; standard errors sqrt(1/12/n) and about sqrt(1/180/n).
+        assert abs(values.mean() - 0.5) <= Z * np.sqrt(1 / 12 / n)
+        assert abs(values.var() - 1 / 12) <= Z * np.sqrt(1 / 180 / n)
+        assert values.min() >= 0.0 and values.max() < 1.0
+    assert abs(np.corrcoef(r, u)[0, 1]) <= Z / np.sqrt(n)
+    counts = np.bincount(positions, minlength=7)
+    assert counts.size == 7
+    assert np.all(np.abs(counts - n / 7) <= Z * np.sqrt(n / 7 * 6 / 7))
+
+
 def test_partners_are_uniform_over_the_large_set():
     x = np.arange(4000, dtype=float)
     w = np.where(np.arange(4000) < 10, 1.0, 1e-9)
@@ -153,6 +165,7 @@ def test_likelihood_rule_reweights_processed_particles_by_the_likelihood_ratio()
     np.testing.assert_allclose(result.weights, unnormalised / unnormalised.sum(), rtol=1e-10)
     inherit = rules.preprocess(x, w, 0.81, np.random.default_rng(13))
     np.testing.assert_array_equal(inherit.weights, w)
+    assert not inherit.weights.flags.writeable
 
 
 @pytest.mark.parametrize("kwargs, message", [

@@ -1,0 +1,561 @@
+"""Reading a dtpf MCAP log, complete or damaged, and writing it back as a valid file.
+
+::
+
+    from messages.logfile import read_log, write_log, LogError
+    log = read_log("runs/ungm-1.mcap")      # LogError if it is not an MCAP file at all
+    log.complete, log.problem               # True, None for a finished recording
+    for item, message in log.decoded():     # message is a Message or a MessageError
+        ...
+    write_log(log, "runs/ungm-1.fixed.mcap")  # a valid MCAP with everything that was read
+
+How damaged files are read
+--------------------------
+Records are read in file order with ``mcap``'s :class:`~mcap.stream_reader.StreamReader`,
+so everything before the damage is kept: a recorder killed mid-run leaves a
+file without summary or footer whose last chunk may be cut. What the cut
+chunk still holds is recovered too: an uncompressed chunk is parsed up to the
+cut, an lz4 or zstd chunk is decompressed as far as its complete blocks go.
+Every message whose record lies completely in the recoverable bytes is kept,
+so the messages read are always a prefix, in file order, of those of the
+intact file. Reading never goes past the file size seen when it started, so
+a recording still being written reads as "cut short" at that size.
+
+What is missing is said in words in :attr:`Log.problem`, for example::
+
+    log cut short: records readable up to byte 120,000 of 130,000; no data end, summary or
+    footer; 2,345 messages read, the last at step 57 of dtpf/ungm-1/entity/estimate;
+    the file ends inside the chunk at byte 120,000, after 9,954 of its 60,000 bytes of records
+    (lz4): 12 of its messages recovered
+
+A chunk whose CRC does not match its content is dropped (and said so);
+reading goes on with the next record. Anything that cannot be read as MCAP
+records stops the reading there, with the byte offset in the problem. Only a
+file that is not MCAP at all (empty, or not starting with the MCAP magic)
+raises :class:`LogError`.
+"""
+from __future__ import annotations
+
+import io
+import os
+import struct
+import zlib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Iterable, Iterator
+
+import lz4.frame
+import zstandard
+from mcap.data_stream import ReadDataStream
+from mcap.opcode import Opcode
+from mcap.records import (
+    Attachment,
+    Channel,
+    Chunk,
+    DataEnd,
+    Footer,
+    Header,
+    Message as McapMessage,
+    Metadata,
+    Schema,
+    Statistics,
+)
+from mcap.stream_reader import StreamReader
+from mcap.writer import CompressionType, Writer
+
+from messages import keys
+from messages.codec import SCHEMA_PREFIX, MessageError, decode_for_key, message_encoding
+from messages.models import MESSAGE_CLASSES, Message
+
+__all__ = ["Log", "LogMessage", "LogError", "CutRecord", "read_log", "write_log", "MAGIC"]
+
+#: The eight bytes every MCAP file starts and ends with.
+MAGIC = b"\x89MCAP0\r\n"
+#: Chunk size and compression of the files :func:`write_log` writes (as the recorder).
+CHUNK_SIZE = 1 << 20
+
+#: How many messages from the end :attr:`Log.problem` looks through for the last filter step.
+_LAST_STEP_LOOKBACK = 64
+_RECORD_PREFIX = struct.Struct("<BQ")      # opcode, record length
+_MESSAGE_HEAD = struct.Struct("<HIQQ")     # channel id, sequence, log time, publish time
+_CHUNK_HEAD = struct.Struct("<QQQII")      # start time, end time, uncompressed size, crc, compression length
+
+
+class LogError(ValueError):
+    """A file that cannot be read as an MCAP log at all; the text names the file and why."""
+
+
+@dataclass(frozen=True, slots=True)
+class LogMessage:
+    """One message record of the log, as stored (payload undecoded).
+
+    ``log_time`` and ``publish_time`` are nanoseconds since the Unix epoch;
+    ``topic`` is the key expression of its channel.
+    """
+
+    topic: str
+    channel_id: int
+    log_time: int
+    publish_time: int
+    sequence: int
+    data: bytes
+
+
+@dataclass(frozen=True)
+class CutRecord:
+    """The record the file ends inside of, when the file is cut short."""
+
+    offset: int        #: byte offset of the record's opcode
+    name: str          #: record kind, e.g. "CHUNK", "MESSAGE_INDEX"; "" when the file ends between records
+    length: int | None  #: record length the record declares (None if the length itself is cut)
+    available: int     #: bytes of the record present in the file (after opcode and length)
+    compression: str | None = None  #: chunks only: "", "lz4" or "zstd"
+    chunk_data_length: int | None = None  #: chunks only: length of the (compressed) records
+    chunk_data_available: int = 0  #: chunks only: bytes of it present in the file
+    recovered: int = 0  #: chunks only: messages recovered from it
+
+
+@dataclass
+class Log:
+    """Everything read from one MCAP log.
+
+    ``schemas`` and ``channels`` are ``mcap.records`` objects by their id in
+    the file; ``messages`` are in file order. ``complete`` is True when the
+    footer was read; ``problem`` says what is missing or damaged (None for a
+    sound file).
+    """
+
+    path: Path
+    size: int
+    header: Header | None = None
+    schemas: dict[int, Schema] = field(default_factory=dict)
+    channels: dict[int, Channel] = field(default_factory=dict)
+    messages: list[LogMessage] = field(default_factory=list)
+    attachments: list[Attachment] = field(default_factory=list)
+    metadata: list[Metadata] = field(default_factory=list)
+    statistics: Statistics | None = None
+    complete: bool = False
+    data_end: bool = False  #: the DataEnd record (end of the data section) was read
+    read_to: int = 0        #: every record before this byte offset was read completely
+    cut: CutRecord | None = None
+    problems: list[str] = field(default_factory=list)
+
+    @property
+    def problem(self) -> str | None:
+        """What is missing or damaged, in words; None for a sound, complete file."""
+        return "; ".join(self.problems) if self.problems else None
+
+    def topics(self) -> list[str]:
+        """Topics of the channels, in channel-id order."""
+        return [self.channels[cid].topic for cid in sorted(self.channels)]
+
+    def decoded(self, topics: Iterable[str] | Callable[[str], bool] | None = None
+                ) -> Iterator[tuple[LogMessage, Message | MessageError]]:
+        """Each message (or only those on ``topics``) with its decoded dtpf message, in file order.
+
+        ``topics`` is a collection of topics or a predicate on the topic. The
+        schema of the channel in the file decides the message class; it must
+        agree with the topic table (:func:`messages.codec.decode_for_key`
+        checks the rest). A message that cannot be decoded comes with the
+        :class:`~messages.codec.MessageError` saying why; nothing is raised.
+        """
+        if topics is None:
+            wanted = None
+        elif callable(topics):
+            wanted = topics
+        else:
+            chosen = set(topics)
+            wanted = chosen.__contains__
+        decoders: dict[int, Callable[[bytes], Message]] = {}
+        for item in self.messages:
+            if wanted is not None and not wanted(item.topic):
+                continue
+            decoder = decoders.get(item.channel_id)
+            if decoder is None:
+                decoder = decoders[item.channel_id] = self._decoder(item.channel_id)
+            try:
+                yield item, decoder(item.data)
+            except MessageError as error:
+                yield item, error
+
+    def _decoder(self, channel_id: int) -> Callable[[bytes], Message]:
+        channel = self.channels[channel_id]
+        topic = channel.topic
+        schema = self.schemas.get(channel.schema_id)
+
+        def fail(reason: str) -> Callable[[bytes], Message]:
+            def decoder(data: bytes) -> Message:
+                raise MessageError(reason, key=topic)
+            return decoder
+
+        if channel.schema_id == 0 or schema is None:
+            return fail(f"channel {channel_id} has no schema in the file "
+                        f"(message encoding {channel.message_encoding!r})")
+        cls = MESSAGE_CLASSES.get(schema.name[len(SCHEMA_PREFIX):]) if schema.name.startswith(SCHEMA_PREFIX) \
+            else None
+        if cls is None:
+            return fail(f"schema {schema.name!r} of channel {channel_id} is not a dtpf message")
+        if message_encoding(cls) != channel.message_encoding:
+            return fail(f"channel {channel_id} has message encoding {channel.message_encoding!r}, "
+                        f"but its schema {schema.name} is encoded as {message_encoding(cls)!r}")
+        try:
+            table = keys.topic_of(topic).message
+        except ValueError as error:
+            return fail(str(error))
+        if table is not cls:
+            return fail(f"schema {schema.name} of the channel does not match the topic, "
+                        f"which carries {SCHEMA_PREFIX}{table.__name__}")
+        return lambda data: decode_for_key(topic, data)
+
+
+# --- reading ---
+
+class _Cut(Exception):
+    """The file ends before the record being read does."""
+
+
+class _Bounded:
+    """A binary file that refuses to read past ``size``, so a short read is an error, never a short record."""
+
+    def __init__(self, file, size: int):
+        self._file = file
+        self._size = size
+
+    def read(self, n: int) -> bytes:
+        if n > self._size - self._file.tell():
+            raise _Cut()
+        data = self._file.read(n)
+        if len(data) < n:
+            raise _Cut()
+        return data
+
+    def tell(self) -> int:
+        return self._file.tell()
+
+
+def read_log(path: str | os.PathLike) -> Log:
+    """Read every record of an MCAP log that can be read, in file order.
+
+    Raises
+    ------
+    LogError
+        The file cannot be opened, is empty, or does not start with the MCAP
+        magic. Any other damage is reported in :attr:`Log.problem`.
+    """
+    path = Path(path)
+    try:
+        file = open(path, "rb")
+    except OSError as error:
+        raise LogError(f"cannot read {path}: {error.strerror or error}") from None
+    with file:
+        size = os.fstat(file.fileno()).st_size
+        head = file.read(len(MAGIC))
+        if not head:
+            raise LogError(f"{path} is empty (0 bytes): not an MCAP log")
+        if head != MAGIC[:len(head)]:
+            raise LogError(f"{path} is not an MCAP file: it starts with {head!r}, not the MCAP magic {MAGIC!r}")
+        log = Log(path, size)
+        if len(head) < len(MAGIC):
+            log.problems.append(f"log cut short: the file ends at byte {size:,}, inside the MCAP magic; "
+                                f"no header, messages, summary or footer")
+            return log
+        file.seek(0)
+        _Reading(log, file).run()
+    return log
+
+
+class _Reading:
+    """One pass over a file; fills a :class:`Log`."""
+
+    def __init__(self, log: Log, file):
+        self.log = log
+        self.file = file
+        self.unknown_channel = 0
+        self.stopped: str | None = None  # why reading stopped before the end, if it did
+
+    def run(self) -> None:
+        log = self.log
+        stream = _Bounded(self.file, log.size)
+        records = iter(StreamReader(stream, emit_chunks=True, record_size_limit=None).records)
+        start = len(MAGIC)
+        while True:
+            try:
+                record = next(records)
+            except StopIteration:
+                start = stream.tell()  # after the closing magic
+                if start < log.size:
+                    log.problems.append(f"{log.size - start:,} bytes after the closing magic were ignored")
+                break
+            except _Cut:
+                self._cut_at(start)
+                break
+            except Exception as error:  # anything the records say that makes no sense
+                self._unreadable_at(start, error)
+                break
+            end = stream.tell()
+            self._take(record, start)
+            start = end
+        log.read_to = start
+        self._finish()
+
+    # - records -
+
+    def _take(self, record, offset: int) -> None:
+        log = self.log
+        if isinstance(record, Chunk):
+            self._chunk(record, offset)
+        elif isinstance(record, (Schema, Channel, McapMessage)):
+            self._inner(record)
+        elif isinstance(record, Header):
+            log.header = record
+        elif isinstance(record, DataEnd):
+            log.data_end = True
+        elif isinstance(record, Footer):
+            log.complete = True
+        elif isinstance(record, Statistics):
+            log.statistics = record
+        elif isinstance(record, Attachment):
+            log.attachments.append(record)
+        elif isinstance(record, Metadata):
+            log.metadata.append(record)
+        # indexes and summary offsets: nothing to keep
+
+    def _inner(self, record) -> None:
+        """A Schema, Channel or Message record (top level or inside a chunk)."""
+        log = self.log
+        if isinstance(record, Schema):
+            log.schemas.setdefault(record.id, record)
+        elif isinstance(record, Channel):
+            log.channels.setdefault(record.id, record)
+        else:
+            channel = log.channels.get(record.channel_id)
+            if channel is None:
+                self.unknown_channel += 1
+                return
+            log.messages.append(LogMessage(channel.topic, record.channel_id, record.log_time,
+                                           record.publish_time, record.sequence, record.data))
+
+    def _chunk(self, chunk: Chunk, offset: int) -> None:
+        where = f"chunk at byte {offset:,}"
+        try:
+            data = _decompress(chunk.compression, chunk.data, chunk.uncompressed_size)
+        except Exception as error:
+            self.log.problems.append(f"{where} cannot be decompressed ({chunk.compression}: {error}); "
+                                     f"its records were dropped")
+            return
+        if chunk.uncompressed_crc != 0 and zlib.crc32(data) != chunk.uncompressed_crc:
+            self.log.problems.append(f"{where} failed its CRC check (expected {chunk.uncompressed_crc:#010x}, "
+                                     f"computed {zlib.crc32(data):#010x}); its records were dropped")
+            return
+        records, used, error = _chunk_records(data)
+        for record in records:
+            self._inner(record)
+        if error is not None or used != len(data):
+            self.log.problems.append(f"{where}: record at chunk offset {used:,} unreadable "
+                                     f"({error or 'cut'}); the rest of the chunk was dropped")
+
+    # - the end -
+
+    def _cut_at(self, offset: int) -> None:
+        """The file ends inside the record that starts at ``offset``: keep what it still holds."""
+        log = self.log
+        self.file.seek(offset)
+        tail = self.file.read(log.size - offset)
+        if len(tail) < _RECORD_PREFIX.size:
+            log.cut = CutRecord(offset, _opcode_name(tail[0]) if tail else "", None, max(0, len(tail) - 1))
+            return
+        opcode, length = _RECORD_PREFIX.unpack_from(tail)
+        body = tail[_RECORD_PREFIX.size:]
+        cut = CutRecord(offset, _opcode_name(opcode), length, len(body))
+        if opcode == Opcode.CHUNK and len(body) >= _CHUNK_HEAD.size:
+            *_, compression_length = _CHUNK_HEAD.unpack_from(body)
+            start = _CHUNK_HEAD.size + compression_length + 8
+            if len(body) >= start:
+                compression = body[_CHUNK_HEAD.size:start - 8].decode("utf-8", "replace")
+                (data_length,) = struct.unpack_from("<Q", body, start - 8)
+                data = body[start:start + data_length]
+                recovered = self._partial_chunk(compression, data)
+                cut = CutRecord(offset, cut.name, length, len(body), compression, data_length, len(data), recovered)
+        log.cut = cut
+
+    def _partial_chunk(self, compression: str, data: bytes) -> int:
+        """Messages recovered from the start of a cut chunk."""
+        try:
+            if compression == "":
+                plain = data
+            elif compression == "lz4":
+                plain = lz4.frame.LZ4FrameDecompressor().decompress(data)
+            elif compression == "zstd":
+                plain = zstandard.ZstdDecompressor().decompressobj().decompress(data)
+            else:
+                return 0
+        except Exception:  # a frame header cut or damaged: nothing to recover
+            return 0
+        before = len(self.log.messages)
+        records, _, _ = _chunk_records(plain)
+        for record in records:
+            self._inner(record)
+        return len(self.log.messages) - before
+
+    def _unreadable_at(self, offset: int, error: Exception) -> None:
+        text = str(error) or type(error).__name__
+        if self.log.complete:
+            self.stopped = f"the closing magic after the footer is wrong ({text})"
+        else:
+            self.stopped = (f"unreadable record at byte {offset:,} ({text}); "
+                            f"the last {self.log.size - offset:,} bytes were not read")
+
+    def _finish(self) -> None:
+        log = self.log
+        head = []
+        if not log.complete:
+            missing = "no footer" if log.data_end else "no data end, summary or footer"
+            if log.cut is not None:
+                head += [f"log cut short: records readable up to byte {log.read_to:,} of {log.size:,}", missing]
+            else:
+                head += [self.stopped or "the records end before the footer", missing]
+            head.append(self._messages_read())
+            if log.cut is not None:
+                head.append(_describe_cut(log.cut, log.data_end))
+        elif log.cut is not None:
+            head.append(f"the file ends at byte {log.size:,} inside the closing magic")
+        elif self.stopped:
+            head.append(self.stopped)
+        tail = []
+        if self.unknown_channel:
+            tail.append(f"{self.unknown_channel:,} messages on channels never defined in the file were dropped")
+        stats = log.statistics
+        if log.complete and stats is not None and stats.message_count != len(log.messages) and not log.problems:
+            tail.append(f"the summary counts {stats.message_count:,} messages, {len(log.messages):,} were read")
+        log.problems[:] = head + log.problems + tail
+
+    def _messages_read(self) -> str:
+        """'N messages read, the last at step k of TOPIC', naming the last message of a filter step."""
+        messages = self.log.messages
+        if not messages:
+            return "no messages read"
+        text = f"{len(messages):,} messages read"
+        for back, item in enumerate(reversed(messages[-_LAST_STEP_LOOKBACK:])):
+            try:
+                step = decode_for_key(item.topic, item.data).step
+            except MessageError:
+                continue
+            if step >= 1:
+                after = f" (then {back} run-level message{'s' * (back != 1)})" if back else ""
+                return f"{text}, the last at step {step} of {item.topic}{after}"
+        return f"{text}, the last on {messages[-1].topic}"
+
+
+def _describe_cut(cut: CutRecord, data_end: bool) -> str:
+    if not cut.name:
+        return f"the file ends between two records, at byte {cut.offset:,} (no record cut)"
+    where = f"a {cut.name} record at byte {cut.offset:,}"
+    if data_end:
+        return f"the file ends inside the summary section ({where}): every message of the data section was read"
+    if cut.name == "HEADER":
+        return f"the file ends inside the header record at byte {cut.offset:,}"
+    if cut.compression is None:
+        if cut.name == "MESSAGE_INDEX":
+            return f"the file ends inside {where} (an index: no message lost there)"
+        return f"the file ends inside {where}"
+    compression = cut.compression or "uncompressed"
+    return (f"the file ends inside the chunk at byte {cut.offset:,}, after {cut.chunk_data_available:,} of its "
+            f"{cut.chunk_data_length:,} bytes of records ({compression}): {cut.recovered:,} of its messages recovered")
+
+
+def _opcode_name(opcode: int) -> str:
+    try:
+        return Opcode(opcode).name
+    except ValueError:
+        return f"unknown (opcode {opcode:#04x})"
+
+
+def _decompress(compression: str, data: bytes, size: int) -> bytes:
+    if compression == "":
+        return data
+    if compression == "lz4":
+        return lz4.frame.decompress(data)
+    if compression == "zstd":
+        return zstandard.ZstdDecompressor().decompress(data, max_output_size=size)
+    raise ValueError(f"unknown compression {compression!r}")
+
+
+def _chunk_records(data: bytes) -> tuple[list, int, Exception | None]:
+    """The complete Schema, Channel and Message records at the start of ``data``.
+
+    Returns the records, the number of bytes they span, and the error that
+    stopped the walk (None when it stopped at the end or at a cut record).
+    """
+    view = memoryview(data)
+    records, position = [], 0
+    while position + _RECORD_PREFIX.size <= len(view):
+        opcode, length = _RECORD_PREFIX.unpack_from(view, position)
+        start = position + _RECORD_PREFIX.size
+        end = start + length
+        if end > len(view):
+            break
+        try:
+            if opcode == Opcode.MESSAGE:
+                channel_id, sequence, log_time, publish_time = _MESSAGE_HEAD.unpack_from(view, start)
+                if length < _MESSAGE_HEAD.size:
+                    raise ValueError(f"MESSAGE record of {length} bytes is shorter than its fixed fields")
+                records.append(McapMessage(channel_id=channel_id, sequence=sequence, log_time=log_time,
+                                           publish_time=publish_time,
+                                           data=bytes(view[start + _MESSAGE_HEAD.size:end])))
+            elif opcode in (Opcode.SCHEMA, Opcode.CHANNEL):
+                stream = _Bounded(io.BytesIO(view[start:end]), length)
+                reader = ReadDataStream(stream)
+                records.append((Schema if opcode == Opcode.SCHEMA else Channel).read(reader))
+        except Exception as error:
+            return records, position, error
+        position = end
+    return records, position, None
+
+
+# --- writing ---
+
+def write_log(log: Log, out_path: str | os.PathLike) -> int:
+    """Write ``log`` as a new, finished MCAP file; returns the number of messages written.
+
+    Same schemas, channels (with their metadata), messages in the same order
+    with the same times and sequence numbers, attachments and metadata
+    records; lz4 chunks of 1 MiB as the recorder writes. Ids are renumbered
+    from 1 in the order of the original ids. The file is written next to
+    ``out_path`` and renamed into place, so a failure leaves no half file.
+    """
+    out_path = Path(out_path)
+    temporary = out_path.with_name(f".{out_path.name}.{os.getpid()}.tmp")
+    try:
+        with open(temporary, "wb") as file:
+            writer = Writer(file, chunk_size=CHUNK_SIZE, compression=CompressionType.LZ4)
+            header = log.header
+            writer.start(profile=header.profile if header else "", library=header.library if header else "dtpf")
+            schema_ids = {0: 0}
+            for old in sorted(log.schemas):
+                schema = log.schemas[old]
+                schema_ids[old] = writer.register_schema(name=schema.name, encoding=schema.encoding,
+                                                         data=schema.data)
+            channel_ids = {}
+            for old in sorted(log.channels):
+                channel = log.channels[old]
+                channel_ids[old] = writer.register_channel(
+                    topic=channel.topic, message_encoding=channel.message_encoding,
+                    schema_id=schema_ids.get(channel.schema_id, 0), metadata=dict(channel.metadata))
+            for item in log.messages:
+                writer.add_message(channel_ids[item.channel_id], log_time=item.log_time, data=item.data,
+                                   publish_time=item.publish_time, sequence=item.sequence)
+            for attachment in log.attachments:
+                writer.add_attachment(create_time=attachment.create_time, log_time=attachment.log_time,
+                                      name=attachment.name, media_type=attachment.media_type,
+                                      data=attachment.data)
+            for record in log.metadata:
+                writer.add_metadata(record.name, dict(record.metadata))
+            writer.finish()
+        os.replace(temporary, out_path)
+    except OSError as error:
+        temporary.unlink(missing_ok=True)
+        raise LogError(f"cannot write {out_path}: {error.strerror or error}") from None
+    except BaseException:
+        temporary.unlink(missing_ok=True)
+        raise
+    return len(log.messages)

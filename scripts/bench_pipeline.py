@@ -1,0 +1,271 @@
+"""Steady-state time per filter step: in-process pipeline against three processes over Zenoh.
+
+(a) in-process  the three layers in one process (``scripts.inprocess.build``:
+                the filter calls the information and system layers directly),
+                RunConfig with preprocess=True.
+(b) three-process  ``scripts.launch.launch``: an embedded Zenoh router in this
+                process, the recorder, system, information and entity services
+                as child processes, lockstep over Zenoh (the product's real
+                configuration; ``--no-recorder`` leaves the recorder out).
+
+Both run the same RunConfig (same seed, so the same numbers). Only the steady
+state is timed: for (b), the time per step is taken from the ``stamp`` of the
+Estimate messages between step 10 and the last step, so process start-up, JIT
+loading and liveliness discovery are excluded; for (a), the same window of
+steps is timed with ``perf_counter`` in a run that follows an untimed warm-up
+run at the same N. (a) and (b) are interleaved in every repetition, in random
+order; the table shows medians over repetitions, and (b)/(a) is the median of
+the per-repetition ratios of time per step.
+
+Run from the repository root::
+
+    python -m scripts.bench_pipeline                          # N = 1e3 .. 1e6, about 5 minutes
+    python -m scripts.bench_pipeline --sizes 1e5 --steps 200 --repeats 5
+    python -m scripts.bench_pipeline --no-recorder
+"""
+from __future__ import annotations
+
+import argparse
+import contextlib
+import os
+import platform
+import random
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from messages.config import RunConfig
+from scripts import launch as launch_module
+from scripts.inprocess import build, simulate
+
+#: Steps per run at the default sizes (the timed window is steps FIRST_TIMED .. T).
+DEFAULT_STEPS = {1_000: 400, 10_000: 300, 100_000: 150, 1_000_000: 40}
+#: First step of the timed window: steps before it (start-up, discovery, JIT) are not timed.
+FIRST_TIMED = 10
+#: Targets: (b) steps per second at N = 1e3, and (b)/(a) at N = 1e5.
+TARGET_RATE_N, TARGET_RATE = 1_000, 200.0
+TARGET_RATIO_N, TARGET_RATIO = 100_000, 1.5
+
+
+def default_steps(n: int) -> int:
+    """Steps per run at N: the table above, or the entry of the nearest default size."""
+    nearest = min(DEFAULT_STEPS, key=lambda size: abs(np.log10(size) - np.log10(n)))
+    return DEFAULT_STEPS[nearest]
+
+
+def parse_size(text: str) -> int:
+    """'1e5' or '100000' -> 100000."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if value < 1 or value != int(value):
+        raise argparse.ArgumentTypeError(f"N must be a positive integer, got {text!r}")
+    return int(value)
+
+
+def window_time(times: list[float]) -> float:
+    """Seconds per step between step FIRST_TIMED and the last step; ``times[k - 1]`` is the end of step k."""
+    last = len(times)
+    return (times[last - 1] - times[FIRST_TIMED - 1]) / (last - FIRST_TIMED)
+
+
+# --- (a) in-process -----------------------------------------------------------
+
+def run_inprocess(config: RunConfig) -> float:
+    """Seconds per step of the in-process pipeline over the timed window.
+
+    The same code as ``scripts.inprocess.run`` (``simulate`` + ``build``), but
+    the steps are not kept: the entity service does not keep them either.
+    """
+    _, observations = simulate(config)
+    pf = build(config, observations)
+    ends = []
+    for _ in pf:
+        ends.append(time.perf_counter())
+    return window_time(ends)
+
+
+# --- (b) three processes over Zenoh -------------------------------------------
+
+@contextlib.contextmanager
+def without_recorder():
+    """Launch without the recorder service, by patching ``scripts.launch`` in this process only.
+
+    ``launch()`` starts the layers in ``LAYERS`` and the entity waits for
+    ``--wait-for recorder``; both are swapped here and restored afterwards.
+    """
+    layers, command = launch_module.LAYERS, launch_module.service_command
+    if "recorder" not in layers:
+        raise RuntimeError("scripts.launch changed: LAYERS has no 'recorder'; --no-recorder needs updating")
+
+    def service_command(*args, **kwargs):
+        out = command(*args, **kwargs)
+        kept = []
+        for item in out:
+            if item == "recorder" and kept and kept[-1] == "--wait-for":
+                kept.pop()
+            else:
+                kept.append(item)
+        return kept
+
+    launch_module.LAYERS = tuple(layer for layer in layers if layer != "recorder")
+    launch_module.service_command = service_command
+    try:
+        yield
+    finally:
+        launch_module.LAYERS, launch_module.service_command = layers, command
+
+
+def run_launched(config: RunConfig, *, recorder: bool, timeout: float, folder: Path) -> tuple[float, float, int]:
+    """(seconds per step over the timed window, wall seconds of the whole launch, degraded steps)."""
+    log_path = folder / f"bench-{config.particles}-{time.monotonic_ns()}.mcap"
+    context = contextlib.nullcontext() if recorder else without_recorder()
+    start = time.perf_counter()
+    with context:
+        result = launch_module.launch(config, log_path=log_path, timeout=timeout, child_output=None)
+    wall = time.perf_counter() - start
+    with contextlib.suppress(FileNotFoundError):
+        log_path.unlink()
+    stamps = {e.step: e.stamp.to_ns() * 1e-9 for e in result.estimates}
+    missing = [k for k in range(1, config.steps + 1) if k not in stamps]
+    if missing or any(code != 0 for code in result.exit_codes.values()):
+        raise RuntimeError(f"three-process run at N={config.particles} incomplete: {len(missing)} estimates "
+                           f"missing, exit codes {result.exit_codes}")
+    times = [stamps[k] for k in range(1, config.steps + 1)]
+    return window_time(times), wall, sum(e.degraded for e in result.estimates)
+
+
+# --- report -------------------------------------------------------------------
+
+def fmt_n(n: int) -> str:
+    """1000 -> '1e3'; other values as integers."""
+    exponent = int(round(np.log10(n)))
+    return f"1e{exponent}" if 10 ** exponent == n else str(n)
+
+
+def fmt_ms(seconds: float) -> str:
+    ms = 1e3 * seconds
+    return f"{ms:.3g}" if ms < 100 else f"{ms:.0f}"
+
+
+def fmt_rate(seconds: float) -> str:
+    rate = 1.0 / seconds
+    return f"{rate:.3g}" if rate < 1000 else f"{rate:.0f}"
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(
+        prog="python -m scripts.bench_pipeline",
+        description="Steady-state steps per second of the in-process pipeline (a) and of the three-process "
+                    "lockstep pipeline over Zenoh started by dtpf launch (b), and their ratio; prints a "
+                    "Markdown table and PASS/FAIL against the targets.",
+        epilog="Start-up, JIT loading and liveliness discovery are excluded: only steps "
+               f"{FIRST_TIMED}..T are timed. Environment variables (e.g. MALLOC_MMAP_THRESHOLD_) are "
+               "inherited by the child services. Exit code 1 when a target fails.")
+    parser.add_argument("--sizes", nargs="+", type=parse_size, default=sorted(DEFAULT_STEPS), metavar="N",
+                        help="numbers of particles (default: 1e3 1e4 1e5 1e6)")
+    parser.add_argument("--steps", type=int, nargs="+", default=None, metavar="T",
+                        help="steps per run: one value for every N, or one per N "
+                             f"(default: {', '.join(f'{t} at {fmt_n(n)}' for n, t in DEFAULT_STEPS.items())})")
+    parser.add_argument("--repeats", type=int, default=5, help="repetitions per N (default: %(default)s)")
+    parser.add_argument("--no-recorder", dest="recorder", action="store_false",
+                        help="leave the MCAP recorder out of (b) (default: with it, as dtpf launch runs)")
+    parser.add_argument("--timeout", type=float, default=10.0, metavar="SECONDS",
+                        help="lockstep timeout of the services; large, so no step degrades (default: %(default)s)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of every run and of the order (default: %(default)s)")
+    args = parser.parse_args(argv)
+    if args.steps is None:
+        steps = [default_steps(n) for n in args.sizes]
+    elif len(args.steps) == 1:
+        steps = args.steps * len(args.sizes)
+    elif len(args.steps) == len(args.sizes):
+        steps = args.steps
+    else:
+        parser.error(f"--steps takes one value or one per N ({len(args.sizes)}), got {len(args.steps)}")
+    if min(steps) < FIRST_TIMED + 2:
+        parser.error(f"--steps must be at least {FIRST_TIMED + 2}: steps {FIRST_TIMED}..T are timed")
+    if args.repeats < 1:
+        parser.error("--repeats must be at least 1")
+
+    configs = {n: RunConfig(particles=n, steps=t, preprocess=True, seed=args.seed, run_id="bench")
+               for n, t in zip(args.sizes, steps)}
+    order = random.Random(args.seed)
+    per_step: dict[tuple[int, str], list[float]] = {(n, m): [] for n in configs for m in "ab"}
+    walls: dict[int, list[float]] = {n: [] for n in configs}
+    degraded: dict[int, int] = {n: 0 for n in configs}
+    start = time.perf_counter()
+    # Warm-up of (a): imports, numba caches, the first large allocations.
+    for n, config in configs.items():
+        print(f"warm-up N={n}", file=sys.stderr)
+        run_inprocess(config.model_copy(update={"steps": FIRST_TIMED + 2}))
+    with tempfile.TemporaryDirectory(prefix="dtpf-bench-") as folder:
+        for repeat in range(args.repeats):
+            for n, config in configs.items():
+                modes = ["a", "b"]
+                order.shuffle(modes)
+                for mode in modes:
+                    print(f"repeat {repeat + 1}/{args.repeats} N={n} T={config.steps} ({mode})", file=sys.stderr)
+                    if mode == "a":
+                        per_step[n, "a"].append(run_inprocess(config))
+                    else:
+                        seconds, wall, bad = run_launched(config, recorder=args.recorder, timeout=args.timeout,
+                                                          folder=Path(folder))
+                        per_step[n, "b"].append(seconds)
+                        walls[n].append(wall)
+                        degraded[n] += bad
+    total = time.perf_counter() - start
+
+    malloc = {k: v for k, v in os.environ.items() if k.startswith("MALLOC_")}
+    command = "python -m scripts.bench_pipeline" + (" " + " ".join(sys.argv[1:]) if sys.argv[1:] else "")
+    print(f"`{command}`: {platform.python_version()}, numpy {np.__version__}, {os.cpu_count()} CPUs, "
+          f"{'malloc env ' + ' '.join(f'{k}={v}' for k, v in malloc.items()) if malloc else 'default malloc'}, "
+          f"(b) {'with' if args.recorder else 'without'} the MCAP recorder; {total:.0f} s in all.\n")
+    print("| N | steps (timed) | (a) in-process steps/s | (a) ms/step | (b) 3-process steps/s | (b) ms/step "
+          "| (b)/(a) | (b) launch wall s |")
+    print("|---|---|---|---|---|---|---|---|")
+    ratio_of = {}
+    for n, config in configs.items():
+        a, b = per_step[n, "a"], per_step[n, "b"]
+        ratios = [y / x for x, y in zip(a, b)]
+        ratio_of[n] = statistics.median(ratios)
+        ma, mb = statistics.median(a), statistics.median(b)
+        print(f"| {fmt_n(n)} | {config.steps} ({config.steps - FIRST_TIMED}) | {fmt_rate(ma)} | {fmt_ms(ma)} "
+              f"| {fmt_rate(mb)} | {fmt_ms(mb)} | {ratio_of[n]:.2f} ({min(ratios):.2f}-{max(ratios):.2f}) "
+              f"| {statistics.median(walls[n]):.1f} |")
+    print(f"\nMedians over {args.repeats} repetitions, (a) and (b) interleaved in random order. Time per step "
+          f"= time from the end of step {FIRST_TIMED} to the end of the last step / (T - {FIRST_TIMED}): "
+          "for (b) from the stamps of the entity's Estimate messages, so process start-up, JIT loading and "
+          "liveliness discovery are excluded; for (a) with perf_counter, after an untimed warm-up run. "
+          "(b)/(a) is the median (min-max) of per-repetition ratios of time per step. "
+          "'launch wall' is the whole dtpf launch, start-up and shutdown included.")
+    if any(degraded.values()):
+        print("\nWARNING: degraded steps in (b) (no preprocessed answer within the timeout): "
+              + ", ".join(f"N={fmt_n(n)}: {d}" for n, d in degraded.items() if d))
+
+    print("\nTargets:")
+    failed = False
+    if TARGET_RATE_N in configs:
+        rate = 1.0 / statistics.median(per_step[TARGET_RATE_N, "b"])
+        ok = rate >= TARGET_RATE
+        failed |= not ok
+        print(f"- N = {fmt_n(TARGET_RATE_N)}: (b) at least {TARGET_RATE:.0f} steps/s: {rate:.0f} steps/s, "
+              f"{'PASS' if ok else 'FAIL'}")
+    else:
+        print(f"- N = {fmt_n(TARGET_RATE_N)}: (b) at least {TARGET_RATE:.0f} steps/s: not measured")
+    if TARGET_RATIO_N in configs:
+        ratio = ratio_of[TARGET_RATIO_N]
+        ok = ratio <= TARGET_RATIO
+        failed |= not ok
+        print(f"- N = {fmt_n(TARGET_RATIO_N)}: (b)/(a) at most {TARGET_RATIO}: {ratio:.2f}, {'PASS' if ok else 'FAIL'}")
+    else:
+        print(f"- N = {fmt_n(TARGET_RATIO_N)}: (b)/(a) at most {TARGET_RATIO}: not measured")
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,552 @@
+"""``dtpf info``, ``dtpf summary`` and ``dtpf recover``: look into a recorded MCAP log.
+
+- ``info LOG``: what the file holds, like ``mcap info``: size, complete or
+  damaged (and what is missing), time range, messages per topic with their
+  encoding, schema and first and last step, run and twin ids, schemas.
+- ``summary LOG``: the run as the filter saw it, per twin: steps, RMSE
+  against the recorded truth, ESS, resamplings, the PS trajectory, degraded
+  steps, and what each layer rejected.
+- ``recover LOG -o OUT``: rewrite a damaged log (a killed recorder, a cut
+  copy) as a valid MCAP with every message that could be read.
+
+The numbers come from :func:`log_info` and :func:`summarise` (dataclasses);
+:func:`format_info` and :func:`format_summary` only print them. A damaged
+file is read as far as it goes (:mod:`messages.logfile`); the commands say
+what is missing first, then report what is there.
+
+``register(subparsers)`` adds the three commands to an argparse parser; the
+module also runs on its own: ``python -m scripts.inspect_log info run.mcap``.
+"""
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import json
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from messages.codec import SCHEMA_PREFIX, MessageError, schema_for
+from messages.logfile import Log, LogError, read_log, write_log
+from messages.models import MESSAGE_CLASSES, Estimate, PSCommand, Status
+
+__all__ = ["LogInfo", "TopicInfo", "SchemaInfo", "LogSummary", "TwinSummary", "Trajectory", "LayerStatus",
+           "log_info", "summarise", "format_info", "format_summary", "format_ranges",
+           "cmd_info", "cmd_summary", "cmd_recover", "register", "main"]
+
+
+# --- info ---
+
+@dataclass
+class TopicInfo:
+    """One channel of the log."""
+
+    topic: str
+    channel_id: int
+    message_encoding: str
+    schema_name: str | None
+    count: int = 0
+    first_step: int | None = None  #: step of the first decodable message, in file order
+    last_step: int | None = None   #: step of the last decodable message, in file order
+    undecodable: int = 0
+
+
+@dataclass
+class SchemaInfo:
+    """One schema record of the log."""
+
+    id: int
+    name: str
+    encoding: str
+    size: int
+    channels: int
+    #: "same" as this dtpf's schema of that name, "differs", or "not dtpf"
+    current: str
+
+
+@dataclass
+class LogInfo:
+    """What :func:`log_info` finds in a log."""
+
+    path: Path
+    size: int
+    complete: bool
+    problems: list[str]  #: what is missing or damaged (messages.logfile.Log.problems)
+    library: str | None
+    profile: str | None
+    messages: int
+    start_ns: int | None
+    end_ns: int | None
+    topics: list[TopicInfo]
+    schemas: list[SchemaInfo]
+    run_ids: list[str]
+    twin_ids: list[str]
+    undecodable: int
+    first_error: str | None
+
+    @property
+    def problem(self) -> str | None:
+        return "; ".join(self.problems) if self.problems else None
+
+    @property
+    def duration_s(self) -> float | None:
+        return None if self.start_ns is None else (self.end_ns - self.start_ns) / 1e9
+
+
+def log_info(log: Log) -> LogInfo:
+    """File-level facts of ``log`` (decodes every message once for steps and ids)."""
+    topics = {cid: TopicInfo(ch.topic, cid, ch.message_encoding,
+                             log.schemas[ch.schema_id].name if ch.schema_id in log.schemas else None)
+              for cid, ch in sorted(log.channels.items())}
+    runs, twins = {}, {}
+    undecodable, first_error = 0, None
+    for item, message in log.decoded():
+        topic = topics[item.channel_id]
+        topic.count += 1
+        if isinstance(message, MessageError):
+            topic.undecodable += 1
+            undecodable += 1
+            first_error = first_error or str(message)
+            continue
+        if topic.first_step is None:
+            topic.first_step = message.step
+        topic.last_step = message.step
+        runs[message.run_id] = None
+        twins[message.twin_id] = None
+    schemas = []
+    for sid, schema in sorted(log.schemas.items()):
+        cls = MESSAGE_CLASSES.get(schema.name[len(SCHEMA_PREFIX):]) if schema.name.startswith(SCHEMA_PREFIX) \
+            else None
+        current = "not dtpf" if cls is None else "same" if schema_for(cls).data == schema.data else "differs"
+        schemas.append(SchemaInfo(sid, schema.name, schema.encoding, len(schema.data),
+                                  sum(ch.schema_id == sid for ch in log.channels.values()), current))
+    times = [item.log_time for item in log.messages]
+    return LogInfo(
+        path=log.path, size=log.size, complete=log.complete, problems=list(log.problems),
+        library=log.header.library if log.header else None, profile=log.header.profile if log.header else None,
+        messages=len(log.messages), start_ns=min(times) if times else None, end_ns=max(times) if times else None,
+        topics=list(topics.values()), schemas=schemas, run_ids=list(runs), twin_ids=list(twins),
+        undecodable=undecodable, first_error=first_error)
+
+
+def _time(ns: int) -> str:
+    sec, nsec = divmod(ns, 1_000_000_000)
+    stamp = dt.datetime.fromtimestamp(sec, tz=dt.timezone.utc)
+    return f"{stamp:%Y-%m-%d %H:%M:%S}.{nsec:09d} UTC ({sec}.{nsec:09d})"
+
+
+def _state(label: str, complete: bool, problems: list[str], width: int) -> list[str]:
+    """'state  complete', or 'state  DAMAGED' and the problems, one a line."""
+    if not problems:
+        return [f"{label:<{width}}complete"]
+    lines = [f"{label:<{width}}{'complete (footer read), with problems' if complete else 'DAMAGED'}"]
+    for i, part in enumerate(problems):
+        lines.append(f"{'problem' if i == 0 else '':<{width}}{part}")
+    return lines
+
+
+def format_info(info: LogInfo) -> str:
+    """``info`` as text."""
+    lines = [
+        f"file        {info.path}",
+        f"size        {info.size:,} bytes",
+        *_state("state", info.complete, info.problems, 12),
+        f"library     {info.library or '-'}" + (f" (profile {info.profile!r})" if info.profile else ""),
+        f"messages    {info.messages:,}" + (f" ({info.undecodable:,} undecodable)" if info.undecodable else ""),
+    ]
+    if info.start_ns is not None:
+        lines += [f"start       {_time(info.start_ns)}",
+                  f"end         {_time(info.end_ns)}",
+                  f"duration    {info.duration_s:.3f} s"]
+    lines += [f"runs        {', '.join(info.run_ids) or '-'}",
+              f"twins       {', '.join(info.twin_ids) or '-'}"]
+    if info.first_error:
+        lines.append(f"first error {info.first_error}")
+    lines.append(f"channels    {len(info.topics)}")
+    if info.topics:
+        rows = [("topic", "messages", "encoding", "schema", "steps")]
+        for t in info.topics:
+            steps = "-" if t.first_step is None else f"{t.first_step}..{t.last_step}"
+            if t.undecodable:
+                steps += f" ({t.undecodable} undecodable)"
+            rows.append((t.topic, f"{t.count:,}", t.message_encoding, t.schema_name or "-", steps))
+        lines += _table(rows, right={1})
+    lines.append(f"schemas     {len(info.schemas)}")
+    if info.schemas:
+        rows = [("id", "name", "encoding", "bytes", "channels", "this dtpf's")]
+        rows += [(str(s.id), s.name, s.encoding, f"{s.size:,}", str(s.channels), s.current) for s in info.schemas]
+        lines += _table(rows, right={0, 3, 4})
+    return "\n".join(lines)
+
+
+def _table(rows: list[tuple[str, ...]], right: set[int] = frozenset()) -> list[str]:
+    widths = [max(len(row[i]) for row in rows) for i in range(len(rows[0]))]
+    return ["  " + "  ".join(cell.rjust(w) if i in right else cell.ljust(w)
+                             for i, (cell, w) in enumerate(zip(row, widths))).rstrip() for row in rows]
+
+
+# --- summary ---
+
+@dataclass
+class Trajectory:
+    """A PS sequence: first and last value, range and number of changes."""
+
+    start: float
+    end: float
+    min: float
+    max: float
+    changes: int
+    count: int
+
+    @classmethod
+    def of(cls, values: list[float]) -> "Trajectory | None":
+        if not values:
+            return None
+        changes = sum(a != b for a, b in zip(values, values[1:]))
+        return cls(values[0], values[-1], min(values), max(values), changes, len(values))
+
+
+@dataclass
+class LayerStatus:
+    """The last Status a layer published in the log."""
+
+    layer: str
+    state: str
+    received: int
+    rejected: int
+    last_error: str | None
+    step: int
+
+
+@dataclass
+class TwinSummary:
+    """One twin (and run) of a log, as its Estimate, PSCommand and Status messages tell it."""
+
+    twin: str
+    run_id: str
+    config: dict | None = None          #: the RunConfig from a Status message, when recorded
+    steps: list[int] = field(default_factory=list)  #: steps with an estimate, ascending
+    expected_steps: int | None = None   #: T from the recorded configuration
+    missing_steps: list[int] = field(default_factory=list)
+    duplicate_estimates: int = 0
+    rmse: float | None = None           #: over the steps whose estimate records the truth
+    truth_steps: int = 0
+    mean_ess: float | None = None
+    min_ess: float | None = None
+    min_ess_step: int | None = None
+    resamplings: int = 0
+    ps_commanded: Trajectory | None = None  #: system/ps, in order of applies_from_step
+    ps_applied: Trajectory | None = None    #: Estimate.ps, in step order
+    policies: list[str] = field(default_factory=list)
+    last_reason: str | None = None
+    degraded_steps: list[int] = field(default_factory=list)
+    statuses: dict[str, LayerStatus] = field(default_factory=dict)
+
+    @property
+    def degraded(self) -> int:
+        return len(self.degraded_steps)
+
+
+@dataclass
+class LogSummary:
+    """What :func:`summarise` finds: the file's state, then one summary per twin and run."""
+
+    path: Path
+    size: int
+    complete: bool
+    problems: list[str]                #: what is missing or damaged (messages.logfile.Log.problems)
+    messages: int
+    undecodable: int
+    errors: list[str]                  #: the first few decode errors
+    twins: list[TwinSummary]
+
+    @property
+    def problem(self) -> str | None:
+        return "; ".join(self.problems) if self.problems else None
+
+
+#: Decode errors kept in :attr:`LogSummary.errors`.
+MAX_ERRORS = 5
+_SUMMARY_TOPICS = {"estimate", "ps", "status"}
+
+
+def summarise(log: Log) -> LogSummary:
+    """Per-twin figures from the Estimate, PSCommand and Status messages of ``log``."""
+    def wanted(topic: str) -> bool:
+        return topic.rsplit("/", 1)[-1] in _SUMMARY_TOPICS
+
+    groups: dict[tuple[str, str], dict[str, list]] = {}
+    undecodable, errors = 0, []
+    for _, message in log.decoded(wanted):
+        if isinstance(message, MessageError):
+            undecodable += 1
+            if len(errors) < MAX_ERRORS:
+                errors.append(str(message))
+            continue
+        group = groups.setdefault((message.twin_id, message.run_id), {"estimates": [], "ps": [], "status": []})
+        if isinstance(message, Estimate):
+            group["estimates"].append(message)
+        elif isinstance(message, PSCommand):
+            group["ps"].append(message)
+        elif isinstance(message, Status):
+            group["status"].append(message)
+    twins = [_twin_summary(twin, run, **group) for (twin, run), group in groups.items()]
+    return LogSummary(log.path, log.size, log.complete, list(log.problems), len(log.messages), undecodable, errors,
+                      twins)
+
+
+def _twin_summary(twin: str, run_id: str, estimates: list[Estimate], ps: list[PSCommand],
+                  status: list[Status]) -> TwinSummary:
+    out = TwinSummary(twin, run_id)
+    for message in status:
+        out.statuses[message.layer.value] = LayerStatus(message.layer.value, message.state.value, message.received,
+                                                        message.rejected, message.last_error, message.step)
+        config_json = getattr(message, "config_json", None)
+        if config_json and out.config is None:
+            try:
+                out.config = json.loads(config_json)
+            except ValueError:
+                pass
+    out.statuses = dict(sorted(out.statuses.items()))
+    if out.config is not None and isinstance(out.config.get("steps"), int):
+        out.expected_steps = out.config["steps"]
+    by_step: dict[int, Estimate] = {}
+    for estimate in estimates:
+        if estimate.step in by_step:
+            out.duplicate_estimates += 1
+        else:
+            by_step[estimate.step] = estimate
+    ordered = [by_step[k] for k in sorted(by_step)]
+    out.steps = [e.step for e in ordered]
+    last = max(out.expected_steps or 0, out.steps[-1] if out.steps else 0)
+    out.missing_steps = sorted(set(range(1, last + 1)) - set(by_step))
+    with_truth = [e for e in ordered if e.truth is not None]
+    out.truth_steps = len(with_truth)
+    if with_truth:
+        errors = np.array([e.mean for e in with_truth]) - np.array([e.truth for e in with_truth])
+        out.rmse = float(np.sqrt(np.mean(errors ** 2)))
+    if ordered:
+        ess = np.array([e.ess for e in ordered])
+        out.mean_ess = float(ess.mean())
+        out.min_ess = float(ess.min())
+        out.min_ess_step = ordered[int(ess.argmin())].step
+    out.resamplings = sum(e.resampled for e in ordered)
+    out.degraded_steps = [e.step for e in ordered if e.degraded]
+    out.ps_applied = Trajectory.of([e.ps for e in ordered if e.ps is not None])
+    commands = sorted(enumerate(ps), key=lambda pair: (pair[1].applies_from_step, pair[0]))
+    out.ps_commanded = Trajectory.of([c.ps for _, c in commands])
+    out.policies = list(dict.fromkeys(c.policy for c in ps))
+    out.last_reason = commands[-1][1].reason if commands else None
+    return out
+
+
+def format_ranges(steps: list[int]) -> str:
+    """Sorted integers as ranges: [1, 2, 3, 5, 7, 8] -> '1-3, 5, 7-8'."""
+    parts, run = [], []
+    for step in sorted(set(steps)):
+        if run and step != run[-1] + 1:
+            parts.append(_span(run))
+            run = []
+        run.append(step)
+    if run:
+        parts.append(_span(run))
+    return ", ".join(parts)
+
+
+def _span(run: list[int]) -> str:
+    return str(run[0]) if len(run) == 1 else f"{run[0]}-{run[-1]}"
+
+
+def _trajectory(t: Trajectory | None, what: str) -> str:
+    if t is None:
+        return "-"
+    return (f"{t.start:g} -> {t.end:g} (min {t.min:g}, max {t.max:g}, {t.changes} change{'s' * (t.changes != 1)}, "
+            f"{t.count} {what})")
+
+
+def format_summary(summary: LogSummary) -> str:
+    """``summary`` as text: the file's state first, then each twin."""
+    lines = [f"log           {summary.path} ({summary.size:,} bytes)",
+             *_state("state", summary.complete, summary.problems, 14),
+             f"messages      {summary.messages:,}"
+             + (f" ({summary.undecodable:,} undecodable)" if summary.undecodable else "")]
+    lines += [f"  undecodable: {error}" for error in summary.errors]
+    if not summary.twins:
+        lines.append("no estimate, PS or status message of any twin in the log")
+    for t in summary.twins:
+        lines += ["", f"twin {t.twin}, run {t.run_id}"]
+        c = t.config
+        if c:
+            lines.append(f"  config        {c.get('scenario')}, N = {c.get('particles')}, T = {c.get('steps')}, "
+                         f"seed {c.get('seed')}, {c.get('resampler')}, "
+                         f"{'DT preprocessing' if c.get('preprocess') else 'no preprocessing'}, "
+                         f"policy {c.get('policy')}")
+        count = f"{len(t.steps)}" + (f" of {t.expected_steps}" if t.expected_steps else "")
+        span = f" ({format_ranges(t.steps)})" if t.steps else ""
+        lines.append(f"  steps         {count}{span}")
+        if t.missing_steps:
+            lines.append(f"  missing       {format_ranges(t.missing_steps)}")
+        if t.duplicate_estimates:
+            lines.append(f"  duplicates    {t.duplicate_estimates} estimates repeat a step (the first is used)")
+        lines.append(f"  RMSE          " + ("- (no truth recorded)" if t.rmse is None else
+                                           f"{t.rmse:.4f} (truth at {t.truth_steps} steps)"))
+        if t.mean_ess is not None:
+            lines.append(f"  ESS           mean {t.mean_ess:.1f}, min {t.min_ess:.1f} at step {t.min_ess_step}")
+        lines.append(f"  resamplings   {t.resamplings}")
+        policy = f", policy {', '.join(t.policies)}" if t.policies else ""
+        lines.append(f"  PS commanded  {_trajectory(t.ps_commanded, 'commands')}{policy}")
+        lines.append(f"  PS applied    {_trajectory(t.ps_applied, 'steps')}")
+        lines.append(f"  degraded      {t.degraded}" + (f" (steps {format_ranges(t.degraded_steps)})"
+                                                        if t.degraded_steps else ""))
+        if not t.statuses:
+            lines.append("  rejected      - (no status recorded)")
+        for i, s in enumerate(t.statuses.values()):
+            error = f", last error: {s.last_error}" if s.last_error else ""
+            lines.append(f"  {'rejected' if i == 0 else '':<13} {s.layer:<12} {s.rejected} of {s.received} "
+                         f"received ({s.state}){error}")
+    return "\n".join(lines)
+
+
+# --- commands ---
+
+def _read(args: argparse.Namespace, command: str) -> Log | None:
+    try:
+        return read_log(args.log)
+    except LogError as error:
+        print(f"dtpf {command}: error: {error}", file=sys.stderr)
+        return None
+
+
+def cmd_info(args: argparse.Namespace) -> int:
+    """``dtpf info LOG``: 0 when the file could be read (even damaged), 1 when it is no MCAP log."""
+    log = _read(args, "info")
+    if log is None:
+        return 1
+    print(format_info(log_info(log)))
+    return 0
+
+
+def cmd_summary(args: argparse.Namespace) -> int:
+    """``dtpf summary LOG``: 0 when the file could be read (even damaged), 1 when it is no MCAP log."""
+    log = _read(args, "summary")
+    if log is None:
+        return 1
+    print(format_summary(summarise(log)))
+    return 0
+
+
+def _same_file(a: Path, b: Path) -> bool:
+    try:
+        return a.resolve() == b.resolve() or (b.exists() and a.samefile(b))
+    except OSError:
+        return False
+
+
+def cmd_recover(args: argparse.Namespace) -> int:
+    """``dtpf recover LOG -o OUT``: 0 when OUT was written (even if data was lost), 1 when nothing could
+    be read, 2 when OUT is LOG."""
+    source, out = Path(args.log), Path(args.output)
+    if _same_file(source, out):
+        print(f"dtpf recover: error: {out} is the log being recovered; choose another output file",
+              file=sys.stderr)
+        return 2
+    log = _read(args, "recover")
+    if log is None:
+        return 1
+    if not log.messages:
+        print(f"dtpf recover: error: nothing to recover from {source}: {log.problem or 'the log holds no message'}",
+              file=sys.stderr)
+        return 1
+    try:
+        written = write_log(log, out)
+    except LogError as error:
+        print(f"dtpf recover: error: {error}", file=sys.stderr)
+        return 1
+    last = _last_estimates(log)
+    lines = [f"read          {source} ({log.size:,} bytes)", *_state("state", log.complete, log.problems, 14),
+             f"wrote         {out}: {written:,} messages on {len(log.channels)} channels, "
+             f"{len(log.schemas)} schemas (a finished MCAP, lz4 chunks)"]
+    if last:
+        lines.append("last estimate " + ", ".join(f"step {step} ({twin})" for twin, step in last.items()))
+    lines.append(f"lost          {_lost(log)}")
+    print("\n".join(lines))
+    return 0
+
+
+def _lost(log: Log) -> str:
+    """What recovering ``log`` cannot bring back, in words."""
+    if log.problem is None:
+        return "nothing"
+    cut = log.cut
+    if log.complete:
+        return "nothing recorded after the footer; see the problems above for damage inside the file"
+    rebuilt = "the summary and footer are rebuilt"
+    if cut is not None and log.data_end:
+        return f"no message (the file ends in its summary section); {rebuilt}"
+    if cut is not None and cut.compression is not None:
+        missing = cut.chunk_data_length - cut.chunk_data_available
+        return (f"the part of the chunk at byte {cut.offset:,} past its last complete message ({missing:,} of its "
+                f"{cut.chunk_data_length:,} bytes of records are not in the file) and anything recorded after it, "
+                f"which the file cannot count; {rebuilt}")
+    if cut is not None and cut.name == "MESSAGE_INDEX":
+        return (f"no message of the file (it ends in a message index), but whatever the recorder had not yet "
+                f"written; {rebuilt}")
+    return f"everything after byte {log.read_to:,}, which the file cannot count; {rebuilt}"
+
+
+def _last_estimates(log: Log) -> dict[str, int]:
+    last: dict[str, int] = {}
+    for _, message in log.decoded(lambda topic: topic.endswith("/entity/estimate")):
+        if isinstance(message, Estimate):
+            last[message.twin_id] = max(last.get(message.twin_id, 0), message.step)
+    return last
+
+
+def register(subparsers) -> None:
+    """Add ``info``, ``summary`` and ``recover`` to ``subparsers`` (from ``parser.add_subparsers()``).
+
+    Each subcommand sets ``handler``: a function of the parsed arguments that returns the exit code.
+    """
+    info = subparsers.add_parser(
+        "info", help="what an MCAP log holds: size, state, time range, topics, schemas",
+        description="Describe an MCAP log like 'mcap info': file size, complete or damaged (and what is missing), "
+                    "time range, message count, per topic the count, message encoding, schema and first and last "
+                    "step, the run and twin ids in the messages, and the schemas. A damaged file is read as far "
+                    "as it goes. Exit code 0 when the file could be read, 1 when it is not an MCAP log.")
+    info.add_argument("log", type=Path, metavar="LOG", help="MCAP file written by dtpf")
+    info.set_defaults(handler=cmd_info)
+
+    summary = subparsers.add_parser(
+        "summary", help="per twin: steps, RMSE, ESS, resamplings, PS, degraded steps, rejected messages",
+        description="Summarise the run recorded in an MCAP log, per twin: steps, RMSE against the recorded "
+                    "truth, mean and minimum ESS, resamplings, the PS trajectory (commanded by the system layer "
+                    "and applied by the entity), degraded steps, and the last status of each layer (messages "
+                    "received and rejected, last error). On a damaged file it says first what is missing. "
+                    "Exit code 0 when the file could be read, 1 when it is not an MCAP log.")
+    summary.add_argument("log", type=Path, metavar="LOG", help="MCAP file written by dtpf")
+    summary.set_defaults(handler=cmd_summary)
+
+    recover = subparsers.add_parser(
+        "recover", help="rewrite a damaged MCAP log as a valid file with every message that can be read",
+        description="Read a damaged MCAP log (no footer, a cut last chunk) as far as it goes, including the "
+                    "complete messages inside a cut chunk, and write them to a new, finished MCAP file (same "
+                    "schemas, channels and messages, lz4 chunks). Exit code 0 when OUT was written, even if "
+                    "data was lost; 1 when nothing could be read; 2 when OUT is LOG.")
+    recover.add_argument("log", type=Path, metavar="LOG", help="MCAP file to recover (never modified)")
+    recover.add_argument("--output", "-o", type=Path, required=True, metavar="OUT",
+                         help="file to write (replaced if it exists; must not be LOG)")
+    recover.set_defaults(handler=cmd_recover)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m scripts.inspect_log",
+                                     description="Inspect and recover dtpf MCAP logs.")
+    register(parser.add_subparsers(dest="command", metavar="COMMAND", required=True))
+    args = parser.parse_args(argv)
+    return args.handler(args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

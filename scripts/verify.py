@@ -1,0 +1,215 @@
+"""``dtpf verify LOG``: re-run the information and system layers offline.
+
+For every particle set the entity recorded, the information layer's rules and
+mirror and the system layer's policy run again, in process, with the run
+configuration the information layer recorded in its status; every recorded
+output (preprocessed set, weight state, PS command) must be reproduced
+exactly. The report goes step by step; the first mismatch names the step,
+the topic and the field, and the exit code is 1.
+"""
+from __future__ import annotations
+
+import argparse
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from entity import models
+from information.layer import InformationLayer
+from messages.config import RunConfig
+from messages.logfile import Log, LogError, read_log
+from messages.models import ParticleSet, PSCommand, Status, WeightState
+from system import policy as ps_policy
+from system.layer import SystemLayer
+
+__all__ = ["verify", "Verification", "Mismatch", "register"]
+
+
+@dataclass(frozen=True)
+class Mismatch:
+    """The first recorded output that the re-run does not reproduce."""
+
+    step: int
+    topic: str
+    field: str
+    recorded: object
+    rerun: object
+
+    def __str__(self) -> str:
+        return f"step {self.step}: {self.topic} {self.field} differs: recorded {self.recorded}, re-run {self.rerun}"
+
+
+@dataclass
+class Verification:
+    """Outcome of :func:`verify`: steps checked, steps without recorded output, the first mismatch."""
+
+    twin: str
+    config: RunConfig
+    checked: list[int] = field(default_factory=list)
+    unanswered: list[int] = field(default_factory=list)
+    mismatch: Mismatch | None = None
+    problem: str | None = None
+
+    @property
+    def ok(self) -> bool:
+        return self.mismatch is None
+
+
+def _first_difference(recorded: np.ndarray, rerun: np.ndarray) -> tuple[str, object, object] | None:
+    """Where two arrays differ bit for bit: ('[i, j]', recorded value, re-run value), or None."""
+    if recorded.shape != rerun.shape:
+        return "shape", recorded.shape, rerun.shape
+    differ = recorded != rerun
+    if not differ.any():
+        return None
+    index = tuple(int(i) for i in np.argwhere(differ)[0])
+    return f"[{', '.join(map(str, index))}]", float(recorded[index]), float(rerun[index])
+
+
+def _same(a, b) -> bool:
+    if isinstance(a, float) and isinstance(b, float) and math.isnan(a) and math.isnan(b):
+        return True
+    return a == b
+
+
+def _config_of(statuses: list[Status], twin: str) -> RunConfig:
+    for layer in ("information", "system", "entity"):
+        for status in reversed(statuses):
+            if status.layer.value == layer and status.config_json:
+                return RunConfig.model_validate_json(status.config_json)
+    raise LogError(f"the log holds no run configuration for twin {twin!r} (no status message with config_json)")
+
+
+def verify(log: Log, twin: str | None = None) -> Verification:
+    """Re-run the information and system layers on ``log``'s entity particle sets."""
+    by_topic: dict[str, list] = {}
+    twins = set()
+    for item, message in log.decoded():
+        if isinstance(message, Exception):
+            continue
+        twins.add(message.twin_id)
+        by_topic.setdefault(item.topic, []).append(message)
+    if twin is None:
+        if len(twins) != 1:
+            raise LogError(f"the log holds twins {sorted(twins)}: choose one with --twin")
+        twin = twins.pop()
+    elif twin not in twins:
+        raise LogError(f"twin {twin!r} is not in the log; it holds {sorted(twins)}")
+
+    def recorded(topic: str) -> dict[int, object]:
+        return {m.step: m for m in by_topic.get(f"dtpf/{twin}/{topic}", [])}
+
+    statuses = [m for topic, ms in by_topic.items() if topic.startswith(f"dtpf/{twin}/") for m in ms
+                if isinstance(m, Status)]
+    config = _config_of(statuses, twin)
+    result = Verification(twin, config, problem=log.problem)
+    particle_sets = recorded("entity/particles")
+    preprocessed = recorded("information/preprocessed")
+    weight_states = recorded("information/weight_state")
+    commands = recorded("system/ps")
+
+    model = models.get(config.scenario)
+    policy = ps_policy.get(config.policy, ps=config.ps)
+    information = InformationLayer(model, ps=policy.initial_ps, threshold_rule=config.threshold,
+                                   weight_rule=config.weight_rule, seed=config.seed, twin=twin)
+    system = SystemLayer(policy)
+    for step in sorted(particle_sets):
+        source: ParticleSet = particle_sets[step]
+        out = information.process(step, source.particles, source.weights, source.observation)
+        if step not in preprocessed:
+            result.unanswered.append(step)
+        else:
+            mismatch = _compare_preprocessed(step, twin, preprocessed[step], out)
+            if mismatch is not None:
+                result.mismatch = mismatch
+                return result
+        if step in weight_states:
+            mismatch = _compare_fields(step, f"dtpf/{twin}/information/weight_state", weight_states[step],
+                                       {**out.summary.as_dict(), "ps": out.preprocessed.report.ps})
+            if mismatch is not None:
+                result.mismatch = mismatch
+                return result
+        decision = system.observe(step, out.summary)
+        information.set_ps(decision.ps, decision.applies_from_step)
+        if step in commands:
+            mismatch = _compare_fields(step, f"dtpf/{twin}/system/ps", commands[step], {
+                "ps": decision.ps, "applies_from_step": decision.applies_from_step,
+                "policy": decision.policy, "reason": decision.reason})
+            if mismatch is not None:
+                result.mismatch = mismatch
+                return result
+        result.checked.append(step)
+    return result
+
+
+def _compare_preprocessed(step: int, twin: str, recorded: ParticleSet, out) -> Mismatch | None:
+    topic = f"dtpf/{twin}/information/preprocessed"
+    rerun = out.preprocessed
+    for name, mine in (("particles", rerun.particles), ("weights", rerun.weights)):
+        where = _first_difference(getattr(recorded, name), mine)
+        if where is not None:
+            index, value, other = where
+            return Mismatch(step, topic, f"{name}{index}" if index != "shape" else f"{name} shape", value, other)
+    report = rerun.report
+    return _compare_fields(step, topic, recorded, {
+        "ps": report.ps, "threshold": min(report.threshold, 1.0), "n_large": report.n_large,
+        "n_processed": report.n_processed, "n_mixed": report.n_mixed, "n_plain": report.n_plain})
+
+
+def _compare_fields(step: int, topic: str, recorded, expected: dict) -> Mismatch | None:
+    for name, value in expected.items():
+        got = getattr(recorded, name)
+        if not _same(got, value):
+            return Mismatch(step, topic, name, got, value)
+    return None
+
+
+def _ranges(steps: list[int]) -> str:
+    parts, start = [], None
+    for i, step in enumerate(steps):
+        if start is None:
+            start = step
+        if i + 1 == len(steps) or steps[i + 1] != step + 1:
+            parts.append(str(start) if start == step else f"{start}-{step}")
+            start = None
+    return ", ".join(parts)
+
+
+def cmd_verify(args: argparse.Namespace) -> int:
+    try:
+        log = read_log(args.log)
+        result = verify(log, args.twin)
+    except LogError as error:
+        print(f"dtpf verify: error: {error}")
+        return 2
+    if log.problem:
+        print(f"note: {log.problem}")
+    c = result.config
+    print(f"twin {result.twin}: re-running information (threshold {c.threshold}, weight rule {c.weight_rule}) "
+          f"and system (policy {c.policy}, PS {c.ps:g}) on the recorded entity particle sets")
+    if args.verbose:
+        for step in result.checked:
+            print(f"step {step}: ok")
+    if result.unanswered:
+        print(f"steps without a recorded preprocessed set (the information layer did not answer): "
+              f"{_ranges(result.unanswered)}")
+    if result.mismatch is not None:
+        print(f"MISMATCH {result.mismatch}")
+        if result.checked:
+            print(f"steps {_ranges(result.checked)} were reproduced exactly before it")
+        return 1
+    print(f"OK: {len(result.checked)} steps reproduced exactly "
+          f"(preprocessed sets bit for bit, weight states, PS commands)")
+    return 0
+
+
+def register(subparsers) -> None:
+    """Add the ``verify`` command to an argparse subparsers object."""
+    parser = subparsers.add_parser(
+        "verify", help="re-run the information and system layers on a log and check every recorded output",
+        description=__doc__.split("\n\n", 1)[1].replace("\n", " "))
+    parser.add_argument("log", help="MCAP log written by dtpf launch or the recorder")
+    parser.add_argument("--twin", help="twin to verify (default: the only twin in the log)")
+    parser.add_argument("--verbose", "-v", action="store_true", help="print a line for every step")
+    parser.set_defaults(handler=cmd_verify)

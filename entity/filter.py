@@ -61,7 +61,7 @@ class Preprocessor(Protocol):
     """Runs before resampling; returns None when it has no answer (degraded step)."""
 
     def __call__(self, step: int, particles: np.ndarray, weights: np.ndarray,
-                 observation: np.ndarray) -> Preprocessed | None: ...
+                 observation: np.ndarray, parents: int | None) -> Preprocessed | None: ...
 
 
 @dataclass(frozen=True)
@@ -87,6 +87,9 @@ class FilterStep:
         The preprocessor's report, if it ran.
     ancestors : (N,) ndarray or None
         Ancestor indices of the resampling, if it ran.
+    parents : int or None
+        Number of distinct particles ``particles`` descend from (the distinct
+        ancestors of the last resampling); None before the first.
     """
 
     step: int
@@ -101,6 +104,7 @@ class FilterStep:
     degraded: bool
     report: object
     ancestors: np.ndarray | None
+    parents: int | None
 
 
 def normalise(log_weights: np.ndarray) -> np.ndarray:
@@ -170,6 +174,7 @@ class ParticleFilter:
         self.k = 0
         self.particles: np.ndarray | None = None
         self.log_weights = np.zeros(self.n)
+        self.parents: int | None = None
 
     @property
     def steps(self) -> int:
@@ -202,7 +207,7 @@ class ParticleFilter:
         report = None
         target_particles, target_weights = particles, weights
         if due and self.preprocessor is not None:
-            answer = self.preprocessor(k, particles, weights, observation)
+            answer = self.preprocessor(k, particles, weights, observation, self.parents)
             if answer is None:
                 degraded = True
             else:
@@ -216,9 +221,12 @@ class ParticleFilter:
         mean, var = moments(target_particles, target_weights)
         half = Z95 * np.sqrt(var)
         ancestors = None
+        parents = self.parents
         if due:
             ancestors = self.resample(target_weights, rng)
             self.particles = target_particles[ancestors]
             self.log_weights = np.zeros(self.n)
+            # Ancestors are sorted: distinct ones = 1 + number of changes.
+            self.parents = 1 + int(np.count_nonzero(ancestors[1:] != ancestors[:-1]))
         return FilterStep(k, particles, weights, ess, mean, var, mean - half, mean + half,
-                          due, degraded, report, ancestors)
+                          due, degraded, report, ancestors, parents)

@@ -39,7 +39,7 @@ class ZenohTwin:
         self.answers = shell.inbox("information", "preprocessed")
         self.information_was_alive = True
 
-    def __call__(self, step, particles, weights, observation) -> Preprocessed | None:
+    def __call__(self, step, particles, weights, observation, parents=None) -> Preprocessed | None:
         shell = self.shell
         alive = "information" in shell.presence.alive
         if not alive and self.information_was_alive:
@@ -48,7 +48,8 @@ class ZenohTwin:
             shell.log.info("step %d: the information layer is alive, preprocessing again", step)
         self.information_was_alive = alive
         shell.publish(ParticleSet(**shell.header(step), kind=ParticleSetKind.PROPAGATED, particles=particles,
-                                  weights=weights, observation=[float(v) for v in observation]))
+                                  weights=weights, observation=[float(v) for v in observation],
+                                  parents=parents))
         if not alive:
             return None  # nobody to wait for: do not stall the filter
         deadline = time.monotonic() + self.timeout

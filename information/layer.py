@@ -72,10 +72,11 @@ class InformationLayer:
             self.ps = self.pending.pop(0)[1]
         return self.ps
 
-    def process(self, step: int, particles, weights, observation) -> InformationOutput:
-        """Mirror and preprocess the entity's particle set of ``step``."""
+    def process(self, step: int, particles, weights, observation, parents: int | None = None) -> InformationOutput:
+        """Mirror and preprocess the entity's particle set of ``step`` (``parents``: see
+        :func:`information.mirror.summarise`)."""
         ps = self.ps_for(step)
-        summary = summarise(particles, weights, self.threshold_rule)
+        summary = summarise(particles, weights, self.threshold_rule, parents)
         z = np.asarray(observation, dtype=np.float64)
         log_likelihood = None
         if self.weight_rule == "likelihood":

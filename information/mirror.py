@@ -11,9 +11,11 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass
 
+import numba
 import numpy as np
 
 from information.rules import threshold as threshold_of
+from information.select import quantiles
 from messages.arrays import check_particles, check_weights
 
 __all__ = ["WeightSummary", "summarise", "ess"]
@@ -47,7 +49,8 @@ class WeightSummary:
     n_above_threshold : int
         Particles with weight > W (the large set of Eq. 28).
     distinct : int
-        Number of distinct particle states (impoverishment after resampling).
+        Number of distinct particles the set descends from (impoverishment
+        after resampling); see :func:`summarise`.
     q10, q50, q90, q99 : float
         Quantiles of the normalised weights.
     """
@@ -70,17 +73,36 @@ class WeightSummary:
         return asdict(self)
 
 
-def summarise(particles, weights, threshold_rule: str | float = "neff") -> WeightSummary:
-    """The :class:`WeightSummary` of a particle set (N, d) with normalised weights (N,)."""
+@numba.njit(cache=True, nogil=True)
+def _entropy(weights):  # pragma: no cover - compiled
+    total = 0.0
+    for w in weights:
+        if w > 0.0:
+            total -= w * np.log(w)
+    return total
+
+
+def summarise(particles, weights, threshold_rule: str | float = "neff", parents: int | None = None) -> WeightSummary:
+    """The :class:`WeightSummary` of a particle set (N, d) with normalised weights (N,).
+
+    ``parents``: the number of distinct particles the set descends from (the
+    distinct ancestors of the resampling before the last propagation), which
+    the entity knows in O(N). Without it, distinct states are counted by
+    sorting, O(N log N); after a propagation with noise that is N.
+    """
     w = check_weights(weights)
     x = check_particles(particles, n=w.size)
     n = w.size
     effective = ess(w)
-    positive = w[w > 0]
-    entropy = float(-np.dot(positive, np.log(positive)))
+    entropy = float(_entropy(w))
     limit = threshold_of(w, threshold_rule)
-    distinct = np.unique(x[:, 0]).size if x.shape[1] == 1 else np.unique(x, axis=0).shape[0]
-    quantiles = np.quantile(w, list(QUANTILES.values()))
+    if parents is not None:
+        if not 1 <= int(parents) <= n:
+            raise ValueError(f"parents must be in [1, {n}], got {parents!r}")
+        distinct = int(parents)
+    else:
+        distinct = np.unique(x[:, 0]).size if x.shape[1] == 1 else np.unique(x, axis=0).shape[0]
+    weight_quantiles = quantiles(w, list(QUANTILES.values()))
     return WeightSummary(
         n=n,
         ess=effective,
@@ -91,5 +113,5 @@ def summarise(particles, weights, threshold_rule: str | float = "neff") -> Weigh
         threshold=limit,
         n_above_threshold=int(np.count_nonzero(w > limit)),
         distinct=int(distinct),
-        **{name: float(q) for name, q in zip(QUANTILES, quantiles)},
+        **{name: float(q) for name, q in zip(QUANTILES, weight_quantiles)},
     )

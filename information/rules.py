@@ -43,6 +43,7 @@ from typing import Callable, Literal
 import numba
 import numpy as np
 
+from information.select import kth_largest
 from messages.arrays import check_particles, check_probability, check_weights
 
 __all__ = [
@@ -125,44 +126,6 @@ def threshold(weights: np.ndarray, rule: str | float = "neff") -> float:
     if not np.isfinite(value) or value < 0:
         raise ValueError(f"threshold W must be a finite non-negative number, got {rule!r}")
     return value
-
-
-@numba.njit(cache=True, nogil=True)
-def _kth_largest(values, k):  # pragma: no cover - compiled
-    # Radix select on the bit patterns of non-negative float64 values, which
-    # order like the values: histogram the top 16 bits, find the bucket that
-    # holds the k-th largest, then select inside that bucket only.
-    bits = values.view(np.int64)
-    shift = 48
-    counts = np.zeros(1 << 15, dtype=np.int64)
-    for i in range(bits.shape[0]):
-        counts[bits[i] >> shift] += 1
-    above = 0
-    bucket = counts.shape[0] - 1
-    while above + counts[bucket] < k:
-        above += counts[bucket]
-        bucket -= 1
-    members = np.empty(counts[bucket], dtype=np.float64)
-    j = 0
-    for i in range(bits.shape[0]):
-        if bits[i] >> shift == bucket:
-            members[j] = values[i]
-            j += 1
-    members.sort()
-    return members[members.shape[0] - (k - above)]
-
-
-#: Below this size np.partition beats the radix select (its histogram has 2**15 bins).
-_RADIX_MIN = 1 << 16
-
-
-def kth_largest(values: np.ndarray, k: int) -> float:
-    """The k-th largest of non-negative float64 ``values`` (k = 1 is the maximum), in O(N)."""
-    if not 1 <= k <= values.size:
-        raise ValueError(f"k must be in [1, {values.size}], got {k}")
-    if values.size < _RADIX_MIN:
-        return float(np.partition(values, values.size - k)[values.size - k])
-    return float(_kth_largest(np.ascontiguousarray(values, dtype=np.float64), k))
 
 
 @numba.njit(cache=True, nogil=True)

@@ -80,7 +80,7 @@ def main(config: RunConfig, zenoh_config: zenoh.Config, args: argparse.Namespace
             if step - 1 in published and not commands.wait_for_decision(step - 1, args.timeout):
                 shell.log.warning("step %d: no PS decision of step %d within %.1f s, keeping PS = %g",
                                   step, step - 1, args.timeout, layer.ps)
-            out = layer.process(step, message.particles, message.weights, message.observation)
+            out = layer.process(step, message.particles, message.weights, message.observation, message.parents)
             result, summary, report = out.preprocessed, out.summary, out.preprocessed.report
             counts = dict(n_large=report.n_large, n_processed=report.n_processed,
                           n_mixed=report.n_mixed, n_plain=report.n_plain)

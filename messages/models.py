@@ -258,6 +258,10 @@ class ParticleSetHeader(Message):
     n_processed: Count | None = _count("n_processed")
     n_mixed: Count | None = _count("n_mixed")
     n_plain: Count | None = _count("n_plain")
+    parents: int | None = Field(
+        default=None, ge=1, le=UINT32_MAX, description="Number of distinct particles this set descends from "
+                                                        "(distinct ancestors of the last resampling); absent "
+                                                        "before the first resampling.")
 
     @classmethod
     def _expected_layer(cls, data: Any) -> Layer | None:
@@ -299,6 +303,8 @@ class ParticleSet(ParticleSetHeader):
             raise ValueError(
                 f"particles and weights differ in length: {n_particles} particles, {n_weights} weights")
         _check_counts(self, n_weights)
+        if self.parents is not None and self.parents > n_weights:
+            raise ValueError(f"parents must be at most N={n_weights}, got {self.parents}")
         return self
 
     @property
@@ -340,7 +346,9 @@ class WeightState(Message):
     max_weight: float = Field(ge=0.0, le=1.0, description="Largest normalised weight.")
     threshold: float = Field(ge=0.0, le=1.0, description="Weight threshold W of Eq. 28.")
     n_above_threshold: Count = Field(description="Particles with weight > W.")
-    distinct: int = Field(ge=1, le=UINT32_MAX, description="Number of distinct particle states.")
+    distinct: int = Field(ge=1, le=UINT32_MAX, description="Number of distinct particles the set descends from "
+                                                           "(distinct ancestors of the last resampling; "
+                                                           "distinct states when that is unknown).")
     q10: float = Field(ge=0.0, le=1.0, description="10% quantile of the normalised weights.")
     q50: float = Field(ge=0.0, le=1.0, description="Median of the normalised weights.")
     q90: float = Field(ge=0.0, le=1.0, description="90% quantile of the normalised weights.")

@@ -37,8 +37,8 @@ class InProcessTwin:
         self.system = system
         self.decisions: list[PSDecision] = []
 
-    def __call__(self, step, particles, weights, observation) -> Preprocessed:
-        out = self.information.process(step, particles, weights, observation)
+    def __call__(self, step, particles, weights, observation, parents=None) -> Preprocessed:
+        out = self.information.process(step, particles, weights, observation, parents)
         decision = self.system.observe(step, out.summary)
         self.information.set_ps(decision.ps, decision.applies_from_step)
         self.decisions.append(decision)

@@ -116,7 +116,7 @@ def verify(log: Log, twin: str | None = None) -> Verification:
     system = SystemLayer(policy)
     for step in sorted(particle_sets):
         source: ParticleSet = particle_sets[step]
-        out = information.process(step, source.particles, source.weights, source.observation)
+        out = information.process(step, source.particles, source.weights, source.observation, source.parents)
         if step not in preprocessed:
             result.unanswered.append(step)
         else:

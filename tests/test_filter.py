@@ -108,6 +108,15 @@ def test_every_step_reports_moments_and_interval():
         np.testing.assert_allclose(step.upper - step.mean, 1.959963984540054 * np.sqrt(step.var))
 
 
+def test_parents_count_the_distinct_ancestors_of_the_last_resampling():
+    model = models.get("ungm")
+    _, z = model.simulate(8, np.random.default_rng(0))
+    steps = list(ParticleFilter(model, z, 400, seed=2))
+    assert steps[0].parents is None
+    for before, after in zip(steps, steps[1:]):
+        assert after.parents == np.unique(before.ancestors).size < 400
+
+
 def test_resample_below_skips_resampling_when_ess_is_high():
     model = models.get("ungm")
     _, z = model.simulate(50, np.random.default_rng(0))
@@ -120,7 +129,7 @@ def test_missing_preprocessor_answer_degrades_the_step_and_resamples_plainly():
     model = models.get("ungm")
     _, z = model.simulate(6, np.random.default_rng(0))
 
-    def flaky(step, particles, weights, observation):
+    def flaky(step, particles, weights, observation, parents):
         return None if step % 2 else Preprocessed(particles, weights, "ok")
 
     steps = list(ParticleFilter(model, z, 100, seed=1, preprocessor=flaky))

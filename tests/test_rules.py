@@ -203,6 +203,21 @@ def test_mirror_of_a_collapsed_set():
     assert s.q50 == 0.0
 
 
+def test_mirror_takes_the_parents_count_when_given():
+    s = summarise(np.arange(100.0), np.full(100, 0.01), parents=37)
+    assert s.distinct == 37
+    with pytest.raises(ValueError, match=r"parents must be in \[1, 100\], got 101"):
+        summarise(np.arange(100.0), np.full(100, 0.01), parents=101)
+
+
+@pytest.mark.parametrize("n", [1000, 200_000])
+def test_mirror_quantiles_match_numpy(n):
+    w = np.random.default_rng(n).exponential(size=n) ** 2
+    w /= w.sum()
+    s = summarise(np.zeros(n), w, parents=1)
+    np.testing.assert_allclose([s.q10, s.q50, s.q90, s.q99], np.quantile(w, [0.1, 0.5, 0.9, 0.99]), rtol=1e-12)
+
+
 def test_mirror_rejects_bad_weights():
     with pytest.raises(ValueError, match="weights contain negative values"):
         summarise(np.zeros(2), np.array([1.5, -0.5]))

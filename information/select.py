@@ -1,0 +1,75 @@
+"""Order statistics of non-negative float64 arrays in O(N) (the weights).
+
+The threshold W of Eq. 28 and the mirror's weight quantiles are order
+statistics of the weights. One pass builds a histogram of the top 16 bits of
+the values' bit patterns, which order like the values for non-negative
+floats; each requested order statistic is then selected inside its bucket
+only. Below 2**16 values ``np.partition`` is faster and is used instead.
+"""
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+__all__ = ["order_statistics", "kth_largest", "quantiles"]
+
+#: Below this size np.partition beats the radix select (its histogram has 2**15 bins).
+RADIX_MIN = 1 << 16
+
+
+@numba.njit(cache=True, nogil=True)
+def _order_statistics(values, ranks):  # pragma: no cover - compiled
+    # ranks: sorted 0-based positions in ascending order.
+    bits = values.view(np.int64)
+    shift = 48
+    counts = np.zeros(1 << 15, dtype=np.int64)
+    for i in range(bits.shape[0]):
+        counts[bits[i] >> shift] += 1
+    out = np.empty(ranks.shape[0])
+    below = 0
+    bucket = 0
+    for q in range(ranks.shape[0]):
+        rank = ranks[q]
+        while below + counts[bucket] <= rank:
+            below += counts[bucket]
+            bucket += 1
+        members = np.empty(counts[bucket])
+        j = 0
+        for i in range(bits.shape[0]):
+            if bits[i] >> shift == bucket:
+                members[j] = values[i]
+                j += 1
+        members.sort()
+        out[q] = members[rank - below]
+    return out
+
+
+def order_statistics(values: np.ndarray, ranks) -> np.ndarray:
+    """The values at 0-based ``ranks`` of ``sorted(values)``; values non-negative float64."""
+    ranks = np.asarray(ranks, dtype=np.int64)
+    if ranks.size and (ranks.min() < 0 or ranks.max() >= values.size):
+        raise ValueError(f"ranks must be in [0, {values.size - 1}], got {ranks.tolist()}")
+    if values.size < RADIX_MIN:
+        return np.partition(values, ranks)[ranks]
+    order = np.argsort(ranks, kind="stable")
+    out = np.empty(ranks.size)
+    out[order] = _order_statistics(np.ascontiguousarray(values, dtype=np.float64), ranks[order])
+    return out
+
+
+def kth_largest(values: np.ndarray, k: int) -> float:
+    """The k-th largest value (k = 1 is the maximum)."""
+    if not 1 <= k <= values.size:
+        raise ValueError(f"k must be in [1, {values.size}], got {k}")
+    return float(order_statistics(values, [values.size - k])[0])
+
+
+def quantiles(values: np.ndarray, probabilities) -> np.ndarray:
+    """Quantiles with numpy's default (linear) interpolation, as ``np.quantile``."""
+    p = np.asarray(probabilities, dtype=np.float64)
+    position = p * (values.size - 1)
+    lower = np.floor(position).astype(np.int64)
+    upper = np.minimum(lower + 1, values.size - 1)
+    stats = order_statistics(values, np.concatenate((lower, upper)))
+    low, high = stats[: p.size], stats[p.size:]
+    return low + (high - low) * (position - lower)

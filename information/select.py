@@ -19,28 +19,44 @@ RADIX_MIN = 1 << 16
 
 @numba.njit(cache=True, nogil=True)
 def _order_statistics(values, ranks):  # pragma: no cover - compiled
-    # ranks: sorted 0-based positions in ascending order.
+    # ranks: sorted 0-based positions in ascending order. Pass 1: histogram of
+    # the top 16 bits. Pass 2: collect the members of the buckets that hold a
+    # requested rank; sorted, each bucket is a contiguous run of them.
     bits = values.view(np.int64)
     shift = 48
     counts = np.zeros(1 << 15, dtype=np.int64)
     for i in range(bits.shape[0]):
         counts[bits[i] >> shift] += 1
-    out = np.empty(ranks.shape[0])
+    needed = np.zeros(1 << 15, dtype=np.bool_)
+    bucket_of = np.empty(ranks.shape[0], dtype=np.int64)
+    below_of = np.empty(ranks.shape[0], dtype=np.int64)
     below = 0
     bucket = 0
     for q in range(ranks.shape[0]):
-        rank = ranks[q]
-        while below + counts[bucket] <= rank:
+        while below + counts[bucket] <= ranks[q]:
             below += counts[bucket]
             bucket += 1
-        members = np.empty(counts[bucket])
-        j = 0
-        for i in range(bits.shape[0]):
-            if bits[i] >> shift == bucket:
-                members[j] = values[i]
-                j += 1
-        members.sort()
-        out[q] = members[rank - below]
+        needed[bucket] = True
+        bucket_of[q] = bucket
+        below_of[q] = below
+    size = 0
+    for b in range(counts.shape[0]):
+        if needed[b]:
+            size += counts[b]
+    members = np.empty(size)
+    j = 0
+    for i in range(bits.shape[0]):
+        if needed[bits[i] >> shift]:
+            members[j] = values[i]
+            j += 1
+    members.sort()
+    out = np.empty(ranks.shape[0])
+    for q in range(ranks.shape[0]):
+        start = 0  # members of needed buckets before this one
+        for b in range(bucket_of[q]):
+            if needed[b]:
+                start += counts[b]
+        out[q] = members[start + ranks[q] - below_of[q]]
     return out
 
 

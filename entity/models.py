@@ -2,7 +2,9 @@
 
 A model says how particles start (``initial_particles``), move
 (``propagate``, the state equation) and are weighed (``log_likelihood``, the
-observation density), and can ``simulate`` a true path with observations.
+observation density), how observations arise (``sample_observation``; the
+system layer's one-step simulation draws them), and can ``simulate`` a true
+path with observations.
 States are ``(N, d)`` arrays of float64, observations ``(m,)`` per step.
 
 The recommended import is::
@@ -46,6 +48,10 @@ class StateSpaceModel(ABC):
     @abstractmethod
     def log_likelihood(self, particles: np.ndarray, observation: np.ndarray, k: int) -> np.ndarray:
         """log p(z_k | x_k) for every particle: (N, d), (m,) -> (N,)."""
+
+    @abstractmethod
+    def sample_observation(self, states: np.ndarray, k: int, rng: np.random.Generator) -> np.ndarray:
+        """Draw z_k ~ p(z_k | x_k) for every state: (S, d) -> (S, m)."""
 
     @abstractmethod
     def simulate(self, steps: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
@@ -96,6 +102,12 @@ class GrowthModel(StateSpaceModel):
         return -0.5 * residual * residual / self.observation_var - 0.5 * math.log(
             2.0 * math.pi * self.observation_var
         )
+
+    def sample_observation(self, states, k, rng):
+        noise = rng.standard_normal((states.shape[0], 1))
+        noise *= math.sqrt(self.observation_var)
+        noise += states[:, :1] ** 2 / 20.0
+        return noise
 
     def simulate(self, steps, rng):
         if steps < 1:

@@ -40,6 +40,8 @@ class RunConfig(BaseModel):
                                                           "particles: keep them, or re-evaluate the likelihood.")
     policy: str = Field("fixed", description="PS policy of the system layer.")
     ps: float = Field(0.81, ge=0.0, le=1.0, description="PS of the fixed policy, and the initial PS.")
+    ps_rate: float = Field(0.25, gt=0.0, le=1.0, description="Largest change of PS per step that the "
+                                                              "adaptive policies make.")
     seed: int = Field(0, ge=0, description="Root seed of every random stream of the run.")
     twin: str = Field("ungm-1", pattern=ID_PATTERN, description="Twin id (key expressions dtpf/<twin>/...).")
     run_id: str = Field("run", pattern=ID_PATTERN, description="Run id carried by every message.")
@@ -114,6 +116,8 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
                        help="PS policy of the system layer (default: %(default)s)")
     group.add_argument("--ps", type=float, default=defaults.ps,
                        help="PS of the fixed policy, initial PS of the others (default: %(default)s)")
+    group.add_argument("--ps-rate", type=float, default=defaults.ps_rate, metavar="CHANGE",
+                       help="largest change of PS per step of the adaptive policies (default: %(default)s)")
 
 
 def config_from_args(args: argparse.Namespace) -> RunConfig:
@@ -122,7 +126,7 @@ def config_from_args(args: argparse.Namespace) -> RunConfig:
         return RunConfig(scenario=args.scenario, particles=args.particles, steps=args.steps,
                          resampler=args.resampler, resample_below=args.resample_below,
                          preprocess=args.preprocess, threshold=args.threshold, weight_rule=args.weight_rule,
-                         policy=args.policy, ps=args.ps, seed=args.seed, twin=args.twin, run_id=args.run_id)
+                         policy=args.policy, ps=args.ps, ps_rate=args.ps_rate, seed=args.seed, twin=args.twin, run_id=args.run_id)
     except ValidationError as error:
         problems = "; ".join(f"--{'-'.join(str(p) for p in e['loc'])}: {e['msg']}" for e in error.errors())
         raise ValueError(problems.replace("_", "-")) from None

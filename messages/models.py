@@ -386,6 +386,14 @@ class PSCommand(Message):
         default=None, ge=0.0, description="ESS / N the policy predicts for the next step.")
     predicted_distinct_ratio: float | None = Field(
         default=None, ge=0.0, le=1.0, description="Distinct particles / N the policy predicts after resampling.")
+    predicted_spread: float | None = Field(
+        default=None, ge=0.0, description="Posterior standard deviation the policy predicts for the next step.")
+    predicted_error: float | None = Field(
+        default=None, ge=0.0, description="Squared estimation error the policy predicts with the chosen PS "
+                                          "(over its simulated next steps).")
+    surprise: float | None = Field(
+        default=None, description="How much less likely this step's observation was than a typical one under "
+                                  "the system layer's forecast, in nats (about 0 when typical).")
 
     @model_validator(mode="after")
     def _check_step(self) -> "PSCommand":

@@ -49,6 +49,10 @@ FIRST_TIMED = 10
 #: Targets: (b) steps per second at N = 1e3, and (b)/(a) at N = 1e5.
 TARGET_RATE_N, TARGET_RATE = 1_000, 200.0
 TARGET_RATIO_N, TARGET_RATIO = 100_000, 1.5
+#: Environment variables that change the figures; shown in the output.
+TUNING_PREFIXES = ("MALLOC_", "OPENBLAS_", "OMP_", "MKL_")
+#: 1-min load average above which the output warns that the machine was busy.
+BUSY_LOAD = 1.0
 
 
 def default_steps(n: int) -> int:
@@ -198,6 +202,7 @@ def main(argv=None) -> int:
     per_step: dict[tuple[int, str], list[float]] = {(n, m): [] for n in configs for m in "ab"}
     walls: dict[int, list[float]] = {n: [] for n in configs}
     degraded: dict[int, int] = {n: 0 for n in configs}
+    load_before = os.getloadavg()[0]
     start = time.perf_counter()
     # Warm-up of (a): imports, numba caches, the first large allocations.
     for n, config in configs.items():
@@ -220,11 +225,15 @@ def main(argv=None) -> int:
                         degraded[n] += bad
     total = time.perf_counter() - start
 
-    malloc = {k: v for k, v in os.environ.items() if k.startswith("MALLOC_")}
+    tuning = {k: v for k, v in sorted(os.environ.items()) if k.startswith(TUNING_PREFIXES)}
     command = "python -m scripts.bench_pipeline" + (" " + " ".join(sys.argv[1:]) if sys.argv[1:] else "")
-    print(f"`{command}`: {platform.python_version()}, numpy {np.__version__}, {os.cpu_count()} CPUs, "
-          f"{'malloc env ' + ' '.join(f'{k}={v}' for k, v in malloc.items()) if malloc else 'default malloc'}, "
-          f"(b) {'with' if args.recorder else 'without'} the MCAP recorder; {total:.0f} s in all.\n")
+    print(f"`{command}`: Python {platform.python_version()}, numpy {np.__version__}, {os.cpu_count()} CPUs, "
+          f"environment {' '.join(f'{k}={v}' for k, v in tuning.items()) if tuning else 'untuned'} "
+          f"(inherited by the services), (b) {'with' if args.recorder else 'without'} the MCAP recorder; "
+          f"{total:.0f} s in all; 1-min load average {load_before:.2f} before the run.\n")
+    if load_before > BUSY_LOAD:
+        print(f"WARNING: the machine was busy before the run (load {load_before:.2f} on {os.cpu_count()} CPUs): "
+              "other processes compete with the five of (b); the figures are unreliable.\n")
     print("| N | steps (timed) | (a) in-process steps/s | (a) ms/step | (b) 3-process steps/s | (b) ms/step "
           "| (b)/(a) | (b) launch wall s |")
     print("|---|---|---|---|---|---|---|---|")

@@ -22,15 +22,19 @@ from entity.filter import FilterStep, ParticleFilter, Preprocessed
 from information.layer import InformationLayer
 from messages.config import RunConfig
 from messages.streams import stream
-from system import policy as ps_policy
 from system.layer import SystemLayer
 from system.policy import PSDecision
+from system.predict import Snapshot
 
 __all__ = ["InProcessTwin", "RunResult", "build", "run", "simulate"]
 
 
 class InProcessTwin:
-    """The preprocessor hook of the filter: information layer, then system layer."""
+    """The preprocessor hook of the filter: information layer, then system layer.
+
+    The system layer sees what it sees over Zenoh: the weight-state summary
+    and, when its policy simulates, the preprocessed set with the observation.
+    """
 
     def __init__(self, information: InformationLayer, system: SystemLayer):
         self.information = information
@@ -39,7 +43,9 @@ class InProcessTwin:
 
     def __call__(self, step, particles, weights, observation, parents=None) -> Preprocessed:
         out = self.information.process(step, particles, weights, observation, parents)
-        decision = self.system.observe(step, out.summary)
+        result = out.preprocessed
+        snapshot = Snapshot.of(result.particles, result.weights, observation) if self.system.needs_particles else None
+        decision = self.system.observe(step, out.summary, snapshot)
         self.information.set_ps(decision.ps, decision.applies_from_step)
         self.decisions.append(decision)
         return Preprocessed(out.preprocessed.particles, out.preprocessed.weights, out.preprocessed.report)
@@ -107,10 +113,10 @@ def build(config: RunConfig, observations) -> ParticleFilter:
     model = models.get(config.scenario)
     twin = None
     if config.preprocess:
-        policy = ps_policy.get(config.policy, ps=config.ps)
-        information = InformationLayer(model, ps=policy.initial_ps, threshold_rule=config.threshold,
+        system = SystemLayer.from_config(config)
+        information = InformationLayer(model, ps=system.policy.initial_ps, threshold_rule=config.threshold,
                                        weight_rule=config.weight_rule, seed=config.seed, twin=config.twin)
-        twin = InProcessTwin(information, SystemLayer(policy))
+        twin = InProcessTwin(information, system)
     return ParticleFilter(model, observations, config.particles, resampler=config.resampler,
                           resample_below=config.resample_below, seed=config.seed, twin=config.twin,
                           preprocessor=twin)

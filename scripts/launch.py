@@ -91,6 +91,7 @@ def service_command(layer: str, config: RunConfig, endpoint: str, *, timeout: fl
                "--scenario", config.scenario, "--particles", str(config.particles), "--steps", str(config.steps),
                "--resampler", config.resampler, "--threshold", str(config.threshold),
                "--weight-rule", config.weight_rule, "--policy", config.policy, "--ps", repr(config.ps),
+               "--ps-rate", repr(config.ps_rate),
                "--seed", str(config.seed), "--twin", config.twin, "--run-id", config.run_id,
                "--timeout", repr(timeout), "--log-level", log_level, "--connect", endpoint,
                "--exit-with-parent"]

@@ -1,10 +1,11 @@
 """``dtpf verify LOG``: re-run the information and system layers offline.
 
 For every particle set the entity recorded, the information layer's rules and
-mirror and the system layer's policy run again, in process, with the run
-configuration the information layer recorded in its status; every recorded
-output (preprocessed set, weight state, PS command) must be reproduced
-exactly. The report goes step by step; the first mismatch names the step,
+mirror and the system layer's predictor and policy run again, in process,
+with the run configuration the information layer recorded in its status;
+every recorded output (preprocessed set, weight state, PS command with its
+reason and predicted figures) must be reproduced exactly. The system layer's
+simulation draws from its own random stream, so it is reproduced too. The report goes step by step; the first mismatch names the step,
 the topic and the field, and the exit code is 1.
 """
 from __future__ import annotations
@@ -20,8 +21,8 @@ from information.layer import InformationLayer
 from messages.config import RunConfig
 from messages.logfile import Log, LogError, read_log
 from messages.models import ParticleSet, PSCommand, Status, WeightState
-from system import policy as ps_policy
 from system.layer import SystemLayer
+from system.predict import Snapshot
 
 __all__ = ["verify", "Verification", "Mismatch", "register"]
 
@@ -110,10 +111,9 @@ def verify(log: Log, twin: str | None = None) -> Verification:
     commands = recorded("system/ps")
 
     model = models.get(config.scenario)
-    policy = ps_policy.get(config.policy, ps=config.ps)
-    information = InformationLayer(model, ps=policy.initial_ps, threshold_rule=config.threshold,
+    system = SystemLayer.from_config(config, twin)
+    information = InformationLayer(model, ps=system.policy.initial_ps, threshold_rule=config.threshold,
                                    weight_rule=config.weight_rule, seed=config.seed, twin=twin)
-    system = SystemLayer(policy)
     for step in sorted(particle_sets):
         source: ParticleSet = particle_sets[step]
         out = information.process(step, source.particles, source.weights, source.observation, source.parents)
@@ -130,12 +130,13 @@ def verify(log: Log, twin: str | None = None) -> Verification:
             if mismatch is not None:
                 result.mismatch = mismatch
                 return result
-        decision = system.observe(step, out.summary)
+        # The system layer simulates from the preprocessed set, as its service receives it.
+        snapshot = Snapshot.of(out.preprocessed.particles, out.preprocessed.weights, source.observation) \
+            if system.needs_particles else None
+        decision = system.observe(step, out.summary, snapshot)
         information.set_ps(decision.ps, decision.applies_from_step)
         if step in commands:
-            mismatch = _compare_fields(step, f"dtpf/{twin}/system/ps", commands[step], {
-                "ps": decision.ps, "applies_from_step": decision.applies_from_step,
-                "policy": decision.policy, "reason": decision.reason})
+            mismatch = _compare_fields(step, f"dtpf/{twin}/system/ps", commands[step], decision.command_fields())
             if mismatch is not None:
                 result.mismatch = mismatch
                 return result

@@ -1,35 +1,90 @@
-"""The system layer, without transport: keeps the history of weight states
+"""The system layer, without transport: predicts degradation at the next step
 and asks its PS policy for the PS of the next step.
 
-::
+Each step k it receives the information layer's weight-state summary and,
+when its policy simulates, the preprocessed particle set of k (a
+:class:`~system.predict.Snapshot`: particles, weights, observation; over
+Zenoh, the message on ``dtpf/<twin>/information/preprocessed``). The
+:class:`~system.predict.Predictor` turns them into a
+:class:`~system.predict.Forecast`, the policy into a decision::
 
-    layer = SystemLayer(policy.get("fixed", ps=0.81))
-    decision = layer.observe(step, summary)
+    layer = SystemLayer.from_config(config)
+    decision = layer.observe(step, summary, Snapshot.of(particles, weights, z))
+
+The simulation draws from ``stream(seed, twin, k, "system")``, so the Zenoh
+service, the in-process pipeline and ``dtpf verify`` decide identically.
 """
 from __future__ import annotations
 
+from dataclasses import replace
+
 from information.mirror import WeightSummary
+from messages.streams import stream
 from system.policy import PSDecision, PSPolicy
+from system.predict import Forecast, Predictor, Snapshot
 
 __all__ = ["SystemLayer"]
 
 
 class SystemLayer:
-    """Degradation prediction and PS control for one twin."""
+    """Degradation prediction and PS control for one twin.
 
-    def __init__(self, policy: PSPolicy):
+    Parameters
+    ----------
+    policy : PSPolicy
+    predictor : Predictor, optional
+        Default: one without a model (history figures only).
+    seed, twin :
+        Key of the random streams: step k draws from ``stream(seed, twin, k, "system")``.
+    """
+
+    def __init__(self, policy: PSPolicy, predictor: Predictor | None = None, *, seed: int = 0, twin: str = "twin"):
         self.policy = policy
+        self.predictor = predictor if predictor is not None else Predictor()
+        self.seed = int(seed)
+        self.twin = twin
         self.history: list[tuple[int, WeightSummary]] = []
+        self.forecasts: list[Forecast] = []
         self.decisions: list[PSDecision] = []
+
+    @classmethod
+    def from_config(cls, config, twin: str | None = None) -> "SystemLayer":
+        """The system layer of a :class:`~messages.config.RunConfig` (``twin`` overrides its twin id).
+
+        A simulating policy gets a predictor over the run's model, resampler and
+        preprocessing options; the fixed policy one without a model.
+        """
+        from entity import models
+        from system import policy as ps_policy
+
+        policy = ps_policy.get(config.policy, ps=config.ps, max_change=config.ps_rate)
+        predictor = Predictor(models.get(config.scenario), resampler=config.resampler,
+                              threshold_rule=config.threshold, weight_rule=config.weight_rule) \
+            if policy.simulates else Predictor()
+        return cls(policy, predictor, seed=config.seed, twin=twin or config.twin)
+
+    @property
+    def needs_particles(self) -> bool:
+        """Whether :meth:`observe` uses the particle set (the policy simulates and the predictor can)."""
+        return self.policy.simulates and self.predictor.simulates
 
     @property
     def ps(self) -> float:
         """The PS of the latest decision (the policy's initial PS before any)."""
         return self.decisions[-1].ps if self.decisions else self.policy.initial_ps
 
-    def observe(self, step: int, summary: WeightSummary) -> PSDecision:
-        """Record the weight state of ``step`` and decide the PS from ``step + 1`` on."""
+    def observe(self, step: int, summary: WeightSummary, snapshot: Snapshot | None = None) -> PSDecision:
+        """Record the state of ``step`` and decide the PS from ``step + 1`` on.
+
+        ``snapshot`` is used when :attr:`needs_particles`; without it the
+        forecast holds the history figures only.
+        """
         self.history.append((step, summary))
-        decision = self.policy.decide(step, summary)
+        if self.needs_particles and snapshot is not None:
+            forecast = self.predictor.forecast(step, summary, snapshot, stream(self.seed, self.twin, step, "system"))
+        else:
+            forecast = self.predictor.forecast(step, summary)
+        decision = self.policy.decide(step, forecast)
+        self.forecasts.append(replace(forecast, simulation=None))  # the figures; not the simulated sets
         self.decisions.append(decision)
         return decision

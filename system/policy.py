@@ -1,36 +1,74 @@
-"""PS policies: from the mirrored weight state to the degree factor PS.
+"""PS policies: from the degradation forecast to the degree factor PS.
 
 A policy is a plain object with one verb, ``decide``::
 
     from system import policy
-    ps_policy = policy.get("fixed")            # PS = 0.81, the paper's value
-    decision = ps_policy.decide(step, summary)
-    decision.ps, decision.reason
+    ps_policy = policy.get("rule", ps=0.81, max_change=0.25)
+    decision = ps_policy.decide(step, forecast)     # forecast: system.predict.Forecast
+    decision.ps, decision.reason, decision.predicted
 
 The decision made at step k applies from step k + 1 on (DESIGN.md, "One
-filter step"). The predictive and rule-based policies of the system layer
-plug in behind the same interface.
+filter step"). Every policy keeps PS in [0, 1]; the adaptive ones move it by
+at most ``max_change`` per step and say why in ``reason``, with the figures
+they decided on in ``predicted`` (they go on the PS topic and so into the log).
+
+Policies (:data:`POLICIES`):
+
+- ``fixed``: PS never changes (the paper's 0.81).
+- ``rule``: thresholds with hysteresis on the predicted degradation. It
+  enters the *degraded* state when the forecast ESS/N, the forecast distinct
+  ancestors / N or the surprise crosses its entry threshold, and leaves it
+  only when all three are back past their (stricter) exit thresholds, so a
+  figure hovering at a threshold does not make PS flap. Degraded, PS moves
+  towards ``degraded_ps`` (default 0: every processed particle takes the
+  plain branch of Eq. 30, which scatters it twice as widely around its
+  large partner, mean |x_tilde - x_m| = |x_l| / 2 against |x_l| / 4 on the
+  mixed branch: more diversity); healthy, towards ``ps``.
+- ``predictive``: tries PS - max_change, PS and PS + max_change (clipped to
+  [0, 1]) on the twin's simulated next steps (:meth:`Forecast.what_if`) and
+  moves to the candidate with the lowest predicted estimation error, but
+  only if it beats the current PS by more than ``confidence`` standard
+  errors of the paired difference over the simulated scenarios; otherwise
+  PS stays.
+
+A policy that needs the twin's simulation sets :attr:`PSPolicy.simulates`;
+the system layer then gives its predictor the particle set of each step.
 """
 from __future__ import annotations
 
+import math
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
 
-from information.mirror import WeightSummary
-from messages.arrays import check_probability
+import numpy as np
 
-__all__ = ["PSDecision", "PSPolicy", "FixedPS", "POLICIES", "get"]
+from messages.arrays import check_probability
+from system.predict import Forecast
+
+__all__ = ["PSDecision", "PSPolicy", "FixedPS", "RulePS", "PredictivePS", "POLICIES", "get", "limit"]
 
 #: PS of the paper's experiments (section 4.1).
 PAPER_PS = 0.81
+#: Default largest change of PS per step of the adaptive policies.
+MAX_CHANGE = 0.25
+
+#: PSCommand field of each figure a decision may carry in ``predicted``.
+COMMAND_FIELDS = {
+    "ess_ratio": "predicted_ess_ratio",
+    "distinct_ratio": "predicted_distinct_ratio",
+    "spread": "predicted_spread",
+    "error": "predicted_error",
+    "surprise": "surprise",
+}
 
 
 @dataclass(frozen=True)
 class PSDecision:
     """The PS to use from ``applies_from_step`` on, and why.
 
-    ``predicted`` holds the figures a predictive policy based its choice on
-    (for example ``{"ess_ratio": 0.3}``); empty for a fixed policy.
+    ``predicted`` holds the figures the policy based its choice on, by the
+    names of :data:`COMMAND_FIELDS` (for example ``{"ess_ratio": 0.3}``);
+    empty for a fixed policy.
     """
 
     ps: float
@@ -39,11 +77,33 @@ class PSDecision:
     reason: str
     predicted: dict[str, float] = field(default_factory=dict)
 
+    def command_fields(self) -> dict:
+        """The fields of the :class:`~messages.models.PSCommand` that carries this decision."""
+        fields = dict(ps=self.ps, applies_from_step=self.applies_from_step, policy=self.policy, reason=self.reason)
+        for name, command_field in COMMAND_FIELDS.items():
+            fields[command_field] = self.predicted.get(name)
+        return fields
+
+
+def limit(current: float, target: float, max_change: float) -> float:
+    """``target`` clipped to [0, 1] and to at most ``max_change`` away from ``current``."""
+    step = min(max(target - current, -max_change), max_change)
+    return min(1.0, max(0.0, round(current + step, 12)))
+
+
+def _figures(forecast: Forecast, **extra) -> dict[str, float]:
+    """The forecast's predicted figures that exist and are finite, by :data:`COMMAND_FIELDS` name."""
+    values = {"ess_ratio": forecast.predicted_ess_ratio, "distinct_ratio": forecast.predicted_distinct_ratio,
+              "spread": forecast.predicted_spread, "surprise": forecast.surprise, **extra}
+    return {name: float(v) for name, v in values.items() if v is not None and math.isfinite(v)}
+
 
 class PSPolicy(ABC):
-    """Turns the weight state of step k into the PS for step k + 1."""
+    """Turns the degradation forecast of step k into the PS for step k + 1."""
 
     name: str
+    #: True if :meth:`decide` uses the twin's simulation (predicted figures, ``what_if``).
+    simulates: bool = False
 
     @property
     @abstractmethod
@@ -51,28 +111,181 @@ class PSPolicy(ABC):
         """PS in force before the first decision."""
 
     @abstractmethod
-    def decide(self, step: int, summary: WeightSummary) -> PSDecision:
-        """The decision after seeing the weight state of ``step``."""
+    def decide(self, step: int, forecast: Forecast) -> PSDecision:
+        """The decision after the forecast made at ``step``."""
 
 
 class FixedPS(PSPolicy):
-    """PS never changes (the paper's setting, PS = 0.81)."""
+    """PS never changes (the paper's setting, PS = 0.81). ``max_change`` is accepted and unused."""
 
     name = "fixed"
 
-    def __init__(self, ps: float = PAPER_PS):
+    def __init__(self, ps: float = PAPER_PS, max_change: float | None = None):
         self.ps = check_probability(ps, "PS")
 
     @property
     def initial_ps(self) -> float:
         return self.ps
 
-    def decide(self, step: int, summary: WeightSummary) -> PSDecision:
+    def decide(self, step: int, forecast: Forecast) -> PSDecision:
         return PSDecision(self.ps, step + 1, self.name, f"fixed policy: PS = {self.ps:g}")
 
 
+class _Adaptive(PSPolicy):
+    simulates = True
+
+    def __init__(self, ps: float, max_change: float):
+        self.ps = check_probability(ps, "PS")
+        if not 0.0 < float(max_change) <= 1.0:
+            raise ValueError(f"max_change must be in (0, 1], got {max_change!r}")
+        self.max_change = float(max_change)
+        self._initial = self.ps
+
+    @property
+    def initial_ps(self) -> float:
+        return self._initial
+
+    def _move(self, target: float) -> tuple[float, float]:
+        """(old, new) PS after a rate-limited move towards ``target``."""
+        old = self.ps
+        self.ps = limit(old, target, self.max_change)
+        return old, self.ps
+
+
+def _change(old: float, new: float) -> str:
+    return f"PS {old:g} -> {new:g}" if new != old else f"PS {new:g} kept"
+
+
+class RulePS(_Adaptive):
+    """Thresholds with hysteresis on the predicted degradation (see the module docstring).
+
+    Parameters
+    ----------
+    ps : float
+        PS when healthy, and the initial PS.
+    degraded_ps : float
+        PS aimed at while degradation is predicted.
+    max_change : float
+        Largest change of PS per step.
+    ess_enter, ess_exit : float
+        Degraded when the next ESS/N (simulated, else the trend's
+        extrapolation) falls below ``ess_enter``; healthy again above
+        ``ess_exit``.
+    distinct_enter, distinct_exit : float
+        The same for the next distinct ancestors / N (simulated, else the
+        observed ratio).
+    surprise_enter, surprise_exit : float
+        The same for the surprise of the observation (nats), when known.
+    """
+
+    name = "rule"
+
+    def __init__(self, ps: float = PAPER_PS, *, degraded_ps: float = 0.0, max_change: float = MAX_CHANGE,
+                 ess_enter: float = 0.15, ess_exit: float = 0.25, distinct_enter: float = 0.2,
+                 distinct_exit: float = 0.3, surprise_enter: float = 3.0, surprise_exit: float = 1.0):
+        super().__init__(ps, max_change)
+        self.healthy_ps = self._initial
+        self.degraded_ps = check_probability(degraded_ps, "degraded PS")
+        pairs = {"ess": (ess_enter, ess_exit), "distinct": (distinct_enter, distinct_exit)}
+        for name, (enter, leave) in pairs.items():
+            if not enter <= leave:
+                raise ValueError(f"{name}_enter must be <= {name}_exit (hysteresis), got {enter!r} > {leave!r}")
+        if not surprise_enter >= surprise_exit:
+            raise ValueError(f"surprise_enter must be >= surprise_exit (hysteresis), "
+                             f"got {surprise_enter!r} < {surprise_exit!r}")
+        self.ess_enter, self.ess_exit = float(ess_enter), float(ess_exit)
+        self.distinct_enter, self.distinct_exit = float(distinct_enter), float(distinct_exit)
+        self.surprise_enter, self.surprise_exit = float(surprise_enter), float(surprise_exit)
+        self.degraded = False
+
+    def decide(self, step: int, forecast: Forecast) -> PSDecision:
+        ess, distinct, surprise = forecast.next_ess_ratio, forecast.next_distinct_ratio, forecast.surprise
+        if not self.degraded:
+            triggers = []
+            if ess < self.ess_enter:
+                triggers.append(f"next ESS/N {ess:.3f} < {self.ess_enter:g}")
+            if distinct < self.distinct_enter:
+                triggers.append(f"next distinct/N {distinct:.3f} < {self.distinct_enter:g}")
+            if surprise is not None and surprise > self.surprise_enter:
+                triggers.append(f"surprise {surprise:.2f} > {self.surprise_enter:g} nats")
+            self.degraded = bool(triggers)
+            state = "degradation predicted (" + "; ".join(triggers) + ")" if triggers else "healthy"
+        else:
+            recovered = (ess > self.ess_exit and distinct > self.distinct_exit
+                         and (surprise is None or surprise < self.surprise_exit))
+            self.degraded = not recovered
+            state = "recovered" if recovered else "still degraded"
+        figures = f"next ESS/N {ess:.3f}, next distinct/N {distinct:.3f}" + (
+            f", surprise {surprise:.2f}" if surprise is not None else "")
+        target = self.degraded_ps if self.degraded else self.healthy_ps
+        old, new = self._move(target)
+        reason = f"rule: {state} [{figures}]: {_change(old, new)}"
+        if new != target:
+            reason += f" (towards {target:g}, at most {self.max_change:g} per step)"
+        return PSDecision(new, step + 1, self.name, reason, _figures(forecast))
+
+
+class PredictivePS(_Adaptive):
+    """Tries candidate PS values on the twin's simulated next steps (see the module docstring).
+
+    Parameters
+    ----------
+    ps : float
+        Initial PS.
+    max_change : float
+        Largest change of PS per step; also the spacing of the candidates.
+    candidates : int
+        Candidates evenly spaced over [PS - max_change, PS + max_change]
+        (clipped to [0, 1]); odd, so the current PS is one of them.
+    confidence : float
+        A candidate replaces the current PS only if its predicted error is
+        lower by more than ``confidence`` standard errors of the paired
+        difference (0: always the lowest).
+    """
+
+    name = "predictive"
+
+    def __init__(self, ps: float = PAPER_PS, *, max_change: float = MAX_CHANGE, candidates: int = 3,
+                 confidence: float = 1.0):
+        super().__init__(ps, max_change)
+        if int(candidates) < 3 or int(candidates) % 2 == 0:
+            raise ValueError(f"candidates must be odd and at least 3, got {candidates!r}")
+        if not float(confidence) >= 0.0:
+            raise ValueError(f"confidence must be non-negative, got {confidence!r}")
+        self.candidates = int(candidates)
+        self.confidence = float(confidence)
+
+    def candidate_values(self) -> list[float]:
+        """The PS values tried at the next decision (the current PS included)."""
+        offsets = np.linspace(-self.max_change, self.max_change, self.candidates)
+        return sorted({self.ps} | {limit(self.ps, self.ps + float(o), self.max_change) for o in offsets if o != 0})
+
+    def decide(self, step: int, forecast: Forecast) -> PSDecision:
+        if forecast.simulation is None:
+            return PSDecision(self.ps, step + 1, self.name,
+                              f"predictive: no particle set to simulate, PS {self.ps:g} kept", _figures(forecast))
+        outcomes = forecast.what_if(self.candidate_values())
+        current = next(o for o in outcomes if o.ps == self.ps)
+        best = min(outcomes, key=lambda o: (o.error, abs(o.ps - self.ps)))
+        diff = best.errors - current.errors
+        se = float(diff.std(ddof=1)) / math.sqrt(diff.size) if diff.size > 1 else 0.0
+        tried = ", ".join(f"{o.ps:g}: {o.error:.4g}" for o in outcomes)
+        if best.ps != current.ps and float(diff.mean()) < -self.confidence * se:
+            old, new = self._move(best.ps)
+            verdict = f"PS {best.ps:g} predicted better by {-diff.mean():.3g} (SE {se:.2g})"
+            chosen = best
+        else:
+            old = new = self.ps
+            verdict = "no candidate predicted better beyond the noise" if best.ps != current.ps else \
+                "the current PS predicted best"
+            chosen = current
+        reason = (f"predictive: predicted error per candidate PS ({tried}) over "
+                  f"{diff.size} simulated steps; {verdict}: {_change(old, new)}")
+        return PSDecision(new, step + 1, self.name, reason, _figures(forecast, error=chosen.error))
+
+
 #: Policy classes by name.
-POLICIES: dict[str, type[PSPolicy]] = {"fixed": FixedPS}
+POLICIES: dict[str, type[PSPolicy]] = {"fixed": FixedPS, "rule": RulePS, "predictive": PredictivePS}
 
 
 def get(name: str, **options) -> PSPolicy:

@@ -387,7 +387,7 @@ def json_payload(message: BaseModel, **changes) -> bytes:
     (json_payload(ps_command(), ps=1.5), PSCommand, r"ps: Value error, ps must be in \[0, 1\], got 1.5"),
     (json_payload(ps_command(), twin_id="a b"), PSCommand, "twin_id must be non-empty .*got 'a b'"),
     (json_payload(ps_command(), layer="system2"), PSCommand, "layer: Input should be 'entity'"),
-    (json_payload(ps_command(), surprise=1), PSCommand, "surprise: Extra inputs are not permitted"),
+    (json_payload(ps_command(), mood=1), PSCommand, "mood: Extra inputs are not permitted"),
     (encode(weight_state()).replace(b'"ess":42.5', b'"ess":NaN'), WeightState, "ess: Input should be a finite number"),
     (encode(weight_state()).replace(b'"ess":42.5', b'"ess":1e999'), WeightState, "ess: Input should be a finite"),
     (encode(weight_state())[:-1], WeightState, "invalid WeightState: Invalid JSON: EOF"),

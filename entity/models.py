@@ -36,6 +36,8 @@ class StateSpaceModel(ABC):
     dim: int
     #: Dimension m of one observation.
     obs_dim: int
+    #: Whether ``sample_observation`` can draw z_k (the system layer's simulating policies need it).
+    samples_observations: bool = True
 
     @abstractmethod
     def initial_particles(self, n: int, rng: np.random.Generator) -> np.ndarray:
@@ -120,17 +122,28 @@ class GrowthModel(StateSpaceModel):
         return x, z
 
 
+def _video_model() -> StateSpaceModel:
+    from entity.tracking import VideoTrackingModel  # imports this module: only on first use
+    return VideoTrackingModel()
+
+
 #: Registered models by name. ``ungm`` is the standard benchmark (25),
-#: ``ungm-printed`` the form printed in the paper's Eq. 35 (0.25).
+#: ``ungm-printed`` the form printed in the paper's Eq. 35 (0.25), ``video``
+#: the tracking scenario of section 5 (:mod:`entity.tracking`). A value may be
+#: a zero-argument factory, built once by :func:`get`.
 MODELS: dict[str, StateSpaceModel] = {
     "ungm": GrowthModel(name="ungm", growth=25.0),
     "ungm-printed": GrowthModel(name="ungm-printed", growth=0.25),
+    "video": _video_model,
 }
 
 
 def get(name: str) -> StateSpaceModel:
     """The model registered as ``name``, or a ValueError listing the names."""
     try:
-        return MODELS[name]
+        model = MODELS[name]
     except (KeyError, TypeError):
         raise ValueError(f"unknown model {name!r}; expected one of {', '.join(MODELS)}") from None
+    if not isinstance(model, StateSpaceModel):
+        model = MODELS[name] = model()
+    return model

@@ -11,7 +11,7 @@ from __future__ import annotations
 import argparse
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 __all__ = ["RunConfig", "ID_PATTERN", "add_run_arguments", "config_from_args"]
 
@@ -82,6 +82,17 @@ class RunConfig(BaseModel):
             raise ValueError(f"threshold W must be non-negative, got {value!r}")
         return value
 
+    @model_validator(mode="after")
+    def _policy_fits_scenario(self) -> "RunConfig":
+        # A simulating policy draws observations from the model; a video scenario cannot.
+        from entity import models
+        from system import policy
+        if policy.POLICIES[self.policy].simulates and not models.get(self.scenario).samples_observations:
+            raise ValueError(f"policy {self.policy!r} simulates observations, which scenario "
+                             f"{self.scenario!r} cannot draw (the video scenario does not support the "
+                             f"simulating system-layer policies rule, predictive); use policy 'fixed'")
+        return self
+
 
 def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of one run, shared by every command that starts a run."""
@@ -128,5 +139,6 @@ def config_from_args(args: argparse.Namespace) -> RunConfig:
                          preprocess=args.preprocess, threshold=args.threshold, weight_rule=args.weight_rule,
                          policy=args.policy, ps=args.ps, ps_rate=args.ps_rate, seed=args.seed, twin=args.twin, run_id=args.run_id)
     except ValidationError as error:
-        problems = "; ".join(f"--{'-'.join(str(p) for p in e['loc'])}: {e['msg']}" for e in error.errors())
+        problems = "; ".join((f"--{'-'.join(str(p) for p in e['loc'])}: " if e["loc"] else "") + e["msg"]
+                             for e in error.errors())
         raise ValueError(problems.replace("_", "-")) from None

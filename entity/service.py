@@ -4,7 +4,8 @@ Each step it publishes the propagated particle set on
 ``dtpf/<twin>/entity/particles``, waits (up to ``--timeout``) for the
 preprocessed set of the same run and step on
 ``dtpf/<twin>/information/preprocessed``, resamples, and publishes the
-estimate on ``dtpf/<twin>/entity/estimate``. A missing or late answer never
+estimate on ``dtpf/<twin>/entity/estimate`` (and, in the video scenario, the
+frame as a JPEG on ``dtpf/<twin>/entity/frame``). A missing or late answer never
 stalls the filter: that step falls back to plain resampling and its estimate
 says ``degraded``.
 
@@ -13,6 +14,7 @@ Run ``python -m entity.service --help`` for the options.
 from __future__ import annotations
 
 import argparse
+import base64
 import time
 
 import numpy as np
@@ -20,10 +22,11 @@ import zenoh
 
 from entity import models
 from entity.filter import ParticleFilter, Preprocessed
+from entity.tracking import VideoTrackingModel, encode_jpeg
 from information.rules import PreprocessReport
 from messages.bus import add_zenoh_arguments
 from messages.config import RunConfig, add_run_arguments
-from messages.models import Estimate, ParticleSet, ParticleSetKind
+from messages.models import CompressedImage, Estimate, ParticleSet, ParticleSetKind, Time
 from messages.service import ServiceShell, add_service_arguments, run_service
 from messages.streams import stream
 
@@ -93,6 +96,10 @@ def main(config: RunConfig, zenoh_config: zenoh.Config, args: argparse.Namespace
                 ess_ratio=step.ess / config.particles, resampled=step.resampled, degraded=step.degraded,
                 truth=truth[step.step - 1].tolist(), observation=observations[step.step - 1].tolist(),
                 ps=report.ps if report is not None else None))
+            if isinstance(model, VideoTrackingModel):  # the frame, so the log plays as a video in Foxglove
+                shell.publish(CompressedImage(
+                    **shell.header(step.step), timestamp=Time.now(), frame_id="camera", format="jpeg",
+                    data=base64.b64encode(encode_jpeg(model.video.frame(step.step))).decode("ascii")))
             if shell.stopping:
                 shell.log.info("stopped after step %d of %d", step.step, pf.steps)
                 return 130

@@ -57,7 +57,7 @@ import numpy as np
 from entity.models import StateSpaceModel
 from entity.video import Video, VideoScene, render
 
-__all__ = ["VideoTrackingModel", "disc_offsets", "hsv_bins", "FRAME_SCENARIO_HINT"]
+__all__ = ["VideoTrackingModel", "disc_offsets", "hsv_bins", "encode_jpeg", "FRAME_SCENARIO_HINT"]
 
 #: Why the simulating system-layer policies cannot run on a video.
 FRAME_SCENARIO_HINT = ("the video scenario does not support the simulating system-layer policies (rule, "
@@ -242,6 +242,17 @@ class VideoTrackingModel(StateSpaceModel):
             raise ValueError(f"steps must be in 1 .. {frames} (the video has {frames} frames), got {steps}")
         observations = np.arange(1.0, steps + 1.0)[:, None]
         return self.true_states(steps), observations
+
+
+def encode_jpeg(frame: np.ndarray, quality: int = 85) -> bytes:
+    """The JPEG file of an (H, W, 3) uint8 RGB frame (Pillow), as Foxglove's CompressedImage carries it."""
+    import io
+
+    from PIL import Image
+
+    buffer = io.BytesIO()
+    Image.fromarray(np.ascontiguousarray(frame), mode="RGB").save(buffer, format="JPEG", quality=quality)
+    return buffer.getvalue()
 
 
 @functools.lru_cache(maxsize=8)

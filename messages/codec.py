@@ -73,6 +73,8 @@ _DTYPE = "<f8"
 _ENVELOPE_ARRAYS = ("particles", "weights")
 _ENVELOPE_CLASSES: dict[str, type[Message]] = {SCHEMA_PREFIX + "ParticleSet": ParticleSet}
 _MAX_INPUT_REPR = 60
+#: Schemas named after a well-known type rather than ``dtpf.<class>``, so that Foxglove's panels pick them up.
+FOREIGN_SCHEMA_NAMES = {"CompressedImage": "foxglove.CompressedImage"}
 
 
 class MessageError(ValueError):
@@ -375,7 +377,20 @@ def schema_for(cls: type[Message]) -> SchemaRecord:
             "arrays": list(_ENVELOPE_ARRAYS),
         }
     data = json.dumps(schema, separators=(",", ":"), sort_keys=False).encode("utf-8")
-    return SchemaRecord(SCHEMA_PREFIX + cls.__name__, SCHEMA_ENCODING, data)
+    return SchemaRecord(schema_name(cls), SCHEMA_ENCODING, data)
+
+
+def schema_name(cls: type[Message]) -> str:
+    """MCAP schema name of a message class: ``dtpf.<class>`` or its well-known name."""
+    return FOREIGN_SCHEMA_NAMES.get(cls.__name__, SCHEMA_PREFIX + cls.__name__)
+
+
+def class_for_schema(name: str) -> type[Message] | None:
+    """The message class whose MCAP schema is named ``name``, or None if it is not a dtpf schema."""
+    for cls in MESSAGE_CLASSES.values():
+        if schema_name(cls) == name:
+            return cls
+    return None
 
 
 #: The layout, in words, as embedded in the ParticleSet schema of every MCAP file.
@@ -398,7 +413,7 @@ class McapDecoderFactory(DecoderFactory):
     def decoder_for(self, message_encoding: str, schema: Any):
         if schema is None or message_encoding not in (JSON_ENCODING, ENVELOPE_ENCODING):
             return None
-        cls = MESSAGE_CLASSES.get(schema.name[len(SCHEMA_PREFIX):]) if schema.name.startswith(SCHEMA_PREFIX) else None
+        cls = class_for_schema(schema.name)
         if cls is None or _encoding_of(cls) != message_encoding:
             return None
         return lambda data: decode(data, cls)

@@ -17,6 +17,7 @@ from __future__ import annotations
 from typing import NamedTuple
 
 from messages.models import (
+    CompressedImage,
     Estimate,
     Layer,
     Message,
@@ -56,6 +57,7 @@ TOPICS: dict[tuple[Layer, str], Topic] = {
         Topic(Layer.INFORMATION, "weight_state", WeightState),
         Topic(Layer.SYSTEM, "ps", PSCommand),
         Topic(Layer.ENTITY, "estimate", Estimate),
+        Topic(Layer.ENTITY, "frame", CompressedImage),  # the video scenario's frames
         *(Topic(layer, "status", Status) for layer in Layer),
     )
 }

@@ -64,7 +64,7 @@ from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
 from messages import keys
-from messages.codec import SCHEMA_PREFIX, MessageError, decode_for_key, message_encoding
+from messages.codec import SCHEMA_PREFIX, class_for_schema, MessageError, decode_for_key, message_encoding
 from messages.models import MESSAGE_CLASSES, Message
 
 __all__ = ["Log", "LogMessage", "LogError", "CutRecord", "read_log", "write_log", "MAGIC"]
@@ -191,8 +191,7 @@ class Log:
         if channel.schema_id == 0 or schema is None:
             return fail(f"channel {channel_id} has no schema in the file "
                         f"(message encoding {channel.message_encoding!r})")
-        cls = MESSAGE_CLASSES.get(schema.name[len(SCHEMA_PREFIX):]) if schema.name.startswith(SCHEMA_PREFIX) \
-            else None
+        cls = class_for_schema(schema.name)
         if cls is None:
             return fail(f"schema {schema.name!r} of channel {channel_id} is not a dtpf message")
         if message_encoding(cls) != channel.message_encoding:

@@ -23,10 +23,12 @@ Conventions
 """
 from __future__ import annotations
 
+import base64
+import binascii
 import enum
 import re
 import time
-from typing import Annotated, Any, ClassVar
+from typing import Annotated, Any, ClassVar, Literal
 
 import numpy as np
 from pydantic import (
@@ -449,7 +451,33 @@ class Status(Message):
                                   "so a log says how to re-run its layers.")
 
 
+def _base64(value: str) -> str:
+    try:
+        base64.b64decode(value, validate=True)
+    except (binascii.Error, ValueError):
+        raise ValueError(f"data must be standard base64, got {value[:40]!r}...") from None
+    return value
+
+
+class CompressedImage(Message):
+    """One video frame, in the shape of Foxglove's ``foxglove.CompressedImage``: entity -> recorder.
+
+    ``timestamp``, ``frame_id``, ``data`` and ``format`` are Foxglove's
+    fields (the MCAP schema is named ``foxglove.CompressedImage``, so
+    Foxglove's Image panel shows the channel); the dtpf header comes with
+    them. ``data`` is the JPEG or PNG file, standard base64 in JSON.
+    """
+
+    producer: ClassVar[Layer] = Layer.ENTITY
+
+    timestamp: Time = Field(description="Time of the frame (the step's publish time).")
+    frame_id: str = Field(description="Coordinate frame of the image (the camera).")
+    data: Annotated[str, AfterValidator(_base64)] = Field(
+        json_schema_extra={"contentEncoding": "base64"}, description="The compressed image file, base64.")
+    format: Literal["jpeg", "png"] = Field(description="Image format: 'jpeg' or 'png'.")
+
+
 #: Every message class, by name.
 MESSAGE_CLASSES: dict[str, type[Message]] = {
-    cls.__name__: cls for cls in (ParticleSet, WeightState, PSCommand, Estimate, Status)
+    cls.__name__: cls for cls in (ParticleSet, WeightState, PSCommand, Estimate, Status, CompressedImage)
 }

@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from messages.codec import SCHEMA_PREFIX, MessageError, schema_for
+from messages.codec import SCHEMA_PREFIX, class_for_schema, MessageError, schema_for
 from messages.logfile import Log, LogError, read_log, write_log
 from messages.models import MESSAGE_CLASSES, Estimate, PSCommand, Status
 
@@ -117,8 +117,7 @@ def log_info(log: Log) -> LogInfo:
         twins[message.twin_id] = None
     schemas = []
     for sid, schema in sorted(log.schemas.items()):
-        cls = MESSAGE_CLASSES.get(schema.name[len(SCHEMA_PREFIX):]) if schema.name.startswith(SCHEMA_PREFIX) \
-            else None
+        cls = class_for_schema(schema.name)
         current = "not dtpf" if cls is None else "same" if schema_for(cls).data == schema.data else "differs"
         schemas.append(SchemaInfo(sid, schema.name, schema.encoding, len(schema.data),
                                   sum(ch.schema_id == sid for ch in log.channels.values()), current))

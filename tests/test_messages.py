@@ -37,7 +37,7 @@ from messages import (
     schema_for,
 )
 from messages.codec import ENVELOPE_ENCODING, EnvelopeHeader
-from messages.models import MESSAGE_CLASSES, ParticleSetHeader
+from messages.models import MESSAGE_CLASSES, CompressedImage, ParticleSetHeader
 from messages.schema import foxglove_problems
 
 HEADER = dict(run_id="run-1", twin_id="ungm-1", step=7, stamp=Time(sec=1_700_000_000, nsec=123_456_789))
@@ -464,7 +464,8 @@ def test_topic_table():
     assert table[("entity", "estimate")] == (Estimate, None)
     for layer in ("entity", "information", "system", "recorder"):
         assert table[(layer, "status")] == (Status, None)
-    assert len(table) == 9
+    assert table[("entity", "frame")] == (CompressedImage, None)
+    assert len(table) == 10
 
 
 @pytest.mark.parametrize("make, key", [
@@ -596,7 +597,8 @@ def test_json_schema_refuses_what_foxglove_cannot_read():
 @pytest.mark.parametrize("cls", list(MESSAGE_CLASSES.values()), ids=lambda c: c.__name__)
 def test_schema_for_mcap(cls):
     record = schema_for(cls)
-    assert record.name == f"dtpf.{cls.__name__}" and record.encoding == "jsonschema"
+    expected_name = "foxglove.CompressedImage" if cls is CompressedImage else f"dtpf.{cls.__name__}"
+    assert record.name == expected_name and record.encoding == "jsonschema"
     schema = json.loads(record.data)
     assert forbidden_constructs(schema) == []
     if cls is ParticleSet:

@@ -143,16 +143,16 @@ class Received:
 
 
 class Inbox:
-    """A subscriber whose samples wait in a queue until :meth:`get` takes them.
+    """Subscribers (one per key expression) whose samples wait in one queue until :meth:`get` takes them.
 
     Zenoh calls the callback on its own thread; the callback only copies the
     payload and enqueues it (nothing blocking or published in a callback).
     """
 
-    def __init__(self, session: zenoh.Session, key_expr: str):
+    def __init__(self, session: zenoh.Session, key_expr: str, *more_key_exprs: str):
         self.key_expr = key_expr
         self._queue: queue.SimpleQueue[Received] = queue.SimpleQueue()
-        self._subscriber = session.declare_subscriber(key_expr, self._on_sample)
+        self._subscribers = [session.declare_subscriber(k, self._on_sample) for k in (key_expr, *more_key_exprs)]
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         self._queue.put(Received(str(sample.key_expr), sample.payload.to_bytes()))
@@ -168,10 +168,11 @@ class Inbox:
         return self._queue.qsize()
 
     def close(self) -> None:
-        try:
-            self._subscriber.undeclare()
-        except zenoh.ZError:
-            pass
+        for subscriber in self._subscribers:
+            try:
+                subscriber.undeclare()
+            except zenoh.ZError:
+                pass
 
 
 class Presence:

@@ -129,3 +129,8 @@ def key_for(message: Message) -> str:
 def twin_pattern(twin: str) -> str:
     """Subscribe pattern for every message of one twin: ``dtpf/<twin>/**``."""
     return f"{PREFIX}/{check_id(twin, 'twin id')}/**"
+
+
+def any_layer_pattern(twin: str, topic: str) -> str:
+    """Subscribe pattern for one topic of every layer of one twin: ``dtpf/<twin>/*/<topic>``."""
+    return f"{PREFIX}/{check_id(twin, 'twin id')}/*/{check_topic_name(topic)}"

@@ -28,6 +28,22 @@ UNKNOWN_ENCODING = "application/octet-stream"
 
 COMPRESSION = {"none": CompressionType.NONE, "lz4": CompressionType.LZ4, "zstd": CompressionType.ZSTD}
 
+#: Particle-set payload size above which ``auto`` leaves chunks uncompressed.
+AUTO_LIMIT = 64 << 10
+
+
+def auto_compression(particle_set_bytes: int) -> str:
+    """The chunk compression ``auto`` picks for particle sets of this many bytes.
+
+    Random float64 states do not compress: measured on ``dtpf launch`` logs,
+    lz4 chunks kept 0.997 of the bytes at N = 5000, 0.999 at 2e4 and 1.000 at
+    1e5, against 0.694 at N = 1000 (where the JSON topics weigh more). lz4
+    still costs CPU on every chunk (1.6 MB messages: 4.9 ms each with lz4,
+    2.5 ms without), and on two cores the recorder competes with the
+    lockstep layers. So: lz4 up to :data:`AUTO_LIMIT` bytes, none above.
+    """
+    return "lz4" if particle_set_bytes <= AUTO_LIMIT else "none"
+
 
 class McapRecording:
     """An MCAP file being written.
@@ -37,8 +53,9 @@ class McapRecording:
     path : str or Path
         Output file; its folder is created if missing.
     compression : "lz4", "zstd" or "none"
-        Chunk compression. lz4 is the default: random particle states do not
-        compress (zstd ratio 0.95, ECOSYSTEM.md) and lz4 costs least.
+        Chunk compression; the recorder service picks one with
+        :func:`auto_compression`. lz4 is the default here: of the codecs it
+        costs least, and JSON-heavy small runs shrink by about 30%.
     chunk_size : int
         Bytes per chunk before it is closed.
     flush_interval : float

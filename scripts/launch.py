@@ -131,7 +131,8 @@ def launch(config: RunConfig, *, log_path: Path | None = None, port: int | None 
     children: dict[str, subprocess.Popen] = {}
     start = time.monotonic()
     try:
-        watch = Inbox(router, keys.twin_pattern(config.twin))
+        # Only what the summary needs: the particle sets are not copied into this process.
+        watch = Inbox(router, keys.key(config.twin, "entity", "estimate"), keys.any_layer_pattern(config.twin, "status"))
         for layer in LAYERS:
             children[layer] = subprocess.Popen(
                 service_command(layer, config, endpoint, timeout=timeout, log_path=log_path, log_level=log_level,

@@ -20,7 +20,8 @@ from messages.bus import Inbox, add_zenoh_arguments
 from messages.codec import encode
 from messages.models import ServiceState
 from messages.config import RunConfig, add_run_arguments
-from messages.recording import COMPRESSION, McapRecording
+from entity import models
+from messages.recording import COMPRESSION, McapRecording, auto_compression
 from messages.service import ServiceShell, add_service_arguments, run_service
 
 __all__ = ["main"]
@@ -29,12 +30,15 @@ __all__ = ["main"]
 def main(config: RunConfig, zenoh_config: zenoh.Config, args: argparse.Namespace) -> int:
     """Record until SIGINT/SIGTERM."""
     pattern = keys.ALL if args.all_twins else keys.twin_pattern(config.twin)
-    with McapRecording(args.output, compression=args.compression,
+    compression = args.compression
+    if compression == "auto":
+        compression = auto_compression(config.particles * (models.get(config.scenario).dim + 1) * 8)
+    with McapRecording(args.output, compression=compression,
                        flush_interval=args.flush_interval) as recording, \
             ServiceShell("recorder", config, zenoh_config) as shell:
         inbox = Inbox(shell.session, pattern)
         shell.running()
-        shell.log.info("recording %s into %s", pattern, args.output)
+        shell.log.info("recording %s into %s (%s chunks)", pattern, args.output, compression)
         while not shell.stopping:
             item = inbox.get(timeout=0.2)
             if item is not None:
@@ -66,8 +70,10 @@ def build_parser() -> argparse.ArgumentParser:
                     "expression, schemas embedded.")
     parser.add_argument("--output", "-o", required=True, help="MCAP file to write")
     parser.add_argument("--all-twins", action="store_true", help="record dtpf/** instead of one twin")
-    parser.add_argument("--compression", default="lz4", choices=sorted(COMPRESSION),
-                        help="chunk compression (default: %(default)s)")
+    parser.add_argument("--compression", default="auto", choices=["auto", *sorted(COMPRESSION)],
+                        help="chunk compression; 'auto': lz4 while a particle set (N x (d + 1) float64) "
+                             "is at most 64 KiB, none above, where random states do not compress "
+                             "(default: %(default)s)")
     parser.add_argument("--flush-interval", type=float, default=1.0, metavar="SECONDS",
                         help="flush the open chunk at least this often (default: %(default)s)")
     parser.add_argument("--drain", type=float, default=2.0, metavar="SECONDS",

@@ -21,7 +21,7 @@ from mcap.stream_reader import StreamReader, breakup_chunk
 
 from messages.config import RunConfig
 from messages.logfile import MAGIC, LogError, LogMessage, read_log, write_log
-from messages.recording import McapRecording
+from messages.recording import AUTO_LIMIT, McapRecording, auto_compression
 from scripts import inspect_log
 from scripts.inprocess import run
 from scripts.launch import launch
@@ -92,6 +92,14 @@ def _chunk_ends(path):
 
 
 # --- a complete log ---
+
+def test_the_recorder_compresses_small_particle_sets_and_leaves_large_ones_alone(launched):
+    assert auto_compression(AUTO_LIMIT) == "lz4" and auto_compression(AUTO_LIMIT + 1) == "none"
+    assert auto_compression(100_000 * 2 * 8) == "none"
+    with open(launched, "rb") as f:
+        compressions = {c.compression for c in make_reader(f).get_summary().chunk_indexes}
+    assert compressions == {auto_compression(CONFIG.particles * 2 * 8)} == {"lz4"}
+
 
 def test_info_counts_every_topic_of_a_complete_launch(intact):
     info = inspect_log.log_info(intact)

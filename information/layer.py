@@ -72,18 +72,33 @@ class InformationLayer:
             self.ps = self.pending.pop(0)[1]
         return self.ps
 
-    def process(self, step: int, particles, weights, observation, parents: int | None = None) -> InformationOutput:
-        """Mirror and preprocess the entity's particle set of ``step`` (``parents``: see
-        :func:`information.mirror.summarise`)."""
+    def preprocess(self, step: int, particles, weights, observation) -> rules.PreprocessResult:
+        """Eq. 28-30 on the entity's particle set of ``step``, with the PS in force.
+
+        The first half of :meth:`process`: what the entity waits for. W comes
+        from the layer's threshold rule, as the mirror computes it.
+        """
         ps = self.ps_for(step)
-        summary = summarise(particles, weights, self.threshold_rule, parents)
         z = np.asarray(observation, dtype=np.float64)
         log_likelihood = None
         if self.weight_rule == "likelihood":
             def log_likelihood(x):
                 return self.model.log_likelihood(x, z, step)
-        # The mirror already found W under the layer's rule; pass it on as a number.
-        result = rules.preprocess(particles, weights, ps, stream(self.seed, self.twin, step, "information"),
-                                  threshold_rule=summary.threshold, weight_rule=self.weight_rule,
-                                  log_likelihood=log_likelihood)
+        return rules.preprocess(particles, weights, ps, stream(self.seed, self.twin, step, "information"),
+                                threshold_rule=self.threshold_rule, weight_rule=self.weight_rule,
+                                log_likelihood=log_likelihood)
+
+    def mirror(self, particles, weights, parents: int | None = None,
+               threshold: float | None = None) -> WeightSummary:
+        """The weight-state summary of the entity's set (see :func:`information.mirror.summarise`).
+
+        ``threshold``: W if :meth:`preprocess` already found it (the same number).
+        """
+        return summarise(particles, weights, self.threshold_rule if threshold is None else threshold, parents)
+
+    def process(self, step: int, particles, weights, observation, parents: int | None = None) -> InformationOutput:
+        """Mirror and preprocess the entity's particle set of ``step`` (``parents``: see
+        :func:`information.mirror.summarise`)."""
+        result = self.preprocess(step, particles, weights, observation)
+        summary = self.mirror(particles, weights, parents, result.report.threshold)
         return InformationOutput(step, result, summary)

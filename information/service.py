@@ -80,14 +80,16 @@ def main(config: RunConfig, zenoh_config: zenoh.Config, args: argparse.Namespace
             if step - 1 in published and not commands.wait_for_decision(step - 1, args.timeout):
                 shell.log.warning("step %d: no PS decision of step %d within %.1f s, keeping PS = %g",
                                   step, step - 1, args.timeout, layer.ps)
-            out = layer.process(step, message.particles, message.weights, message.observation, message.parents)
-            result, summary, report = out.preprocessed, out.summary, out.preprocessed.report
+            # The entity waits for the preprocessed set: it goes first, the rest of the mirror after.
+            result = layer.preprocess(step, message.particles, message.weights, message.observation)
+            report = result.report
             counts = dict(n_large=report.n_large, n_processed=report.n_processed,
                           n_mixed=report.n_mixed, n_plain=report.n_plain)
             shell.publish(ParticleSet(**shell.header(step), kind=ParticleSetKind.PREPROCESSED,
                                       particles=result.particles, weights=result.weights,
                                       observation=message.observation, ps=report.ps,
                                       threshold=min(report.threshold, 1.0), **counts))
+            summary = layer.mirror(message.particles, message.weights, message.parents, report.threshold)
             shell.publish(WeightState(**shell.header(step), **summary.as_dict(), ps=report.ps, **counts))
             published.add(step)
     return 0

@@ -63,12 +63,24 @@ def test_figures_are_small_pngs(quick):
 
 def test_report_has_every_section_and_no_machine_path(quick):
     report = (quick.parent / "experiments.md").read_text()
-    for heading in ("## Table 2", "## Fig. 4", "## Fig. 5", "## Figs. 6-8", "## Table 3", "## Closing note"):
+    for heading in ("## Table 2", "## Fig. 4", "## Fig. 5", "## Figs. 6-8", "## Table 3", "## Section 5",
+                    "## Closing note"):
         assert heading in report
     assert "QUICK run" in report
     assert "Not run yet" not in report
     assert str(quick.parent) not in report
     assert "](experiments/fig4.png)" in report
+
+
+def test_the_one_command_also_runs_the_tracking_application(quick):
+    tracking = quick.parent / "tracking"
+    rows = rows_of(tracking / "summary.csv")
+    assert {r["method"] for r in rows} == set(experiments.METHODS)
+    assert all(math.isfinite(float(r["mean_error"])) and float(r["mean_error"]) > 0 for r in rows)
+    assert (quick.parent / "tracking.md").exists()
+    report = (quick.parent / "experiments.md").read_text()
+    assert "](tracking.md)" in report
+    assert sum(line.startswith("Tracking, ") for line in report.splitlines()) == len(rows)
 
 
 def test_report_only_rebuilds_from_the_files(quick):

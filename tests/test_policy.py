@@ -253,3 +253,21 @@ def test_verify_notices_an_altered_predicted_figure(adaptive_log, tmp_path):
     write_log(log, tmp_path / "altered.mcap")
     mismatch = verify(read_log(tmp_path / "altered.mcap")).mismatch
     assert (mismatch.step, mismatch.field) == (9, "predicted_ess_ratio")
+
+
+def test_the_evaluation_command_prints_every_variant_with_finite_figures(tmp_path, capsys):
+    """A reduced ``python -m scripts.evaluate_policies``: the table and the plot, not the verdict."""
+    from scripts import evaluate_policies
+
+    plot = tmp_path / "ps.png"
+    assert evaluate_policies.main(["--seeds", "3", "--particles", "50", "--steps", "20", "--workers", "1",
+                                   "--plot", str(plot)]) == 0
+    out = capsys.readouterr().out
+    rows = [line for line in out.splitlines() if line.startswith(("| ungm |", "| ungm-printed |"))
+            and "corr" not in line]
+    variants = {row.split("|")[3].strip() for row in rows}
+    assert {"systematic", "DT, PS = 0.81", "DT, rule", "DT, predictive"} <= variants
+    mse = [float(row.split("|")[4].split("±")[0]) for row in rows if "±" in row.split("|")[4]]
+    assert len(mse) == 2 * len(evaluate_policies.VARIANTS)  # two scenarios, one N
+    assert all(math.isfinite(v) and v > 0 for v in mse)
+    assert plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

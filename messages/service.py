@@ -209,9 +209,10 @@ def keep_large_blocks() -> bool:
 
     Every message is a fresh buffer of N x (d + 1) x 8 bytes (copied out of Zenoh,
     decoded, encoded, written to MCAP); above glibc's mmap threshold each one is
-    mapped and unmapped again, and its pages fault on first touch (PERF-ANCHORS:
-    a fresh 1.6 MB ``bytes`` copy took 1.7 ms here, a reused one 0.2 ms). Raising
-    the mmap and trim thresholds keeps them on the heap. A layer process owns its
+    mapped and unmapped again, and its pages fault on first touch (PERF-ANCHORS.md,
+    "Copy floor"). Raising the mmap and trim thresholds keeps them on the heap: the
+    lockstep step at N = 1e5 went from 14.5 to 11.4 ms (bench_pipeline, 2 cores,
+    with the recorder). A layer process owns its
     allocator; the in-process pipeline, which runs inside the user's program, does
     not do this. False where mallopt is not glibc's.
     """

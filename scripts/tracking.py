@@ -4,7 +4,7 @@
 
     python -m scripts.tracking                 # Figs. 9-11 and the error table: docs/tracking.md
     python -m scripts.tracking --quick         # a reduced run (seconds), the same outputs
-    python -m scripts.tracking --seeds 300 --out /tmp/tracking
+    python -m scripts.tracking --seeds 300 --out runs/tracking
 
 What runs: the ``video`` scenario (:mod:`entity.video`, :mod:`entity.tracking`):
 a 640x480 synthetic indoor video of 50 frames with ground truth, tracked by a

@@ -37,8 +37,10 @@ import time
 from pathlib import Path
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from messages.config import RunConfig
+from messages.service import keep_large_blocks
 from scripts import launch as launch_module
 from scripts.inprocess import build, simulate
 
@@ -195,6 +197,11 @@ def main(argv=None) -> int:
         parser.error(f"--steps must be at least {FIRST_TIMED + 2}: steps {FIRST_TIMED}..T are timed")
     if args.repeats < 1:
         parser.error("--repeats must be at least 1")
+    # (a) runs in this process: give it the allocator and BLAS settings every layer process of (b)
+    # gets (messages.service.run_service), so the ratio compares the split, not the settings.
+    # Without it, (a) at N = 1e5 took 7.3-8.2 ms alone and 6.05 ms after larger N had grown the heap.
+    keep_large_blocks()
+    threadpool_limits(limits=1, user_api="blas")
 
     configs = {n: RunConfig(particles=n, steps=t, preprocess=True, seed=args.seed, run_id="bench")
                for n, t in zip(args.sizes, steps)}
@@ -228,7 +235,8 @@ def main(argv=None) -> int:
     tuning = {k: v for k, v in sorted(os.environ.items()) if k.startswith(TUNING_PREFIXES)}
     command = "python -m scripts.bench_pipeline" + (" " + " ".join(sys.argv[1:]) if sys.argv[1:] else "")
     print(f"`{command}`: Python {platform.python_version()}, numpy {np.__version__}, {os.cpu_count()} CPUs, "
-          f"environment {' '.join(f'{k}={v}' for k, v in tuning.items()) if tuning else 'untuned'} "
+          f"(a) and (b) with one BLAS thread and large blocks kept (messages.service), environment "
+          f"{' '.join(f'{k}={v}' for k, v in tuning.items()) if tuning else 'untuned'} "
           f"(inherited by the services), (b) {'with' if args.recorder else 'without'} the MCAP recorder; "
           f"{total:.0f} s in all; 1-min load average {load_before:.2f} before the run.\n")
     if load_before > BUSY_LOAD:

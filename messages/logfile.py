@@ -64,8 +64,8 @@ from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
 from messages import keys
-from messages.codec import SCHEMA_PREFIX, class_for_schema, MessageError, decode_for_key, message_encoding
-from messages.models import MESSAGE_CLASSES, Message
+from messages.codec import MessageError, class_for_schema, decode_for_key, message_encoding, schema_name
+from messages.models import Message
 
 __all__ = ["Log", "LogMessage", "LogError", "CutRecord", "read_log", "write_log", "MAGIC"]
 
@@ -203,7 +203,7 @@ class Log:
             return fail(str(error))
         if table is not cls:
             return fail(f"schema {schema.name} of the channel does not match the topic, "
-                        f"which carries {SCHEMA_PREFIX}{table.__name__}")
+                        f"which carries {schema_name(table)}")
         return lambda data: decode_for_key(topic, data)
 
 

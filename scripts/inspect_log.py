@@ -28,9 +28,9 @@ from pathlib import Path
 
 import numpy as np
 
-from messages.codec import SCHEMA_PREFIX, class_for_schema, MessageError, schema_for
+from messages.codec import MessageError, class_for_schema, schema_for
 from messages.logfile import Log, LogError, read_log, write_log
-from messages.models import MESSAGE_CLASSES, Estimate, PSCommand, Status
+from messages.models import Estimate, PSCommand, Status
 
 __all__ = ["LogInfo", "TopicInfo", "SchemaInfo", "LogSummary", "TwinSummary", "Trajectory", "LayerStatus",
            "log_info", "summarise", "format_info", "format_summary", "format_ranges",

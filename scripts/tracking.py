@@ -37,7 +37,7 @@ from entity import models, resampling
 from messages.config import RunConfig
 from scripts import inprocess
 from scripts.experiments import (COLOURS, DT_METHODS, METHOD_CONFIG, METHODS, STYLES, TRADITIONAL, Progress,
-                                 _figure, _save, mean_ci, pm, read_csv, significance, write_csv)
+                                 _figure, _save, mean_ci, pm, significance, write_csv)
 
 __all__ = ["run_one", "main", "FIG11_FRAMES"]
 

@@ -20,7 +20,7 @@ from entity import models
 from information.layer import InformationLayer
 from messages.config import RunConfig
 from messages.logfile import Log, LogError, read_log
-from messages.models import ParticleSet, PSCommand, Status, WeightState
+from messages.models import ParticleSet, Status
 from system.layer import SystemLayer
 from system.predict import Snapshot
 

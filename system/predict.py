@@ -53,7 +53,6 @@ it assumes the next step resamples (true unless ``resample_below`` is set).
 """
 from __future__ import annotations
 
-import math
 from collections import deque
 from dataclasses import dataclass, field
 

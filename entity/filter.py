@@ -24,7 +24,10 @@ One step k (DESIGN.md, "One filter step"):
 5. resample with the configured traditional scheme; weights become uniform.
 
 Random numbers of step k come from ``stream(seed, twin, k, "entity")``:
-propagation first, then resampling.
+propagation first, then resampling. The propagation noise of step k + 1
+depends on nothing of step k, so :meth:`ParticleFilter.prepare_next_step` can
+draw it while step k waits for its preprocessor (the entity service does,
+during the lockstep wait); the numbers are the same either way.
 """
 from __future__ import annotations
 
@@ -175,6 +178,8 @@ class ParticleFilter:
         self.particles: np.ndarray | None = None
         self.log_weights = np.zeros(self.n)
         self.parents: int | None = None
+        #: (step, rng, noise) of the next step, drawn ahead by prepare_next_step().
+        self._ahead: tuple[int, np.random.Generator, np.ndarray | None] | None = None
 
     @property
     def steps(self) -> int:
@@ -184,17 +189,38 @@ class ParticleFilter:
     def __iter__(self):
         return self
 
+    def prepare_next_step(self) -> None:
+        """Draw the random numbers that start the next step now: its stream and propagation noise.
+
+        For a caller with time to spare during a step (the lockstep wait for
+        the information layer). The next step uses what was drawn here, so the
+        numbers do not change; a model whose ``propagation_noise`` is None
+        gets only its stream made ahead. Nothing to do before the first step
+        (its particles come from the prior), after the last, or twice.
+        """
+        k = self.k + 1
+        if self.k == 0 or k > self.steps or self._ahead is not None:
+            return
+        rng = stream(self.seed, self.twin, k, "entity")
+        self._ahead = (k, rng, self.model.propagation_noise(self.n, k, rng))
+
     def __next__(self) -> FilterStep:
         """One step of the particle filter."""
         if self.k >= self.steps:
             raise StopIteration
         self.k += 1
         k = self.k
-        rng = stream(self.seed, self.twin, k, "entity")
+        ahead, self._ahead = self._ahead, None
+        if ahead is not None and ahead[0] == k:
+            _, rng, noise = ahead
+        else:
+            rng, noise = stream(self.seed, self.twin, k, "entity"), None
         if self.particles is None:
             self.particles = check_particles(self.model.initial_particles(self.n, rng))
-        else:
+        elif noise is None:
             self.particles = self.model.propagate(self.particles, k, rng)
+        else:
+            self.particles = self.model.propagate(self.particles, k, rng, noise=noise)
         observation = self.observations[k - 1]
         self.log_weights = self.log_weights + self.model.log_likelihood(self.particles, observation, k)
         weights = normalise(self.log_weights)

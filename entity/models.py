@@ -44,8 +44,25 @@ class StateSpaceModel(ABC):
         """N particles of step 1, drawn from the prior p(x_1): (N, d)."""
 
     @abstractmethod
-    def propagate(self, particles: np.ndarray, k: int, rng: np.random.Generator) -> np.ndarray:
-        """Draw x_k ~ p(x_k | x_(k-1)) for every particle: (N, d) -> (N, d)."""
+    def propagate(self, particles: np.ndarray, k: int, rng: np.random.Generator,
+                  noise: np.ndarray | None = None) -> np.ndarray:
+        """Draw x_k ~ p(x_k | x_(k-1)) for every particle: (N, d) -> (N, d).
+
+        ``noise``: what :meth:`propagation_noise` drew for this step, if it was
+        drawn ahead; the model then uses it (and may overwrite it) instead of
+        drawing. Only models whose ``propagation_noise`` returns an array get it.
+        """
+
+    def propagation_noise(self, n: int, k: int, rng: np.random.Generator) -> np.ndarray | None:
+        """The random numbers :meth:`propagate` draws first at step k, drawn on their own.
+
+        They depend on nothing but (n, k, rng), so the entity can draw them
+        while it waits for the information layer's answer of step k - 1.
+        ``propagate(particles, k, rng, noise=propagation_noise(n, k, rng))``
+        gives the same numbers as ``propagate(particles, k, rng)``. None (the
+        default): this model draws inside ``propagate`` only.
+        """
+        return None
 
     @abstractmethod
     def log_likelihood(self, particles: np.ndarray, observation: np.ndarray, k: int) -> np.ndarray:
@@ -92,8 +109,12 @@ class GrowthModel(StateSpaceModel):
     def initial_particles(self, n, rng):
         return rng.normal(self.prior_mean, math.sqrt(self.prior_var), size=(n, 1))
 
-    def propagate(self, particles, k, rng):
-        noise = rng.standard_normal(particles.shape)
+    def propagation_noise(self, n, k, rng):
+        return rng.standard_normal((n, self.dim))
+
+    def propagate(self, particles, k, rng, noise=None):
+        if noise is None:
+            noise = self.propagation_noise(particles.shape[0], k, rng)
         noise *= math.sqrt(self.process_var)
         noise += self.transition_mean(particles, k)
         return noise

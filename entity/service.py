@@ -7,7 +7,9 @@ preprocessed set of the same run and step on
 estimate on ``dtpf/<twin>/entity/estimate`` (and, in the video scenario, the
 frame as a JPEG on ``dtpf/<twin>/entity/frame``). A missing or late answer never
 stalls the filter: that step falls back to plain resampling and its estimate
-says ``degraded``.
+says ``degraded``. While it waits, it draws the next step's propagation noise
+(:meth:`entity.filter.ParticleFilter.prepare_next_step`, the same numbers as
+drawing it in the step), so that work is off the lockstep's critical path.
 
 Run ``python -m entity.service --help`` for the options.
 """
@@ -41,6 +43,9 @@ class ZenohTwin:
         self.timeout = timeout
         self.answers = shell.inbox("information", "preprocessed")
         self.information_was_alive = True
+        #: Called once the particle set is out, before waiting for the answer: work that
+        #: does not depend on it (the service sets the filter's prepare_next_step).
+        self.while_waiting = None
 
     def __call__(self, step, particles, weights, observation, parents=None) -> Preprocessed | None:
         shell = self.shell
@@ -56,6 +61,8 @@ class ZenohTwin:
         if not alive:
             return None  # nobody to wait for: do not stall the filter
         deadline = time.monotonic() + self.timeout
+        if self.while_waiting is not None:
+            self.while_waiting()
         while not shell.stopping:
             remaining = deadline - time.monotonic()
             if remaining <= 0:
@@ -85,6 +92,8 @@ def main(config: RunConfig, zenoh_config: zenoh.Config, args: argparse.Namespace
         pf = ParticleFilter(model, observations, config.particles, resampler=config.resampler,
                             resample_below=config.resample_below, seed=config.seed, twin=config.twin,
                             preprocessor=twin)
+        if twin is not None:
+            twin.while_waiting = pf.prepare_next_step
         shell.running()
         period = 1.0 / args.rate if args.rate else 0.0
         next_tick = time.monotonic()

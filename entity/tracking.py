@@ -194,8 +194,12 @@ class VideoTrackingModel(StateSpaceModel):
         out[:, 4] = np.exp(self.prior_log_scale_sd * rng.standard_normal(n))
         return out
 
-    def propagate(self, particles, k, rng):
-        noise = rng.standard_normal((particles.shape[0], 5))
+    def propagation_noise(self, n, k, rng):
+        return rng.standard_normal((n, 5))
+
+    def propagate(self, particles, k, rng, noise=None):
+        if noise is None:
+            noise = self.propagation_noise(particles.shape[0], k, rng)
         out = np.empty_like(particles)
         out[:, 2:4] = particles[:, 2:4] + self.accel_sd * noise[:, 0:2]
         out[:, 0:2] = particles[:, 0:2] + out[:, 2:4] + self.position_sd * noise[:, 2:4]

@@ -60,6 +60,7 @@ class InformationLayer:
         self.weight_rule = weight_rule
         self.seed = seed
         self.twin = twin
+        self._ahead: tuple[int, np.random.Generator] | None = None
 
     def set_ps(self, ps: float, applies_from_step: int) -> None:
         """Schedule a new PS from the system layer, in force from ``applies_from_step``."""
@@ -71,6 +72,21 @@ class InformationLayer:
         while self.pending and self.pending[0][0] <= step:
             self.ps = self.pending.pop(0)[1]
         return self.ps
+
+    def prepare(self, step: int) -> None:
+        """Make the random stream of ``step`` now, before its particle set arrives.
+
+        For a caller with time to spare (the service, once the mirror of the
+        step before is out); :meth:`preprocess` of ``step`` then uses it, so
+        the numbers do not change.
+        """
+        self._ahead = (int(step), stream(self.seed, self.twin, step, "information"))
+
+    def _stream(self, step: int) -> np.random.Generator:
+        ahead, self._ahead = self._ahead, None
+        if ahead is not None and ahead[0] == step:
+            return ahead[1]
+        return stream(self.seed, self.twin, step, "information")
 
     def preprocess(self, step: int, particles, weights, observation) -> rules.PreprocessResult:
         """Eq. 28-30 on the entity's particle set of ``step``, with the PS in force.
@@ -84,7 +100,7 @@ class InformationLayer:
         if self.weight_rule == "likelihood":
             def log_likelihood(x):
                 return self.model.log_likelihood(x, z, step)
-        return rules.preprocess(particles, weights, ps, stream(self.seed, self.twin, step, "information"),
+        return rules.preprocess(particles, weights, ps, self._stream(step),
                                 threshold_rule=self.threshold_rule, weight_rule=self.weight_rule,
                                 log_likelihood=log_likelihood)
 

@@ -92,6 +92,7 @@ def main(config: RunConfig, zenoh_config: zenoh.Config, args: argparse.Namespace
             summary = layer.mirror(message.particles, message.weights, message.parents, report.threshold)
             shell.publish(WeightState(**shell.header(step), **summary.as_dict(), ps=report.ps, **counts))
             published.add(step)
+            layer.prepare(step + 1)  # while waiting for the next set
     return 0
 
 

@@ -89,6 +89,65 @@ def test_same_seed_same_numbers_and_streams_are_per_step():
     np.testing.assert_array_equal(step.particles, expected)
 
 
+@pytest.mark.parametrize("name", ["ungm", "ungm-printed", "video"])
+def test_propagation_noise_drawn_ahead_gives_the_same_particles_and_stream(name):
+    model = models.get(name)
+    particles = model.initial_particles(50, np.random.default_rng(0))
+    inside, ahead = stream(1, "t", 2, "entity"), stream(1, "t", 2, "entity")
+    expected = model.propagate(particles, 2, inside)
+    noise = model.propagation_noise(50, 2, ahead)
+    assert noise is not None
+    np.testing.assert_array_equal(model.propagate(particles, 2, ahead, noise=noise), expected)
+    # What is drawn next (the resampling) comes out the same too.
+    np.testing.assert_array_equal(inside.random(5), ahead.random(5))
+
+
+class Undrawable(models.GrowthModel):
+    """A model that draws only inside propagate (propagation_noise is the base class's None)."""
+
+    def propagation_noise(self, n, k, rng):
+        return None
+
+    def propagate(self, particles, k, rng, noise=None):
+        assert noise is None, "a model without propagation_noise must not be handed noise"
+        return self.transition_mean(particles, k) + math.sqrt(self.process_var) * rng.standard_normal(particles.shape)
+
+
+@pytest.mark.parametrize("model", [models.get("ungm"), Undrawable()], ids=["ungm", "no-propagation-noise"])
+def test_preparing_the_next_step_during_the_preprocessor_call_changes_no_number(model):
+    # As the entity service does: the next step's noise is drawn while the twin works on this one.
+    _, z = models.get("ungm").simulate(25, np.random.default_rng(0))
+    plain = list(ParticleFilter(model, z, 300, seed=5, preprocessor=lambda k, x, w, o, p: Preprocessed(x, w)))
+    calls = []
+
+    def preparing(step, particles, weights, observation, parents):
+        pf.prepare_next_step()
+        pf.prepare_next_step()  # twice is once
+        calls.append(step)
+        return Preprocessed(particles, weights)
+
+    pf = ParticleFilter(model, z, 300, seed=5, preprocessor=preparing)
+    ahead = list(pf)
+    assert calls == list(range(1, 26))
+    assert pf._ahead is None  # nothing drawn past the last step
+    for a, b in zip(plain, ahead):
+        np.testing.assert_array_equal(a.particles, b.particles)
+        np.testing.assert_array_equal(a.ancestors, b.ancestors)
+        np.testing.assert_array_equal(a.mean, b.mean)
+
+
+def test_a_step_prepared_but_skipped_is_not_used_for_another_step():
+    model = models.get("ungm")
+    _, z = model.simulate(5, np.random.default_rng(0))
+    plain = [s.mean for s in ParticleFilter(model, z, 200, seed=2)]
+    pf = ParticleFilter(model, z, 200, seed=2)
+    next(pf)
+    pf.prepare_next_step()       # drawn for step 2
+    pf._ahead = (7, *pf._ahead[1:])  # pretend it was drawn for another step
+    rest = [s.mean for s in pf]
+    np.testing.assert_array_equal(rest, plain[1:])
+
+
 def test_log_weights_survive_an_outlier_at_large_n():
     model = models.get("ungm")
     z = np.array([[0.5], [1e4], [2.0]])  # an observation no particle explains: log-likelihoods near -5e7

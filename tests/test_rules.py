@@ -221,3 +221,25 @@ def test_mirror_quantiles_match_numpy(n):
 def test_mirror_rejects_bad_weights():
     with pytest.raises(ValueError, match="weights contain negative values"):
         summarise(np.zeros(2), np.array([1.5, -0.5]))
+
+
+def test_a_stream_prepared_ahead_changes_no_number_and_only_serves_its_step():
+    from entity import models
+    from information.layer import InformationLayer
+
+    particles, weights = weighted_set(3000, seed=4)
+
+    def layer():
+        return InformationLayer(models.get("ungm"), ps=0.81, seed=9, twin="t")
+
+    expected = layer().preprocess(5, particles, weights, [1.0])
+    prepared = layer()
+    prepared.prepare(5)
+    got = prepared.preprocess(5, particles, weights, [1.0])
+    np.testing.assert_array_equal(got.particles, expected.particles)
+    assert got.report == expected.report
+    wrong = layer()
+    wrong.prepare(6)  # prepared for another step: not used for step 5
+    np.testing.assert_array_equal(wrong.preprocess(5, particles, weights, [1.0]).particles, expected.particles)
+    other_step = layer().preprocess(6, particles, weights, [1.0])
+    assert not np.array_equal(other_step.particles, expected.particles)

@@ -26,8 +26,10 @@ One step k (DESIGN.md, "One filter step"):
 Random numbers of step k come from ``stream(seed, twin, k, "entity")``:
 propagation first, then resampling. The propagation noise of step k + 1
 depends on nothing of step k, so :meth:`ParticleFilter.prepare_next_step` can
-draw it while step k waits for its preprocessor (the entity service does,
-during the lockstep wait); the numbers are the same either way.
+draw it while step k waits for its preprocessor; and when the preprocessor
+keeps the weights, :meth:`ParticleFilter.resample_ahead` can resample before
+its answer arrives. The entity service does both during the lockstep wait
+(:meth:`ParticleFilter.work_ahead`); the numbers are the same either way.
 """
 from __future__ import annotations
 
@@ -180,6 +182,10 @@ class ParticleFilter:
         self.parents: int | None = None
         #: (step, rng, noise) of the next step, drawn ahead by prepare_next_step().
         self._ahead: tuple[int, np.random.Generator, np.ndarray | None] | None = None
+        #: (step, weights, rng) of the step whose preprocessor is running.
+        self._waiting: tuple[int, np.ndarray, np.random.Generator] | None = None
+        #: (step, rng state before, weights, ancestors) from resample_ahead().
+        self._resampled: tuple[int, dict, np.ndarray, np.ndarray] | None = None
 
     @property
     def steps(self) -> int:
@@ -203,6 +209,37 @@ class ParticleFilter:
             return
         rng = stream(self.seed, self.twin, k, "entity")
         self._ahead = (k, rng, self.model.propagation_noise(self.n, k, rng))
+
+    def resample_ahead(self) -> None:
+        """Resample the set being preprocessed with its own weights, before the answer comes.
+
+        For a preprocessor to call while it waits for the twin. If the answer
+        keeps the weights (the "inherit" weight rule, or a degraded step with
+        no answer), the step uses these ancestors; otherwise it puts its stream
+        back where it was and resamples the answer. The numbers do not change
+        either way. Outside a preprocessor call, or twice, it does nothing.
+        """
+        if self._waiting is None or self._resampled is not None:
+            return
+        k, weights, rng = self._waiting
+        state = rng.bit_generator.state
+        self._resampled = (k, state, weights, self.resample(weights, rng))
+
+    def work_ahead(self) -> None:
+        """Everything the answer of the preprocessor does not change: :meth:`resample_ahead`, then
+        :meth:`prepare_next_step`. The entity service calls it during the lockstep wait."""
+        self.resample_ahead()
+        self.prepare_next_step()
+
+    def _ancestors(self, k: int, weights: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        """Ancestor indices of step k: those of resample_ahead() if they were drawn from these weights."""
+        ahead, self._resampled = self._resampled, None
+        if ahead is not None and ahead[0] == k:
+            _, state, used, ancestors = ahead
+            if used is weights or np.array_equal(used, weights):
+                return ancestors
+            rng.bit_generator.state = state  # as if nothing had been drawn
+        return self.resample(weights, rng)
 
     def __next__(self) -> FilterStep:
         """One step of the particle filter."""
@@ -233,7 +270,11 @@ class ParticleFilter:
         report = None
         target_particles, target_weights = particles, weights
         if due and self.preprocessor is not None:
-            answer = self.preprocessor(k, particles, weights, observation, self.parents)
+            self._waiting = (k, weights, rng)
+            try:
+                answer = self.preprocessor(k, particles, weights, observation, self.parents)
+            finally:
+                self._waiting = None
             if answer is None:
                 degraded = True
             else:
@@ -249,7 +290,7 @@ class ParticleFilter:
         ancestors = None
         parents = self.parents
         if due:
-            ancestors = self.resample(target_weights, rng)
+            ancestors = self._ancestors(k, target_weights, rng)
             self.particles = target_particles[ancestors]
             self.log_weights = np.zeros(self.n)
             # Ancestors are sorted: distinct ones = 1 + number of changes.

@@ -7,9 +7,11 @@ preprocessed set of the same run and step on
 estimate on ``dtpf/<twin>/entity/estimate`` (and, in the video scenario, the
 frame as a JPEG on ``dtpf/<twin>/entity/frame``). A missing or late answer never
 stalls the filter: that step falls back to plain resampling and its estimate
-says ``degraded``. While it waits, it draws the next step's propagation noise
-(:meth:`entity.filter.ParticleFilter.prepare_next_step`, the same numbers as
-drawing it in the step), so that work is off the lockstep's critical path.
+says ``degraded``. While it waits, it does what the answer does not change:
+it resamples with its own weights (used if the answer keeps them, as the
+default "inherit" rule does) and draws the next step's propagation noise
+(:meth:`entity.filter.ParticleFilter.work_ahead`; the same numbers as doing it
+in order), so that work is off the lockstep's critical path.
 
 Run ``python -m entity.service --help`` for the options.
 """
@@ -44,7 +46,7 @@ class ZenohTwin:
         self.answers = shell.inbox("information", "preprocessed")
         self.information_was_alive = True
         #: Called once the particle set is out, before waiting for the answer: work that
-        #: does not depend on it (the service sets the filter's prepare_next_step).
+        #: does not depend on it (the service sets the filter's work_ahead).
         self.while_waiting = None
 
     def __call__(self, step, particles, weights, observation, parents=None) -> Preprocessed | None:
@@ -93,7 +95,7 @@ def main(config: RunConfig, zenoh_config: zenoh.Config, args: argparse.Namespace
                             resample_below=config.resample_below, seed=config.seed, twin=config.twin,
                             preprocessor=twin)
         if twin is not None:
-            twin.while_waiting = pf.prepare_next_step
+            twin.while_waiting = pf.work_ahead
         shell.running()
         period = 1.0 / args.rate if args.rate else 0.0
         next_tick = time.monotonic()

@@ -113,27 +113,57 @@ class Undrawable(models.GrowthModel):
         return self.transition_mean(particles, k) + math.sqrt(self.process_var) * rng.standard_normal(particles.shape)
 
 
+def keep(step, particles, weights, observation, parents):
+    return Preprocessed(particles + 0.5, weights)  # moves the particles, keeps the very weights
+
+
+def keep_a_copy(step, particles, weights, observation, parents):
+    return Preprocessed(particles + 0.5, weights.copy())  # equal weights, another array
+
+
+def reweigh(step, particles, weights, observation, parents):
+    w = weights * (1.0 + np.arange(weights.size) % 3)  # other weights: what was resampled ahead is void
+    return Preprocessed(particles, w / w.sum())
+
+
+def skip_odd(step, particles, weights, observation, parents):
+    return None if step % 2 else Preprocessed(particles, weights)  # degraded steps resample the own weights
+
+
+@pytest.mark.parametrize("resampler", ["systematic", "multinomial", "stratified", "residual"])
+@pytest.mark.parametrize("answer", [keep, keep_a_copy, reweigh, skip_odd])
 @pytest.mark.parametrize("model", [models.get("ungm"), Undrawable()], ids=["ungm", "no-propagation-noise"])
-def test_preparing_the_next_step_during_the_preprocessor_call_changes_no_number(model):
-    # As the entity service does: the next step's noise is drawn while the twin works on this one.
-    _, z = models.get("ungm").simulate(25, np.random.default_rng(0))
-    plain = list(ParticleFilter(model, z, 300, seed=5, preprocessor=lambda k, x, w, o, p: Preprocessed(x, w)))
+def test_working_ahead_during_the_preprocessor_call_changes_no_number(model, answer, resampler):
+    # As the entity service does: while the twin works, resample with the own weights and draw the next
+    # step's noise.
+    _, z = models.get("ungm").simulate(12, np.random.default_rng(0))
+    plain = list(ParticleFilter(model, z, 300, seed=5, resampler=resampler, preprocessor=answer))
     calls = []
 
-    def preparing(step, particles, weights, observation, parents):
-        pf.prepare_next_step()
-        pf.prepare_next_step()  # twice is once
+    def working(step, particles, weights, observation, parents):
+        pf.work_ahead()
+        pf.work_ahead()  # twice is once
         calls.append(step)
-        return Preprocessed(particles, weights)
+        return answer(step, particles, weights, observation, parents)
 
-    pf = ParticleFilter(model, z, 300, seed=5, preprocessor=preparing)
+    pf = ParticleFilter(model, z, 300, seed=5, resampler=resampler, preprocessor=working)
     ahead = list(pf)
-    assert calls == list(range(1, 26))
-    assert pf._ahead is None  # nothing drawn past the last step
+    assert calls == list(range(1, 13))
+    assert pf._ahead is None and pf._resampled is None  # nothing left over past the last step
     for a, b in zip(plain, ahead):
         np.testing.assert_array_equal(a.particles, b.particles)
         np.testing.assert_array_equal(a.ancestors, b.ancestors)
         np.testing.assert_array_equal(a.mean, b.mean)
+
+
+def test_resampling_ahead_outside_a_preprocessor_call_does_nothing():
+    model = models.get("ungm")
+    _, z = model.simulate(3, np.random.default_rng(0))
+    pf = ParticleFilter(model, z, 100, seed=1)
+    pf.resample_ahead()
+    next(pf)
+    pf.resample_ahead()
+    assert pf._resampled is None
 
 
 def test_a_step_prepared_but_skipped_is_not_used_for_another_step():

@@ -39,7 +39,6 @@ from __future__ import annotations
 import io
 import os
 import struct
-import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Iterable, Iterator
@@ -65,7 +64,11 @@ from mcap.writer import CompressionType, Writer
 
 from messages import keys
 from messages.codec import MessageError, class_for_schema, decode_for_key, message_encoding, schema_name
+from messages.crc import crc32, use_fast_crc
 from messages.models import Message
+
+# mcap's readers and writer check and compute CRCs with it too (messages/crc.py).
+use_fast_crc()
 
 __all__ = ["Log", "LogMessage", "LogError", "CutRecord", "read_log", "write_log", "MAGIC"]
 
@@ -342,9 +345,9 @@ class _Reading:
             self.log.problems.append(f"{where} cannot be decompressed ({chunk.compression}: {error}); "
                                      f"its records were dropped")
             return
-        if chunk.uncompressed_crc != 0 and zlib.crc32(data) != chunk.uncompressed_crc:
+        if chunk.uncompressed_crc != 0 and (computed := crc32(data)) != chunk.uncompressed_crc:
             self.log.problems.append(f"{where} failed its CRC check (expected {chunk.uncompressed_crc:#010x}, "
-                                     f"computed {zlib.crc32(data):#010x}); its records were dropped")
+                                     f"computed {computed:#010x}); its records were dropped")
             return
         records, used, error = _chunk_records(data)
         for record in records:

@@ -20,6 +20,10 @@ from mcap.writer import CompressionType, Writer
 
 from messages import keys
 from messages.codec import schema_for, message_encoding
+from messages.crc import use_fast_crc
+
+# The chunk CRC was the recorder's largest cost (messages/crc.py): same numbers, zlib-ng's speed.
+use_fast_crc()
 
 __all__ = ["McapRecording", "UNKNOWN_ENCODING"]
 

@@ -408,3 +408,32 @@ def test_register_adds_the_three_commands():
     help_text = io.StringIO()
     parser.print_help(help_text)
     assert all(name in help_text.getvalue() for name in ("info", "summary", "recover"))
+
+
+def test_fast_crc_is_zlibs_crc32_and_mcap_files_check_with_plain_zlib(tmp_path):
+    import os
+    import zlib
+
+    from mcap.reader import make_reader
+
+    from messages import crc
+    from messages.recording import McapRecording
+
+    data = os.urandom(300_001)
+    assert crc.crc32(data) == zlib.crc32(data)
+    assert crc.crc32(data[1000:], crc.crc32(data[:1000])) == zlib.crc32(data)  # running value
+    assert crc.FAST, "zlib-ng is a dependency: the fast CRC should be in use"
+    path = tmp_path / "crc.mcap"
+    with McapRecording(path, compression="none", chunk_size=100_000) as recording:
+        for step in range(5):
+            recording.write("dtpf/t/entity/unknown", data[step:])
+    import mcap.stream_reader
+    assert mcap.stream_reader.zlib.crc32 is crc.crc32  # the mcap package computes with it too
+    crc.use_fast_crc(False)  # now check every chunk and the summary with CPython's zlib
+    try:
+        assert mcap.stream_reader.zlib is zlib
+        with open(path, "rb") as f:
+            messages = [m.data for _, _, m in make_reader(f, validate_crcs=True).iter_messages()]
+    finally:
+        crc.use_fast_crc()
+    assert messages == [data[step:] for step in range(5)]

@@ -3,8 +3,10 @@
 The threshold W of Eq. 28 and the mirror's weight quantiles are order
 statistics of the weights. One pass builds a histogram of the top 16 bits of
 the values' bit patterns, which order like the values for non-negative
-floats; each requested order statistic is then selected inside its bucket
-only. Below 2**16 values ``np.partition`` is faster and is used instead.
+floats; a second collects the members of the buckets that hold a requested
+rank, and each order statistic is selected among those only (np.partition).
+Below 2**16 values ``np.partition`` on the whole array is faster and is used
+instead.
 """
 from __future__ import annotations
 
@@ -49,14 +51,24 @@ def _order_statistics(values, ranks):  # pragma: no cover - compiled
         if needed[bits[i] >> shift]:
             members[j] = values[i]
             j += 1
-    members.sort()
-    out = np.empty(ranks.shape[0])
+    # Position of each rank in sorted(members): the members of needed buckets
+    # below its bucket, plus its rank inside the bucket. Ranks ascend, so do
+    # their buckets: one pass over the buckets finds every start.
+    local = np.empty(ranks.shape[0], dtype=np.int64)
+    start = 0
+    b = 0
     for q in range(ranks.shape[0]):
-        start = 0  # members of needed buckets before this one
-        for b in range(bucket_of[q]):
+        while b < bucket_of[q]:
             if needed[b]:
                 start += counts[b]
-        out[q] = members[start + ranks[q] - below_of[q]]
+            b += 1
+        local[q] = start + ranks[q] - below_of[q]
+    # Select, not sort: near-uniform weights put most of N in one bucket, and
+    # sorting it cost 4 ms at N = 1e5 (np.partition is O(size) per rank).
+    members = np.partition(members, local)
+    out = np.empty(ranks.shape[0])
+    for q in range(ranks.shape[0]):
+        out[q] = members[local[q]]
     return out
 
 

@@ -151,6 +151,22 @@ def test_kth_largest_matches_sorting(n, k):
     assert rules.kth_largest(values, k) == np.sort(values)[-k]
 
 
+@pytest.mark.parametrize("spread", [0.0, 1e-3, 3.0], ids=["ties", "near-uniform", "spread"])
+def test_order_statistics_match_sorting_when_the_values_bunch(spread):
+    # Near-uniform weights put most values in one bucket of the radix select (its worst case).
+    from information import select
+
+    rng = np.random.default_rng(21)
+    values = np.exp(spread * rng.standard_normal(200_000)) / 200_000
+    values[::11] = values[5]  # ties
+    ranks = [0, 1, 20_000, 99_999, 100_000, 180_000, 199_998, 199_999]
+    np.testing.assert_array_equal(select.order_statistics(values, ranks), np.sort(values)[ranks])
+    shuffled = [180_000, 0, 99_999]  # any order of ranks
+    np.testing.assert_array_equal(select.order_statistics(values, shuffled), np.sort(values)[shuffled])
+    np.testing.assert_allclose(select.quantiles(values, [0.1, 0.5, 0.9, 0.99]),
+                               np.quantile(values, [0.1, 0.5, 0.9, 0.99]), rtol=1e-15)
+
+
 def test_likelihood_rule_reweights_processed_particles_by_the_likelihood_ratio():
     x, w = weighted_set(n=500, seed=12)
 

@@ -40,7 +40,7 @@ import numpy as np
 
 from entity import resampling
 from entity.models import StateSpaceModel
-from messages.arrays import check_particles, check_weights
+from messages.arrays import check_particles, check_set
 from messages.streams import stream
 
 __all__ = ["ParticleFilter", "FilterStep", "Preprocessor", "Preprocessed", "FilterError"]
@@ -60,6 +60,8 @@ class Preprocessed:
     particles: np.ndarray
     weights: np.ndarray
     report: object = None
+    #: The arrays passed check_particles / check_weights already (a decoded message): not scanned again.
+    checked: bool = False
 
 
 class Preprocessor(Protocol):
@@ -255,9 +257,9 @@ class ParticleFilter:
         if self.particles is None:
             self.particles = check_particles(self.model.initial_particles(self.n, rng))
         elif noise is None:
-            self.particles = self.model.propagate(self.particles, k, rng)
+            self.particles = check_particles(self.model.propagate(self.particles, k, rng))
         else:
-            self.particles = self.model.propagate(self.particles, k, rng, noise=noise)
+            self.particles = check_particles(self.model.propagate(self.particles, k, rng, noise=noise))
         observation = self.observations[k - 1]
         self.log_weights = self.log_weights + self.model.log_likelihood(self.particles, observation, k)
         weights = normalise(self.log_weights)
@@ -278,8 +280,8 @@ class ParticleFilter:
             if answer is None:
                 degraded = True
             else:
-                target_weights = check_weights(answer.weights)
-                target_particles = check_particles(answer.particles, n=target_weights.size)
+                target_particles, target_weights = check_set(answer.particles, answer.weights,
+                                                             checked=answer.checked)
                 if target_particles.shape != particles.shape:
                     raise ValueError(f"preprocessed particles have shape {target_particles.shape}, "
                                      f"expected {particles.shape}")

@@ -30,7 +30,7 @@ from entity.tracking import VideoTrackingModel, encode_jpeg
 from information.rules import PreprocessReport
 from messages.bus import add_zenoh_arguments
 from messages.config import RunConfig, add_run_arguments
-from messages.models import CompressedImage, Estimate, ParticleSet, ParticleSetKind, Time
+from messages.models import ARRAYS_CHECKED, CompressedImage, Estimate, ParticleSet, ParticleSetKind, Time
 from messages.service import ServiceShell, add_service_arguments, run_service
 from messages.streams import stream
 
@@ -57,9 +57,10 @@ class ZenohTwin:
         elif alive and not self.information_was_alive:
             shell.log.info("step %d: the information layer is alive, preprocessing again", step)
         self.information_was_alive = alive
-        shell.publish(ParticleSet(**shell.header(step), kind=ParticleSetKind.PROPAGATED, particles=particles,
-                                  weights=weights, observation=[float(v) for v in observation],
-                                  parents=parents))
+        # The filter checked both arrays (propagate's output, normalised weights): not scanned again here.
+        shell.publish(ParticleSet.model_validate(dict(
+            **shell.header(step), kind=ParticleSetKind.PROPAGATED, particles=particles, weights=weights,
+            observation=[float(v) for v in observation], parents=parents), context=ARRAYS_CHECKED))
         if not alive:
             return None  # nobody to wait for: do not stall the filter
         deadline = time.monotonic() + self.timeout
@@ -77,7 +78,7 @@ class ZenohTwin:
                 continue
             report = PreprocessReport(answer.threshold, answer.n_large, answer.n_processed,
                                       answer.n_mixed, answer.n_plain, answer.ps)
-            return Preprocessed(answer.particles, answer.weights, report)
+            return Preprocessed(answer.particles, answer.weights, report, checked=True)
         shell.log.warning("step %d: no preprocessed set within %.1f s, plain resampling", step, self.timeout)
         return None
 

@@ -88,11 +88,13 @@ class InformationLayer:
             return ahead[1]
         return stream(self.seed, self.twin, step, "information")
 
-    def preprocess(self, step: int, particles, weights, observation) -> rules.PreprocessResult:
+    def preprocess(self, step: int, particles, weights, observation, *, checked: bool = False) -> rules.PreprocessResult:
         """Eq. 28-30 on the entity's particle set of ``step``, with the PS in force.
 
         The first half of :meth:`process`: what the entity waits for. W comes
         from the layer's threshold rule, as the mirror computes it.
+        ``checked``: the arrays come from a decoded (validated) message; see
+        :func:`information.rules.preprocess`.
         """
         ps = self.ps_for(step)
         z = np.asarray(observation, dtype=np.float64)
@@ -102,15 +104,16 @@ class InformationLayer:
                 return self.model.log_likelihood(x, z, step)
         return rules.preprocess(particles, weights, ps, self._stream(step),
                                 threshold_rule=self.threshold_rule, weight_rule=self.weight_rule,
-                                log_likelihood=log_likelihood)
+                                log_likelihood=log_likelihood, checked=checked)
 
     def mirror(self, particles, weights, parents: int | None = None,
-               threshold: float | None = None) -> WeightSummary:
+               threshold: float | None = None, *, checked: bool = False) -> WeightSummary:
         """The weight-state summary of the entity's set (see :func:`information.mirror.summarise`).
 
         ``threshold``: W if :meth:`preprocess` already found it (the same number).
         """
-        return summarise(particles, weights, self.threshold_rule if threshold is None else threshold, parents)
+        return summarise(particles, weights, self.threshold_rule if threshold is None else threshold, parents,
+                         checked=checked)
 
     def process(self, step: int, particles, weights, observation, parents: int | None = None) -> InformationOutput:
         """Mirror and preprocess the entity's particle set of ``step`` (``parents``: see

@@ -16,7 +16,7 @@ import numpy as np
 
 from information.rules import threshold as threshold_of
 from information.select import quantiles
-from messages.arrays import check_particles, check_weights
+from messages.arrays import check_set
 
 __all__ = ["WeightSummary", "summarise", "ess"]
 
@@ -82,16 +82,17 @@ def _entropy(weights):  # pragma: no cover - compiled
     return total
 
 
-def summarise(particles, weights, threshold_rule: str | float = "neff", parents: int | None = None) -> WeightSummary:
+def summarise(particles, weights, threshold_rule: str | float = "neff", parents: int | None = None, *,
+              checked: bool = False) -> WeightSummary:
     """The :class:`WeightSummary` of a particle set (N, d) with normalised weights (N,).
 
     ``parents``: the number of distinct particles the set descends from (the
     distinct ancestors of the resampling before the last propagation), which
     the entity knows in O(N). Without it, distinct states are counted by
     sorting, O(N log N); after a propagation with noise that is N.
+    ``checked``: as in :func:`information.rules.preprocess`.
     """
-    w = check_weights(weights)
-    x = check_particles(particles, n=w.size)
+    x, w = check_set(particles, weights, checked=checked)
     n = w.size
     effective = ess(w)
     entropy = float(_entropy(w))

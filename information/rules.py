@@ -44,7 +44,7 @@ import numba
 import numpy as np
 
 from information.select import kth_largest
-from messages.arrays import check_particles, check_probability, check_weights
+from messages.arrays import check_probability, check_set
 
 __all__ = [
     "THRESHOLD_RULES",
@@ -293,6 +293,7 @@ def preprocess(
     threshold_rule: str | float = "neff",
     weight_rule: Literal["inherit", "likelihood"] = "inherit",
     log_likelihood: LogLikelihood | None = None,
+    checked: bool = False,
 ) -> PreprocessResult:
     """Move small-weight particles towards large-weight ones (Eq. 28-30).
 
@@ -312,6 +313,10 @@ def preprocess(
         Weights of processed particles; see the module docstring.
     log_likelihood : callable, optional
         ``(M, d) -> (M,)`` log p(z_k | x); required by ``"likelihood"``.
+    checked : bool
+        The arrays passed :func:`~messages.arrays.check_weights` and
+        :func:`~messages.arrays.check_particles` already (a decoded message):
+        only their dtype, rank and lengths are checked again.
 
     Returns
     -------
@@ -319,8 +324,7 @@ def preprocess(
         New particles; weights as a new array (``"likelihood"``) or a
         read-only view of the input (``"inherit"``); the inputs are not modified.
     """
-    w = check_weights(weights)
-    x = check_particles(particles, n=w.size)
+    x, w = check_set(particles, weights, checked=checked)
     ps = check_probability(ps, "PS")
     if weight_rule not in WEIGHT_RULES:
         raise ValueError(f"unknown weight rule {weight_rule!r}; expected one of {', '.join(WEIGHT_RULES)}")

@@ -21,7 +21,7 @@ from entity import models
 from information.layer import InformationLayer
 from messages.bus import add_zenoh_arguments
 from messages.config import RunConfig, add_run_arguments
-from messages.models import ParticleSet, ParticleSetKind, PSCommand, WeightState
+from messages.models import ARRAYS_CHECKED, ParticleSet, ParticleSetKind, PSCommand, WeightState
 from messages.service import ServiceShell, add_service_arguments, run_service
 
 __all__ = ["main"]
@@ -81,15 +81,17 @@ def main(config: RunConfig, zenoh_config: zenoh.Config, args: argparse.Namespace
                 shell.log.warning("step %d: no PS decision of step %d within %.1f s, keeping PS = %g",
                                   step, step - 1, args.timeout, layer.ps)
             # The entity waits for the preprocessed set: it goes first, the rest of the mirror after.
-            result = layer.preprocess(step, message.particles, message.weights, message.observation)
+            # The decoded message's arrays are validated: the layer does not scan them again.
+            result = layer.preprocess(step, message.particles, message.weights, message.observation, checked=True)
             report = result.report
             counts = dict(n_large=report.n_large, n_processed=report.n_processed,
                           n_mixed=report.n_mixed, n_plain=report.n_plain)
-            shell.publish(ParticleSet(**shell.header(step), kind=ParticleSetKind.PREPROCESSED,
-                                      particles=result.particles, weights=result.weights,
-                                      observation=message.observation, ps=report.ps,
-                                      threshold=min(report.threshold, 1.0), **counts))
-            summary = layer.mirror(message.particles, message.weights, message.parents, report.threshold)
+            shell.publish(ParticleSet.model_validate(dict(
+                **shell.header(step), kind=ParticleSetKind.PREPROCESSED, particles=result.particles,
+                weights=result.weights, observation=message.observation, ps=report.ps,
+                threshold=min(report.threshold, 1.0), **counts), context=ARRAYS_CHECKED))
+            summary = layer.mirror(message.particles, message.weights, message.parents, report.threshold,
+                                   checked=True)
             shell.publish(WeightState(**shell.header(step), **summary.as_dict(), ps=report.ps, **counts))
             published.add(step)
             layer.prepare(step + 1)  # while waiting for the next set

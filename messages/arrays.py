@@ -7,6 +7,7 @@ words wherever it appears::
     from messages.arrays import check_weights, check_particles
     weights = check_weights(weights)            # (N,) float64, sums to 1
     particles = check_particles(particles, n=len(weights))   # (N, d) float64
+    particles, weights = check_set(particles, weights)       # both at once
 
 Every failure raises :class:`ValueError` naming the problem and the value.
 """
@@ -85,6 +86,22 @@ def check_particles(particles, *, n: int | None = None, name: str = "particles")
     if not finite.all():
         raise ValueError(f"{name} contain non-finite values {_describe(x, ~finite)}")
     return x
+
+
+def check_set(particles, weights, *, checked: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """Return ``(particles, weights)`` of one particle set, checked: (N, d) and (N,) float64.
+
+    ``checked=True``: the arrays passed these checks already (the arrays of a
+    decoded message, or a layer's own output); if they are float64 arrays of
+    the right ranks and lengths they are returned as they are, without a
+    second scan of every value. Anything else is checked in full.
+    """
+    if (checked and isinstance(particles, np.ndarray) and isinstance(weights, np.ndarray)
+            and particles.dtype == weights.dtype == np.float64 and particles.ndim == 2 and weights.ndim == 1
+            and particles.shape[0] == weights.shape[0] and weights.size > 0 and particles.shape[1] > 0):
+        return particles, weights
+    w = check_weights(weights)
+    return check_particles(particles, n=w.size), w
 
 
 def check_probability(value, name: str) -> float:

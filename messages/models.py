@@ -111,12 +111,25 @@ def _read_only(array: np.ndarray) -> np.ndarray:
     return view
 
 
-def _particles(value: Any) -> np.ndarray:
-    return _read_only(check_particles(value))
+#: Validation context for arrays that passed :func:`~messages.arrays.check_particles` and
+#: :func:`~messages.arrays.check_weights` already, where a layer publishes its own output:
+#: ``ParticleSet.model_validate(fields, context=ARRAYS_CHECKED)``. Float64 arrays of the right
+#: rank become read-only views without a second scan; every other field, and the lengths,
+#: are validated as always. Receivers never use it: decoding checks every array.
+ARRAYS_CHECKED = {"arrays_checked": True}
 
 
-def _weights(value: Any) -> np.ndarray:
-    return _read_only(check_weights(value))
+def _checked(value: Any, info: ValidationInfo, ndim: int) -> bool:
+    return (bool(info.context) and info.context.get("arrays_checked") is True and isinstance(value, np.ndarray)
+            and value.dtype == np.float64 and value.ndim == ndim)
+
+
+def _particles(value: Any, info: ValidationInfo) -> np.ndarray:
+    return _read_only(value if _checked(value, info, 2) else check_particles(value))
+
+
+def _weights(value: Any, info: ValidationInfo) -> np.ndarray:
+    return _read_only(value if _checked(value, info, 1) else check_weights(value))
 
 
 def _to_list(array: np.ndarray) -> list:

@@ -269,3 +269,18 @@ def test_run_config_fails_at_construction():
         RunConfig(ps=1.2)
     with pytest.raises(ValueError, match="should match pattern"):
         RunConfig(twin="a/b")
+
+
+def test_a_model_that_propagates_to_nan_fails_at_that_step():
+    class Exploding(models.GrowthModel):
+        def propagate(self, particles, k, rng, noise=None):
+            out = super().propagate(particles, k, rng, noise)
+            if k == 3:
+                out[7, 0] = np.inf
+            return out
+
+    _, z = models.get("ungm").simulate(5, np.random.default_rng(0))
+    pf = ParticleFilter(Exploding(), z, 50, seed=0)
+    next(pf), next(pf)
+    with pytest.raises(ValueError, match=r"particles contain non-finite values at index 7 \(value inf\)"):
+        next(pf)

@@ -665,3 +665,43 @@ def test_mcap_file_decodes_with_only_mcap_json_and_numpy():
     assert arrays["particles"].tobytes() == message.particles.tobytes()
     assert arrays["weights"].tobytes() == message.weights.tobytes()
     assert seen["dtpf/ungm-1/information/weight_state"]["q99"] == 0.15
+
+
+def test_arrays_checked_context_skips_only_the_value_scan():
+    from messages.models import ARRAYS_CHECKED
+
+    fields = dict(run_id="r", twin_id="t", step=1, kind="propagated")
+    bad = np.array([0.5, np.nan, 0.5])
+    x = np.zeros((3, 1))
+    # A layer's own, already checked output: the values are not scanned again ...
+    trusted = ParticleSet.model_validate(dict(fields, particles=x, weights=bad), context=ARRAYS_CHECKED)
+    assert not trusted.weights.flags.writeable and not trusted.particles.flags.writeable
+    # ... but without the context (every receiver) they are, and the rest is always checked.
+    with pytest.raises(ValidationError, match="weights contain NaN values at index 1"):
+        ParticleSet.model_validate(dict(fields, particles=x, weights=bad))
+    with pytest.raises(ValidationError, match="particles and weights differ in length"):
+        ParticleSet.model_validate(dict(fields, particles=np.zeros((4, 1)), weights=np.full(3, 1 / 3)),
+                                   context=ARRAYS_CHECKED)
+    with pytest.raises(ValidationError, match="ps must be in"):
+        ParticleSet.model_validate(dict(fields, kind="preprocessed", ps=1.5, particles=x, weights=np.full(3, 1 / 3)),
+                                   context=ARRAYS_CHECKED)
+    # Not float64 or not the right rank: checked in full, context or not.
+    with pytest.raises(ValidationError, match="weights must be 1-D"):
+        ParticleSet.model_validate(dict(fields, particles=x, weights=np.full((3, 1), 1 / 3)), context=ARRAYS_CHECKED)
+    as_list = ParticleSet.model_validate(dict(fields, particles=[[0.0], [1.0]], weights=[0.5, 0.5]),
+                                         context=ARRAYS_CHECKED)
+    assert as_list.particles.dtype == np.float64 and as_list.particles.shape == (2, 1)
+
+
+def test_check_set_trusts_only_float64_arrays_of_the_right_shapes():
+    from messages.arrays import check_set
+
+    x, w = np.zeros((3, 2)), np.array([0.5, np.nan, 0.5])
+    px, pw = check_set(x, w, checked=True)
+    assert px is x and pw is w  # passed through, not scanned
+    with pytest.raises(ValueError, match="weights contain NaN values at index 1"):
+        check_set(x, w)
+    with pytest.raises(ValueError, match="particles and weights differ in length: 4 particles, 3 weights"):
+        check_set(np.zeros((4, 2)), np.full(3, 1 / 3), checked=True)
+    with pytest.raises(ValueError, match="weights must sum to 1"):
+        check_set(x, np.ones(3, dtype=np.float32), checked=True)  # float32: checked in full

@@ -33,33 +33,46 @@ def main(config: RunConfig, zenoh_config: zenoh.Config, args: argparse.Namespace
     compression = args.compression
     if compression == "auto":
         compression = auto_compression(config.particles * (models.get(config.scenario).dim + 1) * 8)
-    with McapRecording(args.output, compression=compression,
-                       flush_interval=args.flush_interval) as recording, \
-            ServiceShell("recorder", config, zenoh_config) as shell:
-        inbox = Inbox(shell.session, pattern)
-        shell.running()
-        shell.log.info("recording %s into %s (%s chunks)", pattern, args.output, compression)
-        while not shell.stopping:
-            item = inbox.get(timeout=0.2)
-            if item is not None:
-                recording.write(item.key, item.payload)
-                shell.received += 1
-            else:
-                recording.flush_if_due()
-        # Stopping: write what already arrived (a short grace period for messages in flight).
-        inbox_deadline = time.monotonic() + args.drain
-        while time.monotonic() < inbox_deadline:
-            item = inbox.get(timeout=0.05)
-            if item is None:
-                break
+    # The file is finished before the Zenoh session closes, so a session slow to close (the
+    # launcher SIGKILLs a service after 10 s) cannot cost the log its summary and footer.
+    with ServiceShell("recorder", config, zenoh_config) as shell:
+        try:
+            recording = McapRecording(args.output, compression=compression, flush_interval=args.flush_interval)
+        except OSError as error:
+            shell.state, shell.last_error = ServiceState.FAILED, f"cannot write the log {args.output}: {error}"
+            shell.log.error("%s", shell.last_error)
+            return 2
+        with recording:
+            return _record(shell, recording, pattern, compression, args)
+
+
+def _record(shell: ServiceShell, recording: McapRecording, pattern: str, compression: str,
+            args: argparse.Namespace) -> int:
+    """Write what arrives on ``pattern`` until SIGINT/SIGTERM, then what is still in flight."""
+    inbox = Inbox(shell.session, pattern)
+    shell.running()
+    shell.log.info("recording %s into %s (%s chunks)", pattern, args.output, compression)
+    while not shell.stopping:
+        item = inbox.get(timeout=0.2)
+        if item is not None:
             recording.write(item.key, item.payload)
             shell.received += 1
-        inbox.close()
-        # The recorder's own last word goes into its log too (its published one would arrive too late).
-        shell.state = ServiceState.FINISHED
-        final = shell.status()
-        recording.write(keys.key_for(final), encode(final))
-        shell.log.info("wrote %d messages to %s", recording.messages, args.output)
+        else:
+            recording.flush_if_due()
+    # Stopping: write what already arrived (a short grace period for messages in flight).
+    inbox_deadline = time.monotonic() + args.drain
+    while time.monotonic() < inbox_deadline:
+        item = inbox.get(timeout=0.05)
+        if item is None:
+            break
+        recording.write(item.key, item.payload)
+        shell.received += 1
+    inbox.close()
+    # The recorder's own last word goes into its log too (its published one would arrive too late).
+    shell.state = ServiceState.FINISHED
+    final = shell.status()
+    recording.write(keys.key_for(final), encode(final))
+    shell.log.info("wrote %d messages to %s", recording.messages, args.output)
     return 0
 
 

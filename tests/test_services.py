@@ -208,3 +208,15 @@ def test_services_reject_bad_configuration_at_startup():
                                cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert completed.returncode == 2
     assert "--ps: Input should be less than or equal to 1" in completed.stderr
+
+
+def test_recorder_that_cannot_write_its_log_says_so_and_exits_2(tmp_path):
+    blocker = tmp_path / "not-a-folder"
+    blocker.write_text("a file where the log's folder should be")
+    output = blocker / "run.mcap"
+    done = subprocess.run([sys.executable, "-m", "scripts.record", "--output", str(output),
+                           "--listen", "tcp/127.0.0.1:0"],
+                          cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2, done.stderr
+    assert f"cannot write the log {output}" in done.stderr
+    assert "Traceback" not in done.stderr

@@ -88,6 +88,12 @@ def check_particles(particles, *, n: int | None = None, name: str = "particles")
     return x
 
 
+def is_plain_float64(value, ndim: int) -> bool:
+    """Whether ``value`` is a non-empty float64 ndarray of rank ``ndim``: what an already checked
+    array must still be for :func:`check_set` (and a message built from checked arrays) to pass it unscanned."""
+    return isinstance(value, np.ndarray) and value.dtype == np.float64 and value.ndim == ndim and value.size > 0
+
+
 def check_set(particles, weights, *, checked: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """Return ``(particles, weights)`` of one particle set, checked: (N, d) and (N,) float64.
 
@@ -96,9 +102,8 @@ def check_set(particles, weights, *, checked: bool = False) -> tuple[np.ndarray,
     the right ranks and lengths they are returned as they are, without a
     second scan of every value. Anything else is checked in full.
     """
-    if (checked and isinstance(particles, np.ndarray) and isinstance(weights, np.ndarray)
-            and particles.dtype == weights.dtype == np.float64 and particles.ndim == 2 and weights.ndim == 1
-            and particles.shape[0] == weights.shape[0] and weights.size > 0 and particles.shape[1] > 0):
+    if (checked and is_plain_float64(particles, 2) and is_plain_float64(weights, 1)
+            and particles.shape[0] == weights.shape[0]):
         return particles, weights
     w = check_weights(weights)
     return check_particles(particles, n=w.size), w

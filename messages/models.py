@@ -43,7 +43,7 @@ from pydantic import (
     model_validator,
 )
 
-from messages.arrays import check_particles, check_probability, check_weights
+from messages.arrays import check_particles, check_probability, check_weights, is_plain_float64
 
 UINT32_MAX = 2**32 - 1
 
@@ -120,8 +120,7 @@ ARRAYS_CHECKED = {"arrays_checked": True}
 
 
 def _checked(value: Any, info: ValidationInfo, ndim: int) -> bool:
-    return (bool(info.context) and info.context.get("arrays_checked") is True and isinstance(value, np.ndarray)
-            and value.dtype == np.float64 and value.ndim == ndim)
+    return bool(info.context) and info.context.get("arrays_checked") is True and is_plain_float64(value, ndim)
 
 
 def _particles(value: Any, info: ValidationInfo) -> np.ndarray:

@@ -32,15 +32,9 @@ import mcap
 
 from messages import crc
 from messages.recording import McapRecording
-from scripts.bench_pipeline import parse_size
+from scripts.bench_pipeline import fmt_n, parse_size
 
 KEYS = ("dtpf/bench/entity/particles", "dtpf/bench/information/preprocessed")
-
-
-def size_label(n: int) -> str:
-    """1000 -> '1e3'; other sizes as they are."""
-    exponent = len(str(n)) - 1
-    return f"1e{exponent}" if n == 10 ** exponent else str(n)
 
 
 def payload_of(n: int) -> bytes:
@@ -99,12 +93,12 @@ def main(argv=None) -> int:
             row = dict(n=n, mb=len(payload) / 1e6, **{k: statistics.median(v) * 1e3 for k, v in crcs.items()},
                        plain=statistics.median(writes[False]) * 1e3, fast=statistics.median(writes[True]) * 1e3)
             rows.append(row)
-            print(f"# N={size_label(n)} done", flush=True)
+            print(f"# N={fmt_n(n)} done", flush=True)
     print()
     print("| N | payload MB | crc32 zlib ms | crc32 zlib-ng ms | step, mcap as shipped ms | step, dtpf ms | dtpf / shipped |")
     print("|---|---|---|---|---|---|---|")
     for r in rows:
-        print(f"| {size_label(r['n'])} | {r['mb']:.3g} | {r['zlib']:.3g} | {r['zlib-ng']:.3g} | {r['plain']:.3g} | "
+        print(f"| {fmt_n(r['n'])} | {r['mb']:.3g} | {r['zlib']:.3g} | {r['zlib-ng']:.3g} | {r['plain']:.3g} | "
               f"{r['fast']:.3g} | {r['fast'] / r['plain']:.2f} |")
     print()
     print("A step is both particle sets written by McapRecording (uncompressed chunks); medians over "

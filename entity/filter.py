@@ -97,6 +97,15 @@ class FilterStep:
     parents : int or None
         Number of distinct particles ``particles`` descend from (the distinct
         ancestors of the last resampling); None before the first.
+    log_predictive : float
+        log p(z_k | z_1:k-1), estimated from the weights before normalisation:
+        log sum_i W_(k-1)^i p(z_k | x_k^i). What a filter on real data, without
+        truth, is judged by (higher is better).
+    innovation : float or None
+        The normalised innovation squared of z_k, sum_j (z_j - zhat_j)^2 / S_jj
+        with zhat and S the predictive mean and variance of z_k (about m when the
+        filter is consistent); None unless the filter was asked for it and the
+        model gives ``observation_moments``.
     """
 
     step: int
@@ -112,16 +121,45 @@ class FilterStep:
     report: object
     ancestors: np.ndarray | None
     parents: int | None
+    log_predictive: float = float("nan")
+    innovation: float | None = None
 
 
 def normalise(log_weights: np.ndarray) -> np.ndarray:
     """Normalised weights from log-weights, shifted by the maximum (no underflow of the largest)."""
+    return _normalise(log_weights)[0]
+
+
+def _normalise(log_weights: np.ndarray) -> tuple[np.ndarray, float]:
+    """Normalised weights and log sum_i exp(log_weights_i), from one pass of exponentials."""
     top = float(np.max(log_weights))
     if not np.isfinite(top):
         raise FilterError(f"every log-weight is {top}: no particle explains the observation")
     weights = np.exp(log_weights - top)
-    weights /= weights.sum()
-    return weights
+    total = weights.sum()
+    weights /= total
+    return weights, top + float(np.log(total))
+
+
+def normalised_innovation(model, particles: np.ndarray, prior_weights: np.ndarray, observation: np.ndarray,
+                          k: int) -> float | None:
+    """Normalised innovation squared of z_k under the predictive law of the propagated set.
+
+    zhat = sum_i W^i h(x^i), S = sum_i W^i (h(x^i) - zhat)^2 + R per observed
+    dimension (diagonal), with h and R from ``model.observation_moments``; the
+    result sum_j (z_j - zhat_j)^2 / S_j is about m on average for a consistent
+    filter. None where the model gives no moments.
+    """
+    moments_of = model.observation_moments(particles, k)
+    if moments_of is None:
+        return None
+    h, noise_var = moments_of
+    h = np.asarray(h, dtype=np.float64).reshape(particles.shape[0], -1)
+    zhat = prior_weights @ h
+    centred = h - zhat
+    spread = prior_weights @ (centred * centred) + np.asarray(noise_var, dtype=np.float64)
+    residual = np.asarray(observation, dtype=np.float64).reshape(-1) - zhat
+    return float(np.sum(residual * residual / spread))
 
 
 def moments(particles: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -153,18 +191,30 @@ class ParticleFilter:
         Twin id, part of the random streams' key.
     preprocessor : Preprocessor, optional
         Runs before each resampling (the digital twin); None: plain resampling.
+    innovation : bool
+        Also compute each step's normalised innovation (where the model gives
+        ``observation_moments``): one more pass over the particles, so off by
+        default; a run without truth turns it on.
+
+    ``observations=None`` makes a filter for observations that arrive one at
+    a time (a live sensor): call :meth:`update` with each z_k; there is no T
+    and iteration stops at once.
     """
 
     def __init__(self, model: StateSpaceModel, observations, n_particles: int, *,
                  resampler: str = "systematic", resample_below: float | None = None,
-                 seed: int = 0, twin: str = "twin", preprocessor: Preprocessor | None = None):
-        z = np.asarray(observations, dtype=np.float64)
-        if z.ndim == 1:
-            z = z[:, None]
-        if z.ndim != 2 or z.shape[0] == 0:
-            raise ValueError(f"observations must have shape (T,) or (T, m) with T >= 1, got {z.shape}")
-        if not np.isfinite(z).all():
-            raise ValueError("observations contain non-finite values")
+                 seed: int = 0, twin: str = "twin", preprocessor: Preprocessor | None = None,
+                 innovation: bool = False):
+        if observations is None:
+            z = np.empty((0, model.obs_dim))
+        else:
+            z = np.asarray(observations, dtype=np.float64)
+            if z.ndim == 1:
+                z = z[:, None]
+            if z.ndim != 2 or z.shape[0] == 0:
+                raise ValueError(f"observations must have shape (T,) or (T, m) with T >= 1, got {z.shape}")
+            if not np.isfinite(z).all():
+                raise ValueError("observations contain non-finite values")
         if int(n_particles) < 1:
             raise ValueError(f"n_particles must be at least 1, got {n_particles!r}")
         if resample_below is not None and not 0.0 < float(resample_below) <= 1.0:
@@ -178,7 +228,11 @@ class ParticleFilter:
         self.seed = int(seed)
         self.twin = twin
         self.preprocessor = preprocessor
+        self.innovation = bool(innovation)
+        self.live = observations is None
         self.k = 0
+        #: log sum_i exp(log_weights_i) of the carried log-weights (log N after a resampling).
+        self._log_total = float(np.log(self.n))
         self.particles: np.ndarray | None = None
         self.log_weights = np.zeros(self.n)
         self.parents: int | None = None
@@ -191,11 +245,16 @@ class ParticleFilter:
 
     @property
     def steps(self) -> int:
-        """T, the number of steps the filter runs."""
+        """T, the number of steps the filter runs (0 for a live filter, which has no T)."""
         return self.observations.shape[0]
 
     def __iter__(self):
         return self
+
+    def warm_up(self) -> None:
+        """Resample a small throwaway set once, so that the compiled resampler is loaded before the
+        first step (its first call costs about 0.15 s); the run's random streams are not touched."""
+        self.resample(np.full(8, 1.0 / 8), np.random.default_rng(0))
 
     def prepare_next_step(self) -> None:
         """Draw the random numbers that start the next step now: its stream and propagation noise.
@@ -207,7 +266,7 @@ class ParticleFilter:
         (its particles come from the prior), after the last, or twice.
         """
         k = self.k + 1
-        if self.k == 0 or k > self.steps or self._ahead is not None:
+        if self.k == 0 or (k > self.steps and not self.live) or self._ahead is not None:
             return
         rng = stream(self.seed, self.twin, k, "entity")
         self._ahead = (k, rng, self.model.propagation_noise(self.n, k, rng))
@@ -244,9 +303,24 @@ class ParticleFilter:
         return self.resample(weights, rng)
 
     def __next__(self) -> FilterStep:
-        """One step of the particle filter."""
+        """One step of the particle filter, on the next of the observations it was given."""
         if self.k >= self.steps:
             raise StopIteration
+        return self._step(self.observations[self.k])
+
+    def update(self, observation) -> FilterStep:
+        """One step of the particle filter on ``observation`` (z_k, m values): for a live filter.
+
+        Raises ValueError if z_k does not have the model's m finite values.
+        """
+        z = np.asarray(observation, dtype=np.float64).reshape(-1)
+        if z.shape != (self.model.obs_dim,):
+            raise ValueError(f"observation has {z.size} values, the model observes {self.model.obs_dim}")
+        if not np.isfinite(z).all():
+            raise ValueError(f"observation contains non-finite values: {z.tolist()}")
+        return self._step(z)
+
+    def _step(self, observation: np.ndarray) -> FilterStep:
         self.k += 1
         k = self.k
         ahead, self._ahead = self._ahead, None
@@ -260,10 +334,17 @@ class ParticleFilter:
             self.particles = check_particles(self.model.propagate(self.particles, k, rng))
         else:
             self.particles = check_particles(self.model.propagate(self.particles, k, rng, noise=noise))
-        observation = self.observations[k - 1]
+        prior_log_total = self._log_total
+        innovation = None
+        if self.innovation:
+            prior = np.exp(self.log_weights - prior_log_total)
+            innovation = normalised_innovation(self.model, self.particles, prior, observation, k)
         self.log_weights = self.log_weights + self.model.log_likelihood(self.particles, observation, k)
-        weights = normalise(self.log_weights)
-        self.log_weights -= self.log_weights.max()  # keep log-weights near 0 between resamplings
+        weights, log_total = _normalise(self.log_weights)
+        log_predictive = log_total - prior_log_total  # log sum_i W_(k-1)^i p(z_k | x_k^i)
+        top = self.log_weights.max()
+        self.log_weights -= top  # keep log-weights near 0 between resamplings
+        self._log_total = log_total - float(top)
         ess = 1.0 / float(np.dot(weights, weights))
         particles = self.particles
 
@@ -295,7 +376,8 @@ class ParticleFilter:
             ancestors = self._ancestors(k, target_weights, rng)
             self.particles = target_particles[ancestors]
             self.log_weights = np.zeros(self.n)
+            self._log_total = float(np.log(self.n))
             # Ancestors are sorted: distinct ones = 1 + number of changes.
             self.parents = 1 + int(np.count_nonzero(ancestors[1:] != ancestors[:-1]))
         return FilterStep(k, particles, weights, ess, mean, var, mean - half, mean + half,
-                          due, degraded, report, ancestors, parents)
+                          due, degraded, report, ancestors, parents, log_predictive, innovation)

@@ -36,8 +36,13 @@ class StateSpaceModel(ABC):
     dim: int
     #: Dimension m of one observation.
     obs_dim: int
-    #: Whether ``sample_observation`` can draw z_k (the system layer's simulating policies need it).
-    samples_observations: bool = True
+
+    @property
+    def samples_observations(self) -> bool:
+        """Whether ``sample_observation`` can draw z_k (the system layer's simulating policies and
+        ``dtpf sensor`` need it): True when the model overrides it. A subclass may set it as a class
+        attribute instead."""
+        return type(self).sample_observation is not StateSpaceModel.sample_observation
 
     @abstractmethod
     def initial_particles(self, n: int, rng: np.random.Generator) -> np.ndarray:
@@ -68,13 +73,41 @@ class StateSpaceModel(ABC):
     def log_likelihood(self, particles: np.ndarray, observation: np.ndarray, k: int) -> np.ndarray:
         """log p(z_k | x_k) for every particle: (N, d), (m,) -> (N,)."""
 
-    @abstractmethod
     def sample_observation(self, states: np.ndarray, k: int, rng: np.random.Generator) -> np.ndarray:
-        """Draw z_k ~ p(z_k | x_k) for every state: (S, d) -> (S, m)."""
+        """Draw z_k ~ p(z_k | x_k) for every state: (S, d) -> (S, m).
 
-    @abstractmethod
+        Optional: a twin of a real system filters observations from outside and
+        never draws them; only the simulating policies, ``simulate`` and
+        ``dtpf sensor`` need it.
+        """
+        raise NotImplementedError(f"model {getattr(self, 'name', type(self).__name__)!r} does not "
+                                  f"implement sample_observation")
+
+    def observation_moments(self, particles: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray] | None:
+        """Mean of z_k given each particle and the observation noise variance: (N, m), (m,).
+
+        Optional (default None). Where a model gives it, the filter reports the
+        normalised innovation of each observation, the check of a filter that
+        runs without truth.
+        """
+        return None
+
     def simulate(self, steps: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-        """A true path and its observations for k = 1 .. steps: (T, d), (T, m)."""
+        """A true path and its observations for k = 1 .. steps: (T, d), (T, m).
+
+        The default draws x_1 from the prior, then x_k with ``propagate`` and
+        z_k with ``sample_observation``; models with a fixed x_1 override it.
+        """
+        if steps < 1:
+            raise ValueError(f"steps must be at least 1, got {steps}")
+        x = self.initial_particles(1, rng)
+        states, observations = [], []
+        for k in range(1, steps + 1):
+            if k > 1:
+                x = self.propagate(x, k, rng)
+            states.append(np.array(x[0], dtype=np.float64))
+            observations.append(np.array(self.sample_observation(x, k, rng)[0], dtype=np.float64))
+        return np.array(states), np.array(observations)
 
 
 @dataclass(frozen=True)
@@ -125,6 +158,9 @@ class GrowthModel(StateSpaceModel):
         return -0.5 * residual * residual / self.observation_var - 0.5 * math.log(
             2.0 * math.pi * self.observation_var
         )
+
+    def observation_moments(self, particles, k):
+        return particles[:, :1] ** 2 / 20.0, np.array([self.observation_var])
 
     def sample_observation(self, states, k, rng):
         noise = rng.standard_normal((states.shape[0], 1))

@@ -24,15 +24,16 @@ import time
 import numpy as np
 import zenoh
 
-from entity import models
+from entity import sources
 from entity.filter import ParticleFilter, Preprocessed
+from entity.intake import ObservationIntake
 from entity.tracking import VideoTrackingModel, encode_jpeg
 from information.rules import PreprocessReport
 from messages.bus import add_zenoh_arguments
 from messages.config import RunConfig, add_run_arguments
-from messages.models import ARRAYS_CHECKED, CompressedImage, Estimate, ParticleSet, ParticleSetKind, Time
+from messages.models import (ARRAYS_CHECKED, CompressedImage, Estimate, Observation, ParticleSet, ParticleSetKind,
+                             ServiceState, Time)
 from messages.service import ServiceShell, add_service_arguments, run_service
-from messages.streams import stream
 
 __all__ = ["ZenohTwin", "main"]
 
@@ -84,54 +85,150 @@ class ZenohTwin:
 
 
 def main(config: RunConfig, zenoh_config: zenoh.Config, args: argparse.Namespace) -> int:
-    """Run the filter of ``config`` to the end (or until SIGINT/SIGTERM)."""
-    model = models.get(config.scenario)
-    truth, observations = model.simulate(config.steps, stream(config.seed, config.twin, 0, "scenario"))
+    """Run the filter of ``config`` to the end (or until SIGINT/SIGTERM).
+
+    The observations are simulated, read from a file, or (live) taken from the
+    sensor one at a time, one filter step each, until the sensor ends its
+    stream, ``--steps`` are done or the service is stopped.
+    """
+    model = sources.load_model(config)
+    data = sources.observations_of(config, model)
     with ServiceShell("entity", config, zenoh_config) as shell:
         wait_for = args.wait_for if args.wait_for is not None else (
             ["information", "system"] if config.preprocess else [])
-        shell.wait_for_layers(wait_for, args.startup_timeout)
         twin = ZenohTwin(shell, args.timeout) if config.preprocess else None
-        pf = ParticleFilter(model, observations, config.particles, resampler=config.resampler,
-                            resample_below=config.resample_below, seed=config.seed, twin=config.twin,
-                            preprocessor=twin)
+        live = LiveObservations(shell, model, config, args.observation_timeout) if data is None else None
+        shell.wait_for_layers(wait_for, args.startup_timeout)
+        # Without truth the filter is judged by how it predicts its data: the innovation too.
+        pf = ParticleFilter(model, None if data is None else data.observations, config.particles,
+                            resampler=config.resampler, resample_below=config.resample_below, seed=config.seed,
+                            twin=config.twin, preprocessor=twin, innovation=data is None or data.truth is None)
         if twin is not None:
             twin.while_waiting = pf.work_ahead
+        pf.warm_up()
         shell.running()
-        period = 1.0 / args.rate if args.rate else 0.0
-        next_tick = time.monotonic()
-        for step in pf:
-            report = step.report
-            shell.publish(Estimate(
-                **shell.header(step.step), mean=step.mean.tolist(), var=step.var.tolist(),
-                lower=step.lower.tolist(), upper=step.upper.tolist(), ess=step.ess,
-                ess_ratio=step.ess / config.particles, resampled=step.resampled, degraded=step.degraded,
-                truth=truth[step.step - 1].tolist(), observation=observations[step.step - 1].tolist(),
-                ps=report.ps if report is not None else None))
-            if isinstance(model, VideoTrackingModel):  # the frame, so the log plays as a video in Foxglove
-                shell.publish(CompressedImage(
-                    **shell.header(step.step), timestamp=Time.now(), frame_id="camera", format="jpeg",
-                    data=base64.b64encode(encode_jpeg(model.video.frame(step.step))).decode("ascii")))
-            if shell.stopping:
-                shell.log.info("stopped after step %d of %d", step.step, pf.steps)
-                return 130
-            if period:
-                next_tick += period
-                time.sleep(max(0.0, next_tick - time.monotonic()))
-        shell.log.info("finished %d steps", pf.steps)
+        if live is not None:
+            return _run_live(shell, pf, live, config)
+        return _run_batch(shell, pf, data, model, config, args)
+
+
+def _publish_step(shell: ServiceShell, step, truth, observation, model, config: RunConfig) -> None:
+    """The estimate of one filter step (and, in the video scenario, its frame)."""
+    report = step.report
+    shell.publish(Estimate(
+        **shell.header(step.step), mean=step.mean.tolist(), var=step.var.tolist(),
+        lower=step.lower.tolist(), upper=step.upper.tolist(), ess=step.ess,
+        ess_ratio=step.ess / config.particles, resampled=step.resampled, degraded=step.degraded,
+        truth=None if truth is None else [float(v) for v in truth],
+        observation=[float(v) for v in observation],
+        ps=report.ps if report is not None else None,
+        log_predictive=step.log_predictive if np.isfinite(step.log_predictive) else None,
+        innovation=step.innovation if step.innovation is not None and np.isfinite(step.innovation) else None))
+    if isinstance(model, VideoTrackingModel):  # the frame, so the log plays as a video in Foxglove
+        shell.publish(CompressedImage(
+            **shell.header(step.step), timestamp=Time.now(), frame_id="camera", format="jpeg",
+            data=base64.b64encode(encode_jpeg(model.video.frame(step.step))).decode("ascii")))
+
+
+def _run_batch(shell: ServiceShell, pf: ParticleFilter, data, model, config: RunConfig,
+               args: argparse.Namespace) -> int:
+    """Every observation of a simulation or a file, at most ``--rate`` steps per second."""
+    period = 1.0 / args.rate if args.rate else 0.0
+    next_tick = time.monotonic()
+    for step in pf:
+        k = step.step
+        _publish_step(shell, step, None if data.truth is None else data.truth[k - 1],
+                      data.observations[k - 1], model, config)
+        if shell.stopping:
+            shell.log.info("stopped after step %d of %d", k, pf.steps)
+            return 130
+        if period:
+            next_tick += period
+            time.sleep(max(0.0, next_tick - time.monotonic()))
+    shell.log.info("finished %d steps", pf.steps)
+    return 0
+
+
+class LiveObservations:
+    """The sensor's observations as they arrive: decoded, checked by the intake, counted."""
+
+    def __init__(self, shell: ServiceShell, model, config: RunConfig, quiet_after: float):
+        self.shell = shell
+        self.key = config.observation_key()
+        self.inbox = shell.inbox_on(self.key)
+        self.intake = ObservationIntake(model.obs_dim, model.dim)
+        self.quiet_after = quiet_after
+        shell.observation_counts = self.intake.counts
+
+    def next(self) -> Observation | None:
+        """The next accepted observation (or the end of the stream); None once the service stops.
+
+        Waits as long as it takes; after ``quiet_after`` seconds without one the
+        status says so (state 'waiting'), and 'running' again when one comes.
+        """
+        shell = self.shell
+        last = time.monotonic()
+        while not shell.stopping:
+            item = self.inbox.get(timeout=0.2)
+            if item is None:
+                quiet = time.monotonic() - last
+                if quiet >= self.quiet_after and shell.state != ServiceState.WAITING:
+                    shell.state = ServiceState.WAITING
+                    shell.detail = (f"no observation for {quiet:.1f} s on {self.key} (last sequence "
+                                    f"{self.intake.last_sequence}); waiting")
+                    shell.log.warning("%s", shell.detail)
+                    shell.publish_status()
+                continue
+            rejected = shell.rejected
+            message = shell.receive(item, Observation)
+            if message is None:
+                if shell.rejected > rejected:
+                    self.intake.malformed()
+                continue
+            verdict = self.intake.check(message.step, message.values, message.truth, message.end)
+            if verdict is not None:
+                shell.reject(verdict.reason, verdict.detail)
+                continue
+            if shell.state == ServiceState.WAITING:
+                shell.log.info("observations again after %.1f s (sequence %d)", time.monotonic() - last,
+                               message.step)
+                shell.state, shell.detail = ServiceState.RUNNING, None
+                shell.publish_status()
+            return message
+        return None
+
+
+def _run_live(shell: ServiceShell, pf: ParticleFilter, live: LiveObservations, config: RunConfig) -> int:
+    """One filter step per accepted observation, until the stream ends, ``--steps`` or a stop."""
+    shell.log.info("waiting for observations on %s", live.key)
+    while config.steps is None or pf.k < config.steps:
+        observation = live.next()
+        if observation is None:
+            shell.log.info("stopped after step %d", pf.k)
+            return 130
+        if observation.end:
+            shell.log.info("the sensor ended its stream after %d observations", pf.k)
+            break
+        step = pf.update(observation.values)
+        _publish_step(shell, step, observation.truth, observation.values, pf.model, config)
+    shell.log.info("finished %d steps", pf.k)
     return 0
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="python -m entity.service",
-        description="dtpf entity layer: runs the particle filter on a scenario, publishes each step's "
-                    "particle set and estimate, and resamples the preprocessed set the information layer "
-                    "sends back.")
+        description="dtpf entity layer: runs the particle filter on a scenario, an observation file or a "
+                    "live sensor, publishes each step's particle set and estimate, and resamples the "
+                    "preprocessed set the information layer sends back.")
     add_run_arguments(parser)
     parser.add_argument("--rate", type=float, default=None, metavar="STEPS_PER_SECOND",
                         help="run at most this many steps per second, like a sensor delivering "
-                             "observations in real time (default: as fast as possible)")
+                             "observations in real time (default: as fast as possible; live observations "
+                             "set their own pace)")
+    parser.add_argument("--observation-timeout", type=float, default=5.0, metavar="SECONDS",
+                        help="live observations: after this long without one, say so in the status and "
+                             "the log and keep waiting; the filter never invents a step (default: %(default)s)")
     add_service_arguments(parser)
     add_zenoh_arguments(parser)
     return parser

@@ -62,6 +62,15 @@ class InformationLayer:
         self.twin = twin
         self._ahead: tuple[int, np.random.Generator] | None = None
 
+    def warm_up(self, n: int = 8) -> None:
+        """Run the rules and the mirror once on a small throwaway set, so that their compiled kernels
+        are loaded before the first real step (the first call costs about 0.2 s); no state changes."""
+        rng = np.random.default_rng(0)
+        particles = rng.standard_normal((n, self.model.dim))
+        weights = np.full(n, 1.0 / n)
+        rules.preprocess(particles, weights, self.ps, rng, threshold_rule=self.threshold_rule, weight_rule="inherit")
+        summarise(particles, weights, self.threshold_rule, None)
+
     def set_ps(self, ps: float, applies_from_step: int) -> None:
         """Schedule a new PS from the system layer, in force from ``applies_from_step``."""
         self.pending.append((int(applies_from_step), check_probability(ps, "PS")))

@@ -17,7 +17,7 @@ import time
 
 import zenoh
 
-from entity import models
+from entity import sources
 from information.layer import InformationLayer
 from messages.bus import add_zenoh_arguments
 from messages.config import RunConfig, add_run_arguments
@@ -63,13 +63,14 @@ class PSInbox:
 
 def main(config: RunConfig, zenoh_config: zenoh.Config, args: argparse.Namespace) -> int:
     """Serve preprocessing for the twin of ``config`` until SIGINT/SIGTERM."""
-    model = models.get(config.scenario)
+    model = sources.load_model(config)
     layer = InformationLayer(model, ps=config.ps, threshold_rule=config.threshold,
                              weight_rule=config.weight_rule, seed=config.seed, twin=config.twin)
     with ServiceShell("information", config, zenoh_config) as shell:
         particle_sets = shell.inbox("entity", "particles")
         commands = PSInbox(shell, layer)
         published: set[int] = set()  # steps whose weight state this process sent
+        layer.warm_up()  # before the entity can send step 1
         shell.running()
         while not shell.stopping:
             message = shell.receive(particle_sets.get(timeout=0.2), ParticleSet)

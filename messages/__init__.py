@@ -27,7 +27,7 @@ algorithms lives in :mod:`messages.arrays`, per-step random streams in
 """
 __all__ = [
     "Estimate", "Layer", "Message", "ParticleSet", "ParticleSetKind", "PSCommand", "ServiceState",
-    "Status", "Time", "WeightState",
+    "Status", "Time", "WeightState", "Observation",
     "MessageError", "encode", "decode", "decode_for_key",
     "McapDecoderFactory", "SchemaRecord", "message_encoding", "schema_for", "json_schema",
     "keys",
@@ -37,7 +37,7 @@ __all__ = [
 # from the numeric code does not pull in pydantic, mcap and the codec.
 _HOMES = {
     **dict.fromkeys(["Estimate", "Layer", "Message", "ParticleSet", "ParticleSetKind", "PSCommand",
-                     "ServiceState", "Status", "Time", "WeightState"], "messages.models"),
+                     "ServiceState", "Status", "Time", "WeightState", "Observation"], "messages.models"),
     **dict.fromkeys(["MessageError", "encode", "decode", "decode_for_key", "McapDecoderFactory",
                      "SchemaRecord", "message_encoding", "schema_for"], "messages.codec"),
     "json_schema": "messages.schema",

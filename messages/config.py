@@ -24,10 +24,21 @@ class RunConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    scenario: str = Field("ungm", description="State-space model: 'ungm' (Eq. 35 with 25, the standard "
-                                                "benchmark) or 'ungm-printed' (Eq. 35 as printed, 0.25).")
+    scenario: str = Field("ungm", description="State-space model by name: 'ungm' (Eq. 35 with 25, the "
+                                                "standard benchmark), 'ungm-printed' (Eq. 35 as printed, "
+                                                "0.25), 'video', or a name an installed package registers "
+                                                "in the entry-point group 'dtpf.models'.")
+    model: str | None = Field(None, max_length=4096, description="The user's own model instead of a scenario: "
+                              "'package.module:NAME' or 'path/to/file.py:NAME' (a StateSpaceModel instance, "
+                              "subclass or zero-argument factory). Every layer loads it.")
+    observations: str | None = Field(None, max_length=4096, description="Where the observations come from: "
+                                     "None simulates the model (truth known); a file (.csv, .npy, .npz, one "
+                                     "row per step); 'live' (the key dtpf/<twin>/sensor/observation) or "
+                                     "'live:KEY', a sensor publishing over Zenoh.")
     particles: int = Field(1000, ge=1, description="Number of particles N.")
-    steps: int = Field(100, ge=1, description="Number of time points T (k = 1 .. T).")
+    steps: int | None = Field(100, ge=1, description="Number of time points T (k = 1 .. T). With observations "
+                              "from a file: at most this many of its rows (None: every row); live: stop "
+                              "after this many steps (None: when the stream ends).")
     resampler: str = Field("systematic", description="Traditional resampling scheme run after preprocessing: "
                                                       "multinomial, stratified, systematic or residual.")
     resample_below: float | None = Field(None, gt=0.0, le=1.0, description="Resample when ESS < this "
@@ -49,9 +60,65 @@ class RunConfig(BaseModel):
     @field_validator("scenario")
     @classmethod
     def _known_scenario(cls, value: str) -> str:
-        from entity import models
-        models.get(value)
+        from entity import model_ref
+        names = model_ref.registered_names()
+        if value not in names:
+            raise ValueError(f"unknown scenario {value!r}; expected one of {', '.join(names)} "
+                             f"(or give your own model with --model)")
         return value
+
+    @field_validator("model")
+    @classmethod
+    def _model_reference(cls, value: str | None) -> str | None:
+        if value is not None and (":" not in value or not value.rpartition(":")[2] or not value.rpartition(":")[0]):
+            raise ValueError(f"model reference {value!r} must be 'package.module:NAME' or 'path/to/file.py:NAME'")
+        return value
+
+    @field_validator("observations")
+    @classmethod
+    def _observation_source(cls, value: str | None) -> str | None:
+        if value is None:
+            return value
+        if not value:
+            raise ValueError("observations must name a file, 'live' or 'live:KEY'")
+        if value.startswith("live:"):
+            from messages import keys
+            key = value[len("live:"):]
+            try:
+                topic = keys.topic_of(key)
+            except ValueError as error:
+                raise ValueError(f"live observations: {error}") from None
+            if topic.name != "observation":
+                raise ValueError(f"live observations come on a key dtpf/<twin>/sensor/observation, got {key!r}")
+        return value
+
+    @property
+    def model_ref(self) -> str:
+        """The model every layer loads: the ``model`` reference, else the ``scenario`` name."""
+        return self.model or self.scenario
+
+    @property
+    def live(self) -> bool:
+        """Whether observations arrive over Zenoh, one at a time."""
+        return self.observations is not None and (self.observations == "live" or self.observations.startswith("live:"))
+
+    @property
+    def observation_file(self) -> str | None:
+        """The file the observations are read from, if any."""
+        return None if self.observations is None or self.live else self.observations
+
+    @property
+    def simulated(self) -> bool:
+        """Whether the observations (and the truth) come from simulating the model."""
+        return self.observations is None
+
+    def observation_key(self) -> str | None:
+        """The Zenoh key of live observations: ``dtpf/<twin>/sensor/observation`` or the one given."""
+        if not self.live:
+            return None
+        if self.observations.startswith("live:"):
+            return self.observations[len("live:"):]
+        return f"dtpf/{self.twin}/sensor/observation"
 
     @field_validator("resampler")
     @classmethod
@@ -84,6 +151,10 @@ class RunConfig(BaseModel):
 
     @model_validator(mode="after")
     def _policy_fits_scenario(self) -> "RunConfig":
+        if self.steps is None and self.simulated:
+            raise ValueError("steps: a simulated scenario needs a number of steps")
+        if self.model is not None:
+            return self  # a user model is checked when it is loaded (entity.model_check)
         # A simulating policy draws observations from the model; a video scenario cannot.
         from entity import models
         from system import policy
@@ -100,15 +171,28 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     from information.rules import WEIGHT_RULES
     from system import policy
 
+    from entity import model_ref
+
     defaults = RunConfig()
     group = parser.add_argument_group("scenario and filter")
-    group.add_argument("--scenario", default=defaults.scenario, choices=sorted(models.MODELS),
-                       help="state-space model: 'ungm' is Eq. 35 with 25 (the standard benchmark), "
-                            "'ungm-printed' Eq. 35 as printed with 0.25 (default: %(default)s)")
+    group.add_argument("--scenario", default=defaults.scenario, choices=model_ref.registered_names(),
+                       help="state-space model by name: 'ungm' is Eq. 35 with 25 (the standard benchmark), "
+                            "'ungm-printed' Eq. 35 as printed with 0.25, 'video' the tracking scenario; "
+                            "installed packages add names through the entry-point group 'dtpf.models' "
+                            "(default: %(default)s)")
+    group.add_argument("--model", default=None, metavar="REF",
+                       help="your own model instead of a scenario: 'package.module:NAME' or "
+                            "'path/to/file.py:NAME', a StateSpaceModel instance, subclass or zero-argument "
+                            "factory; checked on a few particles at startup")
+    group.add_argument("--observations", default=None, metavar="SOURCE",
+                       help="observations to filter instead of a simulation: a file (.csv with a header, "
+                            ".npy or .npz; one row per step; truth columns optional), or 'live' to take them "
+                            "from a sensor on dtpf/<twin>/sensor/observation ('live:KEY' for another key)")
     group.add_argument("--particles", "-n", type=int, default=defaults.particles,
                        help="number of particles N (default: %(default)s)")
-    group.add_argument("--steps", "-T", type=int, default=defaults.steps,
-                       help="number of time points (default: %(default)s)")
+    group.add_argument("--steps", "-T", type=int, default=None,
+                       help=f"number of time points (default: {defaults.steps} for a simulation; every row "
+                            f"of an observation file; live: until the sensor ends its stream)")
     group.add_argument("--resampler", default=defaults.resampler, choices=sorted(resampling.RESAMPLERS),
                        help="traditional resampling run after preprocessing (default: %(default)s)")
     group.add_argument("--resample-below", type=float, default=None, metavar="FRACTION",
@@ -134,7 +218,10 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
 def config_from_args(args: argparse.Namespace) -> RunConfig:
     """The RunConfig of parsed arguments; raises ValueError naming a bad option."""
     try:
-        return RunConfig(scenario=args.scenario, particles=args.particles, steps=args.steps,
+        steps = args.steps if args.steps is not None else (
+            RunConfig.model_fields["steps"].default if args.observations is None else None)
+        return RunConfig(scenario=args.scenario, model=args.model, observations=args.observations,
+                         particles=args.particles, steps=steps,
                          resampler=args.resampler, resample_below=args.resample_below,
                          preprocess=args.preprocess, threshold=args.threshold, weight_rule=args.weight_rule,
                          policy=args.policy, ps=args.ps, ps_rate=args.ps_rate, seed=args.seed, twin=args.twin, run_id=args.run_id)

@@ -21,6 +21,7 @@ from messages.models import (
     Estimate,
     Layer,
     Message,
+    Observation,
     ParticleSet,
     ParticleSetKind,
     PSCommand,
@@ -58,6 +59,7 @@ TOPICS: dict[tuple[Layer, str], Topic] = {
         Topic(Layer.SYSTEM, "ps", PSCommand),
         Topic(Layer.ENTITY, "estimate", Estimate),
         Topic(Layer.ENTITY, "frame", CompressedImage),  # the video scenario's frames
+        Topic(Layer.SENSOR, "observation", Observation),  # the physical system's measurements
         *(Topic(layer, "status", Status) for layer in Layer),
     )
 }

@@ -59,6 +59,8 @@ class Layer(enum.StrEnum):
     INFORMATION = "information"
     SYSTEM = "system"
     RECORDER = "recorder"
+    #: The physical system's sensor (or its stand-in ``dtpf sensor``): not a layer of the twin, but it publishes.
+    SENSOR = "sensor"
 
 
 class ParticleSetKind(enum.StrEnum):
@@ -73,6 +75,8 @@ class ServiceState(enum.StrEnum):
 
     STARTING = "starting"
     RUNNING = "running"
+    #: Running, but waiting for input that does not come (a live entity with no observation for a while).
+    WAITING = "waiting"
     FINISHED = "finished"
     FAILED = "failed"
 
@@ -435,6 +439,14 @@ class Estimate(Message):
     observation: list[float] | None = Field(default=None, description="z_k used at this step.")
     ps: Annotated[float | None, _probability("ps")] = Field(
         default=None, description="PS of the preprocessed set that was resampled, if any.")
+    log_predictive: float | None = Field(
+        default=None, description="log p(z_k | z_1:k-1) of this step's observation under the filter, "
+                                  "from the weights before normalisation: how well the filter predicts its "
+                                  "data, the measure of a run without truth.")
+    innovation: float | None = Field(
+        default=None, ge=0.0, description="Normalised innovation squared of z_k (about the number of "
+                                          "observed values when the filter is consistent), where the model "
+                                          "gives the observation's moments.")
 
     @model_validator(mode="after")
     def _check_shapes(self) -> "Estimate":
@@ -449,6 +461,21 @@ class Estimate(Message):
         return self
 
 
+class ObservationCounts(BaseModel):
+    """What a live entity did with the observations that arrived (:class:`Status`)."""
+
+    model_config = _CONFIG
+
+    accepted: Count = Field(description="Observations that became filter steps.")
+    duplicate: Count = Field(description="Rejected: the sequence number of the last accepted one again.")
+    out_of_order: Count = Field(description="Rejected: a sequence number below the last accepted one "
+                                            "(late, or from a sensor that started again from 1).")
+    wrong_length: Count = Field(description="Rejected: not the model's number of observed values.")
+    malformed: Count = Field(description="Rejected: not a valid Observation message (NaN values included).")
+    missed: Count = Field(description="Sequence numbers skipped between accepted observations.")
+    last_sequence: Count = Field(description="Sequence number of the last accepted observation (0: none yet).")
+
+
 class Status(Message):
     """Health of one layer process, published periodically and on change."""
 
@@ -459,8 +486,14 @@ class Status(Message):
     last_error: str | None = Field(default=None, description="Text of the last error, if any.")
     peers_alive: list[Layer] = Field(default_factory=list, description="Layers this process currently sees alive.")
     config_json: str | None = Field(
-        default=None, description="The run configuration this process runs (messages.config.RunConfig as JSON), "
-                                  "so a log says how to re-run its layers.")
+        default=None, max_length=65536,
+        description="The run configuration this process runs (messages.config.RunConfig as JSON), "
+                    "so a log says how to re-run its layers.")
+    detail: str | None = Field(default=None, max_length=1000,
+                               description="What the process is doing or waiting for, in words.")
+    observations: ObservationCounts | None = Field(
+        default=None, description="A live entity's observation intake: accepted, rejected by reason, the "
+                                  "last sequence number (a restarted sensor continues after it).")
 
 
 def _base64(value: str) -> str:
@@ -489,7 +522,35 @@ class CompressedImage(Message):
     format: Literal["jpeg", "png"] = Field(description="Image format: 'jpeg' or 'png'.")
 
 
+#: Longest observation vector a message may carry.
+MAX_OBSERVATION_VALUES = 4096
+
+
+class Observation(Message):
+    """One measurement of the physical system: sensor -> entity.
+
+    ``step`` is the sensor's sequence number (1, 2, ...: one more for every
+    measurement), ``stamp`` the time of the measurement. ``end`` closes the
+    stream: the entity finishes its run (``values`` may then be empty).
+    """
+
+    producer: ClassVar[Layer] = Layer.SENSOR
+
+    values: list[float] = Field(max_length=MAX_OBSERVATION_VALUES,
+                                description="z_k, the measured values (m of them, the model's obs_dim).")
+    truth: list[float] | None = Field(default=None, max_length=MAX_OBSERVATION_VALUES,
+                                      description="The true state, when the sensor is a simulation.")
+    end: bool = Field(default=False, description="True on the last message of the stream: no more observations.")
+
+    @model_validator(mode="after")
+    def _check_values(self) -> "Observation":
+        if not self.end and not self.values:
+            raise ValueError("an observation must carry at least one value (or end=true)")
+        return self
+
+
 #: Every message class, by name.
 MESSAGE_CLASSES: dict[str, type[Message]] = {
-    cls.__name__: cls for cls in (ParticleSet, WeightState, PSCommand, Estimate, Status, CompressedImage)
+    cls.__name__: cls for cls in (ParticleSet, WeightState, PSCommand, Estimate, Status, CompressedImage,
+                                  Observation)
 }

@@ -33,12 +33,14 @@ from messages import keys
 from messages.bus import BusError, Inbox, Presence, Received, open_session, publisher
 from messages.codec import MessageError, decode_for_key, encode
 from messages.config import RunConfig
-from messages.models import Message, ServiceState, Status
+from messages.models import Layer, Message, ServiceState, Status
 
 __all__ = ["ServiceShell", "add_service_arguments", "run_service"]
 
 #: Seconds between two periodic status reports.
 STATUS_INTERVAL = 1.0
+#: What a status may list as a live peer (a liveliness token of any other name is not a peer).
+_LAYER_NAMES = frozenset(layer.value for layer in Layer)
 
 
 def add_service_arguments(parser: argparse.ArgumentParser) -> None:
@@ -69,6 +71,10 @@ class ServiceShell:
         self.rejected = 0
         self.last_error: str | None = None
         self.state = ServiceState.STARTING
+        #: What the service is doing or waiting for, in words (in its status).
+        self.detail: str | None = None
+        #: Returns the observation counters of a live entity for its status (None: none).
+        self.observation_counts = None
         self._seen_reasons: set[str] = set()
         self._stop = threading.Event()
         self._publishers: dict[str, zenoh.Publisher] = {}
@@ -127,7 +133,11 @@ class ServiceShell:
 
     def inbox(self, layer: str, topic: str) -> Inbox:
         """An inbox on ``dtpf/<twin>/<layer>/<topic>`` of this twin."""
-        inbox = Inbox(self.session, keys.key(self.config.twin, layer, topic))
+        return self.inbox_on(keys.key(self.config.twin, layer, topic))
+
+    def inbox_on(self, key_expr: str) -> Inbox:
+        """An inbox on any key expression (closed with the shell)."""
+        inbox = Inbox(self.session, key_expr)
         self._inboxes.append(inbox)
         return inbox
 
@@ -150,15 +160,19 @@ class ServiceShell:
             return None
         return message
 
-    def reject(self, reason: str) -> None:
-        """Count a rejected message; log its reason the first time it is seen."""
+    def reject(self, reason: str, detail: str | None = None) -> None:
+        """Count a rejected message; log its reason the first time it is seen.
+
+        ``detail``: the same with this message's numbers, for the status's
+        last error (the log keeps to one line per ``reason``).
+        """
         with self._lock:
             self.rejected += 1
-            self.last_error = reason
+            self.last_error = detail or reason
             first = reason not in self._seen_reasons
             self._seen_reasons.add(reason)
         if first:
-            self.log.warning("rejected a message: %s", reason)
+            self.log.warning("rejected a message: %s", detail or reason)
 
     # --- publish -----------------------------------------------------------------
 
@@ -176,10 +190,12 @@ class ServiceShell:
 
     def status(self) -> Status:
         """This process's status now."""
+        counts = self.observation_counts() if self.observation_counts is not None else None
         with self._lock:
             return Status(**self.header(0), layer=self.layer, state=self.state, pid=os.getpid(),
                           received=self.received, rejected=self.rejected, last_error=self.last_error,
-                          peers_alive=sorted(self.presence.alive), config_json=self._config_json)
+                          peers_alive=sorted(self.presence.alive & _LAYER_NAMES), config_json=self._config_json,
+                          detail=self.detail, observations=counts)
 
     def publish_status(self) -> None:
         status = self.status()
@@ -257,8 +273,13 @@ def run_service(layer: str, main, parser: argparse.ArgumentParser, argv=None) ->
         parser.exit(2, f"{parser.prog}: error: {error}\n")
     if args.exit_with_parent:
         _watch_parent()
+    from entity.model_ref import ModelError
+    from entity.observations import ObservationError
+
     try:
         return main(config, zconf, args)
+    except (ModelError, ObservationError) as error:  # the user's model or file: one line, no traceback
+        parser.exit(2, f"{parser.prog}: error: {error}\n")
     except BusError as error:
         logging.getLogger(f"dtpf.{layer}").error("%s", error)
         return 2

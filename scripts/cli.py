@@ -10,6 +10,9 @@ import signal
 import sys
 from pathlib import Path
 
+import numpy as np
+
+from entity import sources
 from messages.config import add_run_arguments, config_from_args
 
 __all__ = ["main"]
@@ -23,7 +26,13 @@ class Progress:
         self.width = width
         self.shown = -1
 
-    def __call__(self, done: int, total: int) -> None:
+    def __call__(self, done: int, total: int | None) -> None:
+        if not total:  # a live run: no end known
+            if done - self.shown >= 10 or self.shown < 0:
+                self.shown = done
+                self.stream.write(f"\rstep {done}")
+                self.stream.flush()
+            return
         percent = 100 * done // total
         if percent // 2 == self.shown // 2 and done != total:
             return
@@ -35,22 +44,45 @@ class Progress:
         self.stream.flush()
 
 
+def resolved_config(args: argparse.Namespace):
+    """The RunConfig of the arguments, with T fixed to the observation file's rows when --steps is
+    not given (so every process and the progress bar know T)."""
+    from entity.observations import read_observations
+
+    config = config_from_args(args)
+    if config.observation_file is not None and config.steps is None:
+        config = config.model_copy(update={"steps": read_observations(config.observation_file).steps})
+    return config
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     from scripts.inprocess import run
 
-    config = config_from_args(args)
+    config = resolved_config(args)
     result = run(config, progress=None if args.quiet else Progress())
     ps = result.ps
-    ps_text = "off" if not config.preprocess else f"{ps.min():g} .. {ps.max():g}"
+    ps_text = "off" if not config.preprocess else f"{np.nanmin(ps):g} .. {np.nanmax(ps):g}"
     lines = [
-        f"scenario        {config.scenario} (N = {config.particles}, T = {config.steps}, seed {config.seed})",
+        f"{'model' if config.model else 'scenario':<16}{config.model_ref} (N = {config.particles}, "
+        f"T = {len(result.steps)}, seed {config.seed})",
+        *([f"observations    {config.observations}"] if config.observations else []),
         f"resampling      {'DT preprocessing + ' if config.preprocess else ''}{config.resampler}",
-        f"RMSE            {result.rmse:.4f}",
+    ]
+    if result.has_truth:
+        lines.append(f"RMSE            {result.rmse:.4f}")
+    else:
+        lines.append(f"log predictive  {np.mean(result.log_predictive):.4f} per step (mean of log p(z_k | z_1:k-1); "
+                     f"no truth)")
+        nis = result.innovations
+        if np.isfinite(nis).any():
+            lines.append(f"innovation      {np.nanmean(nis):.3f} mean normalised innovation squared (about "
+                         f"{result.observations.shape[1]} when consistent)")
+    lines += [
         f"mean ESS        {result.mean_ess:.1f} ({result.mean_ess / config.particles:.1%} of N)",
         f"resamplings     {result.resamplings}",
         f"PS range        {ps_text}",
         f"degraded steps  {result.degraded}",
-        f"time            {result.elapsed:.3f} s ({1e3 * result.elapsed / config.steps:.3f} ms/step)",
+        f"time            {result.elapsed:.3f} s ({1e3 * result.elapsed / max(1, len(result.steps)):.3f} ms/step)",
     ]
     print("\n".join(lines))
     return 0
@@ -59,14 +91,20 @@ def cmd_run(args: argparse.Namespace) -> int:
 def cmd_launch(args: argparse.Namespace) -> int:
     from scripts.launch import LaunchError, launch
 
-    config = config_from_args(args)
+    config = resolved_config(args)
+    sources.load_model(config)  # a wrong model or file: one line here, before any process starts
     signal.signal(signal.SIGTERM, _interrupt)
+    source = f", observations from {config.observations}" if config.observations else ""
     print(f"dtpf: launching recorder, system, information and entity for twin {config.twin} "
-          f"(embedded Zenoh on 127.0.0.1)", file=sys.stderr)
+          f"(embedded Zenoh on 127.0.0.1{source})", file=sys.stderr)
+    if config.live:
+        print(f"dtpf: the entity filters what arrives on {config.observation_key()} (start a sensor, e.g. "
+              f"'dtpf sensor --twin {config.twin}'); Ctrl-C ends the run", file=sys.stderr)
     try:
         result = launch(config, log_path=args.log, port=args.port, timeout=args.timeout,
                         startup_timeout=args.startup_timeout, log_level=args.log_level, rate=args.rate,
-                        progress=None if args.quiet else Progress())
+                        progress=None if args.quiet else Progress(),
+                        observation_timeout=args.observation_timeout)
     except LaunchError as error:
         print(f"dtpf launch: error: {error}", file=sys.stderr)
         return 1
@@ -87,7 +125,9 @@ def build_parser() -> argparse.ArgumentParser:
     commands = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     run = commands.add_parser("run", help="run the three layers in one process and print a summary",
                               description="Run the three layers in one process (no transport) on a "
-                                          "simulated scenario and print RMSE, ESS, PS and timing.")
+                                          "simulated scenario or an observation file (--observations) and "
+                                          "print RMSE (or, without truth, the log predictive likelihood), "
+                                          "ESS, PS and timing.")
     add_run_arguments(run)
     run.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
     run.set_defaults(handler=cmd_run)
@@ -111,16 +151,20 @@ def build_parser() -> argparse.ArgumentParser:
     group.add_argument("--rate", type=float, default=None, metavar="STEPS_PER_SECOND",
                        help="run the entity at most this many steps per second, like a sensor in real time "
                             "(default: as fast as possible)")
+    group.add_argument("--observation-timeout", type=float, default=5.0, metavar="SECONDS",
+                       help="live observations: after this long without one the entity says so in its "
+                            "status and keeps waiting (default: %(default)s)")
     group.add_argument("--log-level", default="WARNING", choices=["DEBUG", "INFO", "WARNING", "ERROR"],
                        help="logging level of the services on stderr (default: %(default)s)")
     group.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
     launch.set_defaults(handler=cmd_launch)
 
-    from scripts import inspect_log, play, plot_log, verify
+    from scripts import inspect_log, play, plot_log, sensor, verify
     inspect_log.register(commands)
     plot_log.register(commands)
     play.register(commands)
     verify.register(commands)
+    sensor.register(commands)
     return parser
 
 

@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from entity import models
+from entity import sources
 from entity.filter import FilterStep, ParticleFilter, Preprocessed
 from information.layer import InformationLayer
 from messages.config import RunConfig
@@ -56,7 +56,7 @@ class RunResult:
     """Per-step record of one run and its summary figures."""
 
     config: RunConfig
-    truth: np.ndarray
+    truth: np.ndarray | None
     observations: np.ndarray
     steps: list[FilterStep] = field(default_factory=list)
     elapsed: float = 0.0
@@ -67,18 +67,35 @@ class RunResult:
         return np.array([s.mean for s in self.steps])
 
     @property
+    def has_truth(self) -> bool:
+        return self.truth is not None
+
+    @property
     def errors(self) -> np.ndarray:
-        """(T, d) estimate minus truth."""
+        """(T, d) estimate minus truth; ValueError when the run has no truth."""
+        if self.truth is None:
+            raise ValueError("this run has no truth: its observations came from outside")
         return self.means - self.truth[: len(self.steps)]
 
     @property
     def rmse(self) -> float:
-        """Root mean square error of the posterior mean against the truth, over steps and dimensions."""
-        return float(np.sqrt(np.mean(self.errors ** 2)))
+        """Root mean square error of the posterior mean against the truth, over steps and dimensions
+        (NaN without truth)."""
+        return float(np.sqrt(np.mean(self.errors ** 2))) if self.has_truth else float("nan")
 
     @property
     def mse(self) -> float:
-        return float(np.mean(self.errors ** 2))
+        return float(np.mean(self.errors ** 2)) if self.has_truth else float("nan")
+
+    @property
+    def log_predictive(self) -> np.ndarray:
+        """(T,) log p(z_k | z_1:k-1) of every step."""
+        return np.array([s.log_predictive for s in self.steps])
+
+    @property
+    def innovations(self) -> np.ndarray:
+        """(T,) normalised innovation squared (NaN where not computed)."""
+        return np.array([np.nan if s.innovation is None else s.innovation for s in self.steps])
 
     @property
     def ess(self) -> np.ndarray:
@@ -104,29 +121,43 @@ class RunResult:
 
 def simulate(config: RunConfig) -> tuple[np.ndarray, np.ndarray]:
     """Truth and observations of the run's scenario, from stream(seed, twin, 0, "scenario")."""
-    model = models.get(config.scenario)
+    model = sources.load_model(config, check=False)
     return model.simulate(config.steps, stream(config.seed, config.twin, 0, "scenario"))
 
 
-def build(config: RunConfig, observations) -> ParticleFilter:
-    """The filter of ``config``, wired to an in-process twin when preprocessing is on."""
-    model = models.get(config.scenario)
+def build(config: RunConfig, observations, model=None, innovation: bool = False) -> ParticleFilter:
+    """The filter of ``config``, wired to an in-process twin when preprocessing is on.
+
+    ``model``: the run's model if it is loaded already (default: the one the
+    configuration names); ``innovation``: see :class:`~entity.filter.ParticleFilter`.
+    """
+    if model is None:
+        model = sources.load_model(config, check=False)
     twin = None
     if config.preprocess:
-        system = SystemLayer.from_config(config)
+        system = SystemLayer.from_config(config, model=model)
         information = InformationLayer(model, ps=system.policy.initial_ps, threshold_rule=config.threshold,
                                        weight_rule=config.weight_rule, seed=config.seed, twin=config.twin)
         twin = InProcessTwin(information, system)
     return ParticleFilter(model, observations, config.particles, resampler=config.resampler,
                           resample_below=config.resample_below, seed=config.seed, twin=config.twin,
-                          preprocessor=twin)
+                          preprocessor=twin, innovation=innovation)
 
 
-def run(config: RunConfig, progress=None) -> RunResult:
-    """Simulate the scenario and filter it; ``progress(step, total)`` is called after each step."""
-    truth, observations = simulate(config)
-    result = RunResult(config, truth, observations)
-    pf = build(config, observations)
+def run(config: RunConfig, progress=None, model=None) -> RunResult:
+    """Filter the run's observations (simulated, or from its file); ``progress(step, total)`` is
+    called after each step. The model is checked on a probe first unless ``model`` is given.
+
+    Raises ValueError for a live run (it needs the sensor's Zenoh: ``dtpf launch``).
+    """
+    if config.live:
+        raise ValueError("dtpf run filters in one process, without Zenoh: live observations need "
+                         "dtpf launch (or give an observation file)")
+    if model is None:
+        model = sources.load_model(config)
+    data = sources.observations_of(config, model)
+    result = RunResult(config, data.truth, data.observations)
+    pf = build(config, data.observations, model, innovation=data.truth is None)
     start = time.perf_counter()
     for step in pf:
         result.steps.append(step)

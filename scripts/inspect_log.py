@@ -232,6 +232,11 @@ class TwinSummary:
     duplicate_estimates: int = 0
     rmse: float | None = None           #: over the steps whose estimate records the truth
     truth_steps: int = 0
+    log_predictive: float | None = None  #: mean of log p(z_k | z_1:k-1) over the steps that record it
+    log_predictive_steps: int = 0
+    innovation: float | None = None      #: mean normalised innovation squared, where recorded
+    observed_values: int = 0             #: m, from the recorded observations
+    observations: dict | None = None     #: the live entity's last observation counts
     mean_ess: float | None = None
     min_ess: float | None = None
     min_ess_step: int | None = None
@@ -302,6 +307,8 @@ def _twin_summary(twin: str, run_id: str, estimates: list[Estimate], ps: list[PS
     for message in status:
         out.statuses[message.layer.value] = LayerStatus(message.layer.value, message.state.value, message.received,
                                                         message.rejected, message.last_error, message.step)
+        if message.layer.value == "entity" and message.observations is not None:
+            out.observations = message.observations.model_dump()
         config_json = getattr(message, "config_json", None)
         if config_json and out.config is None:
             try:
@@ -326,6 +333,12 @@ def _twin_summary(twin: str, run_id: str, estimates: list[Estimate], ps: list[PS
     if with_truth:
         errors = np.array([e.mean for e in with_truth]) - np.array([e.truth for e in with_truth])
         out.rmse = float(np.sqrt(np.mean(errors ** 2)))
+    lp = [e.log_predictive for e in ordered if e.log_predictive is not None]
+    out.log_predictive_steps = len(lp)
+    out.log_predictive = float(np.mean(lp)) if lp else None
+    nis = [e.innovation for e in ordered if e.innovation is not None]
+    out.innovation = float(np.mean(nis)) if nis else None
+    out.observed_values = len(ordered[-1].observation or []) if ordered else 0
     if ordered:
         ess = np.array([e.ess for e in ordered])
         out.mean_ess = float(ess.mean())
@@ -378,7 +391,8 @@ def format_summary(summary: LogSummary) -> str:
         lines += ["", f"twin {t.twin}, run {t.run_id}"]
         c = t.config
         if c:
-            lines.append(f"  config        {c.get('scenario')}, N = {c.get('particles')}, T = {c.get('steps')}, "
+            lines.append(f"  config        {c.get('model') or c.get('scenario')}, N = {c.get('particles')}, "
+                         f"T = {c.get('steps') if c.get('steps') is not None else 'live'}, "
                          f"seed {c.get('seed')}, {c.get('resampler')}, "
                          f"{'DT preprocessing' if c.get('preprocess') else 'no preprocessing'}, "
                          f"policy {c.get('policy')}")
@@ -389,8 +403,23 @@ def format_summary(summary: LogSummary) -> str:
             lines.append(f"  missing       {format_ranges(t.missing_steps)}")
         if t.duplicate_estimates:
             lines.append(f"  duplicates    {t.duplicate_estimates} estimates repeat a step (the first is used)")
-        lines.append(f"  RMSE          " + ("- (no truth recorded)" if t.rmse is None else
-                                           f"{t.rmse:.4f} (truth at {t.truth_steps} steps)"))
+        if t.rmse is not None:
+            lines.append(f"  RMSE          {t.rmse:.4f} (truth at {t.truth_steps} steps)")
+        if t.rmse is None or t.truth_steps < len(t.steps):
+            if t.log_predictive is None:
+                lines.append("  RMSE          - (no truth recorded)")
+            else:
+                lines.append(f"  log predictive {t.log_predictive:.4f} per step (mean of log p(z_k | z_1:k-1) "
+                             f"over {t.log_predictive_steps} steps; no truth recorded)")
+            if t.innovation is not None:
+                lines.append(f"  innovation    {t.innovation:.3f} mean normalised innovation squared "
+                             f"(about {t.observed_values or 1} when consistent)")
+        if t.observations:
+            o = t.observations
+            rejected = {name: o.get(name, 0) for name in ("duplicate", "out_of_order", "wrong_length", "malformed")}
+            lines.append(f"  observations  {o.get('accepted', 0)} accepted, last sequence {o.get('last_sequence', 0)}"
+                         f", {o.get('missed', 0)} missed; rejected " +
+                         ", ".join(f"{name.replace('_', ' ')} {n}" for name, n in rejected.items()))
         if t.mean_ess is not None:
             lines.append(f"  ESS           mean {t.mean_ess:.1f}, min {t.min_ess:.1f} at step {t.min_ess_step}")
         lines.append(f"  resamplings   {t.resamplings}")

@@ -53,8 +53,13 @@ class LaunchResult:
 
     @property
     def rmse(self) -> float:
+        """RMSE against the truth the estimates carry (NaN when none does)."""
         errors = [np.subtract(e.mean, e.truth) for e in self.estimates if e.truth is not None]
         return float(np.sqrt(np.mean(np.square(errors)))) if errors else float("nan")
+
+    @property
+    def truth_steps(self) -> int:
+        return sum(e.truth is not None for e in self.estimates)
 
     @property
     def rejected(self) -> dict[str, int]:
@@ -62,12 +67,15 @@ class LaunchResult:
 
     def summary(self) -> str:
         e = self.estimates
+        c = self.config
         ps = [x.ps for x in e if x.ps is not None]
+        of = f" of {c.steps}" if c.steps is not None else ""
         lines = [
-            f"scenario        {self.config.scenario} (N = {self.config.particles}, T = {self.config.steps}, "
-            f"seed {self.config.seed}, twin {self.config.twin})",
-            f"steps           {len(e)} of {self.config.steps}{' (interrupted)' if self.interrupted else ''}",
-            f"RMSE            {self.rmse:.4f}",
+            f"{'model' if c.model else 'scenario':<16}{c.model_ref} (N = {c.particles}, "
+            f"{'T = ' + str(c.steps) if c.steps is not None else 'live'}, seed {c.seed}, twin {c.twin})",
+            *([f"observations    {c.observations}"] if c.observations else []),
+            f"steps           {len(e)}{of}{' (interrupted)' if self.interrupted else ''}",
+            *judgement_lines(e),
             f"mean ESS        {np.mean([x.ess for x in e]):.1f}" if e else "mean ESS        -",
             f"resamplings     {sum(x.resampled for x in e)}",
             f"PS range        {min(ps):g} .. {max(ps):g}" if ps else "PS range        - (no preprocessed step)",
@@ -79,22 +87,51 @@ class LaunchResult:
         return "\n".join(lines)
 
 
+def judgement_lines(estimates) -> list[str]:
+    """How well the filter did: RMSE where the estimates carry the truth, else (and besides) the
+    mean log predictive likelihood of the observations and the normalised innovation."""
+    lines = []
+    truth = [x for x in estimates if x.truth is not None]
+    if truth:
+        errors = np.array([np.subtract(x.mean, x.truth) for x in truth])
+        rmse = float(np.sqrt(np.mean(errors ** 2)))
+        lines.append(f"RMSE            {rmse:.4f}" + (f" (truth at {len(truth)} of {len(estimates)} steps)"
+                                                      if len(truth) != len(estimates) else ""))
+    if len(truth) != len(estimates) or not estimates:
+        lp = [x.log_predictive for x in estimates if x.log_predictive is not None]
+        lines.append(f"log predictive  {np.mean(lp):.4f} per step (mean of log p(z_k | z_1:k-1), "
+                     f"{len(lp)} steps; no truth)" if lp else "log predictive  -")
+        nis = [x.innovation for x in estimates if x.innovation is not None]
+        if nis:
+            m = len(estimates[-1].observation or []) or 1
+            lines.append(f"innovation      {np.mean(nis):.3f} mean normalised innovation squared "
+                         f"(about {m} when consistent)")
+    return lines
+
+
 def default_log_path(config: RunConfig) -> Path:
     stamp = dt.datetime.now().strftime("%Y%m%d-%H%M%S")
     return Path("runs") / f"{config.twin}-{config.run_id}-{stamp}.mcap"
 
 
 def service_command(layer: str, config: RunConfig, endpoint: str, *, timeout: float, log_path: Path,
-                    log_level: str, rate: float | None = None) -> list[str]:
+                    log_level: str, rate: float | None = None,
+                    observation_timeout: float | None = None) -> list[str]:
     """The command line of one child service."""
     command = [sys.executable, "-m", MODULES[layer],
-               "--scenario", config.scenario, "--particles", str(config.particles), "--steps", str(config.steps),
+               "--scenario", config.scenario, "--particles", str(config.particles),
                "--resampler", config.resampler, "--threshold", str(config.threshold),
                "--weight-rule", config.weight_rule, "--policy", config.policy, "--ps", repr(config.ps),
                "--ps-rate", repr(config.ps_rate),
                "--seed", str(config.seed), "--twin", config.twin, "--run-id", config.run_id,
                "--timeout", repr(timeout), "--log-level", log_level, "--connect", endpoint,
                "--exit-with-parent"]
+    if config.steps is not None:
+        command += ["--steps", str(config.steps)]
+    if config.model is not None:
+        command += ["--model", config.model]
+    if config.observations is not None:
+        command += ["--observations", config.observations]
     if config.resample_below is not None:
         command += ["--resample-below", repr(config.resample_below)]
     if not config.preprocess:
@@ -105,6 +142,8 @@ def service_command(layer: str, config: RunConfig, endpoint: str, *, timeout: fl
             command += ["--wait-for", other]
         if rate:
             command += ["--rate", repr(rate)]
+        if observation_timeout is not None:
+            command += ["--observation-timeout", repr(observation_timeout)]
     if layer == "recorder":
         command += ["--output", str(log_path)]
     return command
@@ -112,10 +151,14 @@ def service_command(layer: str, config: RunConfig, endpoint: str, *, timeout: fl
 
 def launch(config: RunConfig, *, log_path: Path | None = None, port: int | None = None,
            timeout: float = 2.0, startup_timeout: float = 20.0, log_level: str = "WARNING",
-           rate: float | None = None, progress=None, child_output=None) -> LaunchResult:
+           rate: float | None = None, progress=None, child_output=None,
+           observation_timeout: float | None = None) -> LaunchResult:
     """Run ``config`` as four processes around an embedded Zenoh router.
 
     ``rate`` caps the entity's steps per second (None: as fast as it can).
+    A live run (``config.live``) has no deadline: it ends when the sensor ends
+    its stream, after ``config.steps`` steps, or on Ctrl-C; ``observation_timeout``
+    is the entity's ``--observation-timeout``.
     ``progress(step, total)`` is called for every estimate received.
     ``child_output`` is where the children's stderr goes (default: inherited).
     Raises LaunchError when the router cannot listen or a service fails to start.
@@ -136,11 +179,13 @@ def launch(config: RunConfig, *, log_path: Path | None = None, port: int | None 
         for layer in LAYERS:
             children[layer] = subprocess.Popen(
                 service_command(layer, config, endpoint, timeout=timeout, log_path=log_path, log_level=log_level,
-                                rate=rate),
+                                rate=rate, observation_timeout=observation_timeout),
                 stderr=child_output, start_new_session=True)
         entity = children["entity"]
         per_step = timeout + (1.0 / rate if rate else 0.0)
-        deadline = time.monotonic() + startup_timeout + per_step * config.steps + 60.0
+        # A live run waits for its sensor as long as it takes; a file or simulation has T steps.
+        deadline = float("inf") if config.live else (
+            time.monotonic() + startup_timeout + per_step * (config.steps or _rows(config)) + 60.0)
         while True:
             for layer, child in children.items():
                 if layer != "entity" and child.poll() is not None:
@@ -167,6 +212,12 @@ def launch(config: RunConfig, *, log_path: Path | None = None, port: int | None 
         result.elapsed = time.monotonic() - start
         router.close()
     return result
+
+
+def _rows(config: RunConfig) -> int:
+    """The number of rows of the run's observation file (its steps when ``--steps`` is not given)."""
+    from entity.observations import read_observations
+    return read_observations(config.observation_file).steps
 
 
 def _take(result: LaunchResult, item, progress) -> None:

@@ -20,7 +20,7 @@ from messages.bus import Inbox, add_zenoh_arguments
 from messages.codec import encode
 from messages.models import ServiceState
 from messages.config import RunConfig, add_run_arguments
-from entity import models
+from entity import model_ref
 from messages.recording import COMPRESSION, McapRecording, auto_compression
 from messages.service import ServiceShell, add_service_arguments, run_service
 
@@ -32,7 +32,7 @@ def main(config: RunConfig, zenoh_config: zenoh.Config, args: argparse.Namespace
     pattern = keys.ALL if args.all_twins else keys.twin_pattern(config.twin)
     compression = args.compression
     if compression == "auto":
-        compression = auto_compression(config.particles * (models.get(config.scenario).dim + 1) * 8)
+        compression = auto_compression(config.particles * (model_ref.resolve(config.model_ref).dim + 1) * 8)
     # The file is finished before the Zenoh session closes, so a session slow to close (the
     # launcher SIGKILLs a service after 10 s) cannot cost the log its summary and footer.
     with ServiceShell("recorder", config, zenoh_config) as shell:
@@ -49,7 +49,10 @@ def main(config: RunConfig, zenoh_config: zenoh.Config, args: argparse.Namespace
 def _record(shell: ServiceShell, recording: McapRecording, pattern: str, compression: str,
             args: argparse.Namespace) -> int:
     """Write what arrives on ``pattern`` until SIGINT/SIGTERM, then what is still in flight."""
-    inbox = Inbox(shell.session, pattern)
+    # A live twin may follow another twin's sensor: its observations are recorded too.
+    sensor = shell.config.observation_key()
+    extra = [sensor] if sensor and not args.all_twins and not sensor.startswith(pattern[:-2]) else []
+    inbox = Inbox(shell.session, pattern, *extra)
     shell.running()
     shell.log.info("recording %s into %s (%s chunks)", pattern, args.output, compression)
     while not shell.stopping:

@@ -16,7 +16,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from entity import models
 from information.layer import InformationLayer
 from messages.config import RunConfig
 from messages.logfile import Log, LogError, read_log
@@ -82,8 +81,27 @@ def _config_of(statuses: list[Status], twin: str) -> RunConfig:
     raise LogError(f"the log holds no run configuration for twin {twin!r} (no status message with config_json)")
 
 
-def verify(log: Log, twin: str | None = None) -> Verification:
-    """Re-run the information and system layers on ``log``'s entity particle sets."""
+def load_model_of(config: RunConfig, override: str | None = None):
+    """The model the log's run used (``override``: a reference to load instead); LogError says what
+    to install or pass when it cannot be loaded."""
+    from entity import model_ref
+
+    if override is not None:
+        config = config.model_copy(update={"model": override})
+    try:
+        return model_ref.resolve(config.model_ref)
+    except model_ref.ModelError as error:
+        hint = ("pass --model REF to point at it (for example where the file lies now)" if config.model
+                else "install the package that registers it in the entry-point group 'dtpf.models'")
+        raise LogError(f"the run's model {config.model_ref!r} cannot be loaded: {error}; {hint}") from None
+
+
+def verify(log: Log, twin: str | None = None, model_override: str | None = None) -> Verification:
+    """Re-run the information and system layers on ``log``'s entity particle sets.
+
+    ``model_override``: a model reference to load instead of the one the log's
+    run configuration names (the same model, found elsewhere).
+    """
     by_topic: dict[str, list] = {}
     twins = set()
     for item, message in log.decoded():
@@ -110,8 +128,8 @@ def verify(log: Log, twin: str | None = None) -> Verification:
     weight_states = recorded("information/weight_state")
     commands = recorded("system/ps")
 
-    model = models.get(config.scenario)
-    system = SystemLayer.from_config(config, twin)
+    model = load_model_of(config, model_override)
+    system = SystemLayer.from_config(config, twin, model=model)
     information = InformationLayer(model, ps=system.policy.initial_ps, threshold_rule=config.threshold,
                                    weight_rule=config.weight_rule, seed=config.seed, twin=twin)
     for step in sorted(particle_sets):
@@ -180,7 +198,7 @@ def _ranges(steps: list[int]) -> str:
 def cmd_verify(args: argparse.Namespace) -> int:
     try:
         log = read_log(args.log)
-        result = verify(log, args.twin)
+        result = verify(log, args.twin, args.model)
     except LogError as error:
         print(f"dtpf verify: error: {error}")
         return 2
@@ -212,5 +230,8 @@ def register(subparsers) -> None:
         description=__doc__.split("\n\n", 1)[1].replace("\n", " "))
     parser.add_argument("log", help="MCAP log written by dtpf launch or the recorder")
     parser.add_argument("--twin", help="twin to verify (default: the only twin in the log)")
+    parser.add_argument("--model", metavar="REF", default=None,
+                        help="load the run's model from this reference instead of the one the log names "
+                             "(for a model file that has moved)")
     parser.add_argument("--verbose", "-v", action="store_true", help="print a line for every step")
     parser.set_defaults(handler=cmd_verify)

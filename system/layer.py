@@ -48,17 +48,20 @@ class SystemLayer:
         self.decisions: list[PSDecision] = []
 
     @classmethod
-    def from_config(cls, config, twin: str | None = None) -> "SystemLayer":
+    def from_config(cls, config, twin: str | None = None, model=None) -> "SystemLayer":
         """The system layer of a :class:`~messages.config.RunConfig` (``twin`` overrides its twin id).
 
-        A simulating policy gets a predictor over the run's model, resampler and
-        preprocessing options; the fixed policy one without a model.
+        A simulating policy gets a predictor over the run's model (``model``, or
+        the one the configuration names), resampler and preprocessing options;
+        the fixed policy one without a model.
         """
-        from entity import models
+        from entity import model_ref
         from system import policy as ps_policy
 
         policy = ps_policy.get(config.policy, ps=config.ps, max_change=config.ps_rate)
-        predictor = Predictor(models.get(config.scenario), resampler=config.resampler,
+        if policy.simulates and model is None:
+            model = model_ref.resolve(config.model_ref)
+        predictor = Predictor(model, resampler=config.resampler,
                               threshold_rule=config.threshold, weight_rule=config.weight_rule) \
             if policy.simulates else Predictor()
         return cls(policy, predictor, seed=config.seed, twin=twin or config.twin)

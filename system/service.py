@@ -17,6 +17,7 @@ import time
 
 import zenoh
 
+from entity import sources
 from information.mirror import WeightSummary
 from messages.bus import add_zenoh_arguments
 from messages.config import RunConfig, add_run_arguments
@@ -61,7 +62,7 @@ class ParticleSets:
 
 def main(config: RunConfig, zenoh_config: zenoh.Config, args: argparse.Namespace) -> int:
     """Serve PS decisions for the twin of ``config`` until SIGINT/SIGTERM."""
-    layer = SystemLayer.from_config(config)
+    layer = SystemLayer.from_config(config, model=sources.load_model(config))
     with ServiceShell("system", config, zenoh_config) as shell:
         states = shell.inbox("information", "weight_state")
         sets = ParticleSets(shell) if layer.needs_particles else None

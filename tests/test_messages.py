@@ -37,7 +37,7 @@ from messages import (
     schema_for,
 )
 from messages.codec import ENVELOPE_ENCODING, EnvelopeHeader
-from messages.models import MESSAGE_CLASSES, CompressedImage, ParticleSetHeader
+from messages.models import MESSAGE_CLASSES, CompressedImage, Observation, ParticleSetHeader
 from messages.schema import foxglove_problems
 
 HEADER = dict(run_id="run-1", twin_id="ungm-1", step=7, stamp=Time(sec=1_700_000_000, nsec=123_456_789))
@@ -214,7 +214,7 @@ def test_time_from_ns_round_trip():
     (lambda: estimate(lower=[3.0, -2.0]), r"lower must not exceed upper, got lower\[0\]=3.0 > upper\[0\]=2.6"),
     (lambda: estimate(mean=[float("nan"), 0.0]), "mean.0\n  Input should be a finite number"),
     (lambda: status(peers_alive=["entity", "kitchen"]), "peers_alive.1\n  Input should be 'entity'"),
-    (lambda: status(state="asleep"), "state\n  Input should be 'starting', 'running', 'finished' or 'failed'"),
+    (lambda: status(state="asleep"), "state\n  Input should be 'starting', 'running', 'waiting', 'finished' or 'failed'"),
     (lambda: status(extra_field=1), "extra_field\n  Extra inputs are not permitted"),
     (lambda: Time(sec=1, nsec=10**9), "nsec\n  Input should be less than or equal to 999999999"),
 ])
@@ -465,7 +465,9 @@ def test_topic_table():
     for layer in ("entity", "information", "system", "recorder"):
         assert table[(layer, "status")] == (Status, None)
     assert table[("entity", "frame")] == (CompressedImage, None)
-    assert len(table) == 10
+    assert table[("sensor", "observation")] == (Observation, None)
+    assert table[("sensor", "status")] == (Status, None)
+    assert len(table) == 12
 
 
 @pytest.mark.parametrize("make, key", [
@@ -504,7 +506,7 @@ def test_parse_rejects_bad_keys(key, match):
 @pytest.mark.parametrize("twin, layer, topic, match", [
     ("a/b", "entity", "particles", "twin id .*got 'a/b'"),
     ("", "entity", "particles", "twin id must be non-empty"),
-    ("a", "sensor", "particles", "unknown layer 'sensor'"),
+    ("a", "sensors", "particles", "unknown layer 'sensors'"),
     ("a", "entity", "x/y", "topic must be non-empty .*got 'x/y'"),
 ])
 def test_key_rejects_bad_parts(twin, layer, topic, match):
@@ -577,7 +579,7 @@ def test_optional_fields_collapse_and_leave_required():
     assert schema["properties"]["n_large"]["description"].startswith("M: particles")
     assert "n_large" not in schema["required"] and "ess" in schema["required"]
     assert schema["properties"]["stamp"]["properties"]["nsec"]["type"] == "integer"
-    assert schema["properties"]["layer"]["enum"] == ["entity", "information", "system", "recorder"]
+    assert schema["properties"]["layer"]["enum"] == ["entity", "information", "system", "recorder", "sensor"]
     estimate_schema = json_schema(Estimate)
     assert estimate_schema["properties"]["truth"] == {
         "type": "array", "items": {"type": "number"}, "description": "(d,) true state, when simulated.",

@@ -1,0 +1,241 @@
+"""Check a model on a small probe at startup, so that a broken model fails now, not at step 500.
+
+::
+
+    from entity.model_check import check_model, load_checked
+    check_model(model)                                  # raises ModelError, or returns None
+    model = load_checked("my_model.py:MyModel", needs_sampling="policy 'predictive'")
+
+The probe draws ``n`` (5) particles from the prior and calls every method of
+the model once, the way the filter does:
+
+1. ``dim`` and ``obs_dim`` are ints >= 1;
+2. ``initial_particles(n, rng)`` is an (n, dim) array of finite numbers;
+3. ``propagation_noise(n, 2, rng)`` is None or an array; if an array,
+   ``propagate(x, 2, rng, noise=...)`` must give what ``propagate(x, 2, rng)``
+   gives from the same random stream (the entity draws it ahead);
+4. ``propagate(x, 2, rng)`` is an (n, dim) array of finite numbers;
+5. ``sample_observation`` (where the model gives it) is (n, obs_dim), finite;
+6. ``log_likelihood`` is (n,), without NaN or +inf, and not -inf for every
+   probe particle. It is evaluated on the given ``observation`` (the first
+   observation of the run) at the prior particles, k = 1, as the filter's
+   first step does; without one, on the observation sampled from the first
+   propagated particle, k = 2. A model that samples no observations, checked
+   without an observation, has its likelihood left unchecked;
+7. ``observation_moments`` is None or ((n, obs_dim) finite means,
+   (obs_dim,) finite non-negative variances).
+
+Each failure is a :class:`~entity.model_ref.ModelError` with a one-line
+message naming the model, the method, what it returned and what was
+expected; an exception raised by a model method is reported as
+``<method> raised <Type>: <first line of its message>``.
+"""
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+
+from entity.model_ref import ModelError, dimension, resolve
+from entity.models import StateSpaceModel
+
+__all__ = ["check_model", "load_checked"]
+
+_CHECKED: dict[tuple[str, bool | str], StateSpaceModel] = {}
+_LOCK = threading.RLock()
+
+
+def check_model(model, *, observation=None, needs_sampling: bool | str = False, n: int = 5, seed: int = 0,
+                ref: str | None = None) -> None:
+    """Call every method of ``model`` on ``n`` probe particles; raise ModelError on the first fault.
+
+    Parameters
+    ----------
+    model : StateSpaceModel
+    observation : (obs_dim,) array_like, optional
+        The first observation of the run; the likelihood is evaluated on it.
+    needs_sampling : bool or str
+        The run draws observations (a simulating policy, ``dtpf sensor``):
+        the model must implement ``sample_observation``. A string names what
+        needs it, a noun phrase: the message reads "sample_observation is not
+        implemented, but <needs_sampling> needs it" ("policy 'predictive'",
+        "dtpf sensor").
+    n : int
+        Probe particles.
+    seed : int
+        Seed of the probe's ``np.random.default_rng``.
+    ref : str, optional
+        The reference the model was loaded from, quoted in messages.
+
+    Raises
+    ------
+    ModelError
+    """
+    where = _where(model, ref)
+    if not isinstance(model, StateSpaceModel):
+        raise ModelError(f"{where}: {type(model).__name__} is not a StateSpaceModel")
+    n = int(n)
+    if n < 1:
+        raise ValueError(f"n must be at least 1, got {n}")
+    dim = dimension(model, "dim", where)
+    obs_dim = dimension(model, "obs_dim", where)
+    samples = bool(_call(where, "samples_observations", lambda: model.samples_observations))
+    if needs_sampling and not samples:
+        reason = needs_sampling if isinstance(needs_sampling, str) else "this run (it draws observations)"
+        raise ModelError(f"{where}: sample_observation is not implemented, but {reason} needs it")
+    z = None
+    if observation is not None:
+        z = _observation(observation, obs_dim, where)
+
+    rng = np.random.default_rng(seed)
+    shape, what = (n, dim), f"(N particles by dim {dim})"
+    prior = _array(where, "initial_particles", _call(where, "initial_particles",
+                                                     lambda: model.initial_particles(n, rng)), shape, what)
+
+    # The entity draws propagation noise ahead; it must give the numbers propagate draws itself.
+    step_seed = [seed, 2]
+    plain_rng = np.random.default_rng(step_seed)
+    ahead_rng = np.random.default_rng(step_seed)
+    noise = _call(where, "propagation_noise", lambda: model.propagation_noise(n, 2, ahead_rng))
+    if noise is not None and not isinstance(noise, np.ndarray):
+        raise ModelError(f"{where}: propagation_noise returned {_a(noise)}, expected None or an array")
+    moved = _array(where, "propagate", _call(where, "propagate", lambda: model.propagate(prior.copy(), 2, plain_rng)),
+                   shape, what)
+    if noise is not None:
+        with_noise = _array(where, "propagate(noise=...)", _call(
+            where, "propagate(noise=...)", lambda: model.propagate(prior.copy(), 2, ahead_rng, noise=noise)),
+            shape, what)
+        if not np.allclose(with_noise, moved, rtol=1e-9, atol=1e-12):
+            raise ModelError(f"{where}: propagate(noise=propagation_noise(...)) gives other particles than "
+                             f"propagate(...) from the same random stream; propagation_noise must draw exactly "
+                             f"what propagate draws first")
+
+    sampled = None
+    if samples:
+        sampled = _array(where, "sample_observation", _call(
+            where, "sample_observation", lambda: model.sample_observation(moved.copy(), 2, rng)),
+            (n, obs_dim), f"(N states by obs_dim {obs_dim})")
+
+    if z is not None:
+        _likelihood(model, where, prior, z, 1, n, "no particle explains the first observation")
+    elif sampled is not None:
+        ll = _likelihood(model, where, moved, sampled[0], 2, n,
+                         "no particle explains the observation sampled from the first of them")
+        if np.isneginf(ll[0]):
+            raise ModelError(f"{where}: log_likelihood is -inf for the probe particle its observation was "
+                             f"sampled from: sample_observation and log_likelihood disagree")
+
+    moments = _call(where, "observation_moments", lambda: model.observation_moments(moved.copy(), 2))
+    if moments is not None:
+        if not isinstance(moments, (tuple, list)) or len(moments) != 2:
+            raise ModelError(f"{where}: observation_moments returned {_a(moments)}, expected None or "
+                             f"a pair (means (N, obs_dim), noise variances (obs_dim,))")
+        _array(where, "observation_moments means", moments[0], (n, obs_dim), f"(N particles by obs_dim {obs_dim})")
+        var = _array(where, "observation_moments variances", moments[1], (obs_dim,), f"(obs_dim {obs_dim})")
+        if (var < 0).any():
+            i = int(np.flatnonzero(var < 0)[0])
+            raise ModelError(f"{where}: observation_moments variances are negative at index {i} ({var[i]!r}), "
+                             f"expected variances >= 0")
+
+
+def load_checked(ref: str, *, observation=None, needs_sampling: bool | str = False) -> StateSpaceModel:
+    """:func:`~entity.model_ref.resolve` ``ref`` and :func:`check_model` it, once per (ref, needs_sampling)."""
+    key = (ref, needs_sampling)
+    with _LOCK:
+        model = _CHECKED.get(key)
+        if model is None:
+            model = resolve(ref)
+            check_model(model, observation=observation, needs_sampling=needs_sampling, ref=ref)
+            _CHECKED[key] = model
+        return model
+
+
+# --- helpers ----------------------------------------------------------------------------------------------
+
+def _where(model, ref: str | None) -> str:
+    try:
+        name = getattr(model, "name", None)
+    except Exception:
+        name = None
+    if not isinstance(name, str) or not name:
+        name = type(model).__name__
+    if ref and ref != name:
+        return f"model {name!r} (ref {ref})"
+    return f"model {name!r}"
+
+
+def _call(where: str, method: str, call):
+    try:
+        return call()
+    except ModelError:
+        raise
+    except Exception as exc:
+        lines = str(exc).strip().splitlines()
+        text = f"{type(exc).__name__}: {lines[0].strip()}" if lines else type(exc).__name__
+        raise ModelError(f"{where}: {method} raised {text}") from exc
+
+
+def _array(where: str, method: str, value, shape: tuple, what: str) -> np.ndarray:
+    """``value`` as a float64 array of ``shape`` with finite entries, or a ModelError."""
+    if value is None:
+        raise ModelError(f"{where}: {method} returned None, expected an array of shape {shape} {what}")
+    try:
+        raw = np.asarray(value)
+    except Exception as exc:
+        raise ModelError(f"{where}: {method} returned {_a(value)} that is no array ({type(exc).__name__}: "
+                         f"{str(exc).splitlines()[0] if str(exc) else ''}), expected shape {shape} {what}") from exc
+    if raw.dtype.kind not in "biuf":
+        raise ModelError(f"{where}: {method} returned dtype {raw.dtype}, expected float64-convertible numbers")
+    if raw.shape != shape:
+        raise ModelError(f"{where}: {method} returned shape {raw.shape}, expected {shape} {what}")
+    x = raw.astype(np.float64, copy=False)
+    bad = ~np.isfinite(x)
+    if bad.any():
+        index = tuple(int(i) for i in np.argwhere(bad)[0])
+        shown = index[0] if len(index) == 1 else index
+        raise ModelError(f"{where}: {method} returned {_kind(x[index])} at index {shown}, expected finite numbers")
+    return x
+
+
+def _likelihood(model, where: str, particles: np.ndarray, z: np.ndarray, k: int, n: int, unexplained: str):
+    value = _call(where, "log_likelihood", lambda: model.log_likelihood(particles.copy(), z.copy(), k))
+    if value is None:
+        raise ModelError(f"{where}: log_likelihood returned None, expected an array of shape ({n},) (one per particle)")
+    raw = np.asarray(value)
+    if raw.dtype.kind not in "biuf":
+        raise ModelError(f"{where}: log_likelihood returned dtype {raw.dtype}, expected float64-convertible numbers")
+    if raw.shape != (n,):
+        raise ModelError(f"{where}: log_likelihood returned shape {raw.shape}, expected ({n},) (one per particle)")
+    ll = raw.astype(np.float64, copy=False)
+    for bad, kind in ((np.isnan(ll), "NaN"), (np.isposinf(ll), "+inf")):
+        if bad.any():
+            raise ModelError(f"{where}: log_likelihood returned {kind} at index {int(np.flatnonzero(bad)[0])}, "
+                             f"expected finite numbers or -inf")
+    if np.isneginf(ll).all():
+        raise ModelError(f"{where}: log_likelihood is -inf for every probe particle: {unexplained}")
+    return ll
+
+
+def _observation(observation, obs_dim: int, where: str) -> np.ndarray:
+    try:
+        z = np.asarray(observation, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError) as exc:
+        raise ModelError(f"{where}: observation is not an array of numbers ({type(exc).__name__}: "
+                         f"{str(exc).splitlines()[0] if str(exc) else ''})") from exc
+    if z.size != obs_dim:
+        raise ModelError(f"{where}: observation has {z.size} values, model observes {obs_dim}")
+    if not np.isfinite(z).all():
+        raise ModelError(f"{where}: observation has a non-finite value ({_kind(z[~np.isfinite(z)][0])}), "
+                         f"expected {obs_dim} finite numbers")
+    return z
+
+
+def _kind(value: float) -> str:
+    return "NaN" if np.isnan(value) else ("+inf" if value > 0 else "-inf")
+
+
+def _a(value) -> str:
+    if value is None:
+        return "None"
+    kind = type(value).__name__
+    return f"{'an' if kind[0].lower() in 'aeiou' or kind == 'ndarray' else 'a'} {kind}"

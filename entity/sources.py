@@ -1,0 +1,100 @@
+"""Where a run's model and observations come from, the same in every process of a twin.
+
+A run (:class:`~messages.config.RunConfig`) names its model (``--scenario``
+or ``--model REF``) and its observations (``--observations``): none (the
+model is simulated, so the truth is known), a file, or a live sensor::
+
+    from entity import sources
+    model = sources.load_model(config)                 # resolved and checked on a probe
+    data = sources.observations_of(config, model)      # file or simulation; None when live
+    data.observations, data.truth                      # (T, m), (T, d) or None
+
+Every layer process calls :func:`load_model`, so the information layer's
+likelihood rule and the system layer's simulation use the model the entity
+filters with. Mistakes raise :class:`~entity.model_ref.ModelError` or
+:class:`~entity.observations.ObservationError` (both ValueError), one line each.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from entity.model_check import load_checked
+from entity.model_ref import ModelError
+from entity.models import StateSpaceModel
+from entity.observations import ObservationTable, read_observations
+from messages.streams import stream
+
+__all__ = ["RunData", "load_model", "observations_of", "sampling_need", "ModelError"]
+
+
+@dataclass(frozen=True)
+class RunData:
+    """The observations a run filters, with the truth where it is known."""
+
+    observations: np.ndarray
+    truth: np.ndarray | None
+    #: Where they came from: "simulation of <model>" or the file name.
+    source: str
+
+    @property
+    def steps(self) -> int:
+        return self.observations.shape[0]
+
+
+def sampling_need(config, *, sensor: bool = False) -> str | bool:
+    """Why this run needs ``sample_observation`` (a text for the error), or False."""
+    from system import policy
+
+    if sensor:
+        return "dtpf sensor (it simulates observations)"
+    if config.preprocess and policy.POLICIES[config.policy].simulates:
+        return f"the system layer's policy {config.policy!r} (it simulates observations)"
+    return False
+
+
+def _check_simulation(config, model: StateSpaceModel) -> None:
+    """A simulated run needs a model that can simulate: its own ``simulate``, or ``sample_observation``."""
+    if config.simulated and type(model).simulate is StateSpaceModel.simulate and not model.samples_observations:
+        raise ModelError(f"model {config.model_ref!r}: sample_observation is not implemented, so it cannot be "
+                         f"simulated; give the observations to filter with --observations")
+
+
+def _probe_observation(config) -> np.ndarray | None:
+    """The first row of the observation file, to probe the likelihood with."""
+    if config.observation_file is None:
+        return None
+    return read_observations(config.observation_file, steps=1).observations[0]
+
+
+def load_model(config, *, check: bool = True, sensor: bool = False) -> StateSpaceModel:
+    """The run's model, resolved from its reference and (``check``) probed on a few particles.
+
+    Raises ModelError (or ObservationError for the probe's observation file).
+    """
+    from entity import model_ref
+
+    if not check:
+        return model_ref.resolve(config.model_ref)
+    model = load_checked(config.model_ref, observation=_probe_observation(config),
+                         needs_sampling=sampling_need(config, sensor=sensor))
+    _check_simulation(config, model)
+    return model
+
+
+def observations_of(config, model: StateSpaceModel) -> RunData | None:
+    """The observations of a file or simulated run (None for a live one).
+
+    A simulation draws from ``stream(seed, twin, 0, "scenario")``, so every
+    process and ``dtpf run`` see the same path.
+    """
+    if config.live:
+        return None
+    if config.observation_file is not None:
+        table: ObservationTable = read_observations(config.observation_file, obs_dim=model.obs_dim,
+                                                    state_dim=model.dim, steps=config.steps)
+        return RunData(table.observations, table.truth, table.source)
+    truth, observations = model.simulate(config.steps, stream(config.seed, config.twin, 0, "scenario"))
+    return RunData(np.asarray(observations, dtype=np.float64), np.asarray(truth, dtype=np.float64),
+                   f"simulation of {config.model_ref}")

@@ -1,0 +1,137 @@
+"""``dtpf sensor``: a stand-in for the physical system, publishing observations over Zenoh.
+
+It simulates the run's model (a built-in scenario or ``--model REF``, the
+path the twin's ``dtpf run`` would simulate for the same seed and twin), or
+reads ``--observations FILE``, and publishes one
+:class:`~messages.models.Observation` per step on
+``dtpf/<twin>/sensor/observation`` at ``--rate`` per second, with the truth
+in the message's ``truth`` field (``--no-truth`` leaves it out), then an
+end-of-stream message. A twin launched with ``--observations live`` filters
+each as it arrives::
+
+    dtpf launch --observations live          # terminal 1: the twin waits for its sensor
+    dtpf sensor --rate 20                    # terminal 2: 100 observations, then the end
+
+A restarted sensor continues where the twin is: it reads the last sequence
+number the entity accepted from the entity's status and goes on after it.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+
+import zenoh
+
+from entity import sources
+from messages.bus import BusError, Inbox, add_zenoh_arguments, zenoh_config_from_args
+from messages import keys
+from messages.codec import MessageError, decode_for_key
+from messages.config import RunConfig, add_run_arguments, config_from_args
+from messages.models import Observation, Status
+from messages.service import ServiceShell
+
+__all__ = ["main", "register", "resume_point"]
+
+
+def resume_point(shell: ServiceShell, wait: float) -> int:
+    """The last sequence number the twin's entity accepted, from its status (0 if none is heard)."""
+    inbox = Inbox(shell.session, keys.key(shell.config.twin, "entity", "status"))
+    deadline = time.monotonic() + wait
+    try:
+        while time.monotonic() < deadline and not shell.stopping:
+            item = inbox.get(timeout=min(0.1, max(0.0, deadline - time.monotonic())))
+            if item is None:
+                continue
+            try:
+                status = decode_for_key(item.key, item.payload)
+            except MessageError:
+                continue
+            if isinstance(status, Status) and status.run_id == shell.config.run_id and status.observations:
+                return status.observations.last_sequence
+        return 0
+    finally:
+        inbox.close()
+
+
+def main(config: RunConfig, zenoh_config: zenoh.Config, args: argparse.Namespace) -> int:
+    """Publish the observations of ``config`` (simulated or from its file) until done or stopped."""
+    model = sources.load_model(config, sensor=config.observation_file is None)
+    data = sources.observations_of(config, model)
+    key = keys.key(config.twin, "sensor", "observation")
+    with ServiceShell("sensor", config, zenoh_config) as shell:
+        shell.running()
+        if args.wait_for_entity:
+            missing = shell.presence.wait_for(["entity"], args.wait_for_entity)
+            if missing:
+                shell.log.warning("no entity of twin %s after %.1f s: publishing anyway", config.twin,
+                                  args.wait_for_entity)
+        start = args.start if args.start is not None else resume_point(shell, args.resume_wait) + 1
+        if start > 1:
+            shell.log.info("continuing after observation %d, the last the entity accepted", start - 1)
+        period = 1.0 / args.rate if args.rate else 0.0
+        next_tick = time.monotonic()
+        sent = 0
+        for sequence in range(start, data.steps + 1):
+            if shell.stopping:
+                shell.log.info("stopped after observation %d of %d", sequence - 1, data.steps)
+                return 130
+            truth = None if data.truth is None or args.no_truth else data.truth[sequence - 1].tolist()
+            shell.publish(Observation(**shell.header(sequence), values=data.observations[sequence - 1].tolist(),
+                                      truth=truth))
+            sent += 1
+            if period:
+                next_tick += period
+                time.sleep(max(0.0, next_tick - time.monotonic()))
+        if not args.no_end:
+            shell.publish(Observation(**shell.header(data.steps + 1), values=[], end=True))
+        shell.log.info("published %d observations on %s%s", sent, key, "" if args.no_end else ", then the end")
+    return 0
+
+
+def cmd_sensor(args: argparse.Namespace) -> int:
+    import logging
+
+    logging.basicConfig(level=args.log_level, stream=sys.stderr, format="%(asctime)s sensor      %(levelname)s %(message)s")
+    config = config_from_args(args)
+    if config.live:
+        raise ValueError("a sensor publishes observations: give it a scenario, --model or an --observations "
+                         "file, not 'live'")
+    try:
+        return main(config, zenoh_config_from_args(args), args)
+    except BusError as error:
+        print(f"dtpf sensor: error: {error}", file=sys.stderr)
+        return 2
+
+
+def register(subparsers) -> None:
+    """Add the ``sensor`` command to an argparse subparsers object."""
+    parser = subparsers.add_parser(
+        "sensor", help="publish a model's simulated observations (or a file's) over Zenoh, like a sensor",
+        description=__doc__.split("\n\n", 1)[1].split("::")[0].replace("\n", " ").strip())
+    add_run_arguments(parser)
+    group = parser.add_argument_group("sensor")
+    group.add_argument("--rate", type=float, default=10.0, metavar="PER_SECOND",
+                       help="observations per second; 0: as fast as possible (default: %(default)s)")
+    group.add_argument("--no-truth", action="store_true",
+                       help="publish the observations only, as a real sensor would")
+    group.add_argument("--no-end", action="store_true",
+                       help="do not send the end-of-stream message at the end (the twin keeps waiting)")
+    group.add_argument("--start", type=int, default=None, metavar="SEQUENCE",
+                       help="first sequence number to publish (default: one after the last the twin's entity "
+                            "accepted, 1 if none is heard)")
+    group.add_argument("--resume-wait", type=float, default=1.5, metavar="SECONDS",
+                       help="how long to listen for the entity's status to find where to continue "
+                            "(default: %(default)s)")
+    group.add_argument("--wait-for-entity", type=float, default=20.0, metavar="SECONDS",
+                       help="wait at most this long for the twin's entity before publishing; 0: do not "
+                            "wait (default: %(default)s)")
+    group.add_argument("--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"],
+                       help="logging level on stderr (default: %(default)s)")
+    add_zenoh_arguments(parser)
+    parser.set_defaults(handler=cmd_sensor)
+
+
+if __name__ == "__main__":
+    from scripts.cli import main as cli_main
+    sys.exit(cli_main(["sensor", *sys.argv[1:]]))

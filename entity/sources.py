@@ -61,11 +61,13 @@ def _check_simulation(config, model: StateSpaceModel) -> None:
                          f"simulated; give the observations to filter with --observations")
 
 
-def _probe_observation(config) -> np.ndarray | None:
-    """The first row of the observation file, to probe the likelihood with."""
+def _probe_observation(config, model: StateSpaceModel) -> np.ndarray | None:
+    """The first row of the observation file, to probe the likelihood with (its columns checked
+    against the model's dimensions first, so a file that does not fit is named as the problem)."""
     if config.observation_file is None:
         return None
-    return read_observations(config.observation_file, steps=1).observations[0]
+    return read_observations(config.observation_file, obs_dim=model.obs_dim, state_dim=model.dim,
+                             steps=1).observations[0]
 
 
 def load_model(config, *, check: bool = True, sensor: bool = False) -> StateSpaceModel:
@@ -75,9 +77,10 @@ def load_model(config, *, check: bool = True, sensor: bool = False) -> StateSpac
     """
     from entity import model_ref
 
+    model = model_ref.resolve(config.model_ref)
     if not check:
-        return model_ref.resolve(config.model_ref)
-    model = load_checked(config.model_ref, observation=_probe_observation(config),
+        return model
+    model = load_checked(config.model_ref, observation=_probe_observation(config, model),
                          needs_sampling=sampling_need(config, sensor=sensor))
     _check_simulation(config, model)
     return model

@@ -239,6 +239,14 @@ def _peek_step(data: Any) -> int | None:
     return step if isinstance(step, int) and not isinstance(step, bool) else None
 
 
+def _json_loads(data: bytes) -> Any:
+    """``json.loads``, with nesting too deep for Python's parser as a ValueError like any bad JSON."""
+    try:
+        return json.loads(data)
+    except RecursionError:
+        raise ValueError("JSON nested too deeply") from None
+
+
 def _decode_json(view: memoryview, expected: type[Message] | None) -> Message:
     data = bytes(view)
     cls = expected or _class_of_json(data)
@@ -246,7 +254,7 @@ def _decode_json(view: memoryview, expected: type[Message] | None) -> Message:
         return cls.model_validate_json(data, strict=True)
     except ValidationError as exc:
         try:
-            step = _peek_step(json.loads(data))
+            step = _peek_step(_json_loads(data))
         except ValueError:
             step = None
         raise MessageError(f"invalid {cls.__name__}: {_explain(exc)}", step=step) from None
@@ -255,7 +263,7 @@ def _decode_json(view: memoryview, expected: type[Message] | None) -> Message:
 def _class_of_json(data: bytes) -> type[Message]:
     """The JSON message class whose field names are exactly the keys of ``data``."""
     try:
-        obj = json.loads(data)
+        obj = _json_loads(data)
     except (ValueError, UnicodeDecodeError) as exc:
         raise MessageError(f"payload is neither a {ENVELOPE_ENCODING} (magic {MAGIC!r}) nor JSON: {exc}") from None
     if not isinstance(obj, dict):
@@ -291,7 +299,7 @@ def _decode_envelope(view: memoryview) -> ParticleSet:
         header = EnvelopeHeader.model_validate_json(header_bytes, strict=True)
     except ValidationError as exc:
         try:
-            step = _peek_step(json.loads(header_bytes).get("fields"))
+            step = _peek_step(_json_loads(header_bytes).get("fields"))
         except (ValueError, AttributeError):
             step = None
         raise MessageError(f"invalid {ENVELOPE_ENCODING} header: {_explain(exc)}", step=step) from None

@@ -39,6 +39,10 @@ __all__ = ["ServiceShell", "add_service_arguments", "run_service"]
 
 #: Seconds between two periodic status reports.
 STATUS_INTERVAL = 1.0
+#: Distinct reasons of rejection a service logs (each once); the rest are only counted.
+_MAX_REASONS = 100
+#: Longest error text a status or a log line carries.
+_MAX_ERROR_TEXT = 500
 #: What a status may list as a live peer (a liveliness token of any other name is not a peer).
 _LAYER_NAMES = frozenset(layer.value for layer in Layer)
 
@@ -153,7 +157,7 @@ class ServiceShell:
             if not isinstance(message, expected):
                 raise MessageError(f"expected {expected.__name__}, got {type(message).__name__}", key=item.key)
         except MessageError as error:
-            self.reject(str(error))
+            self.reject(error.reason, str(error))
             return None
         if message.run_id != self.config.run_id:
             self.log.debug("ignored a message of run %r on %s", message.run_id, item.key)
@@ -168,11 +172,15 @@ class ServiceShell:
         """
         with self._lock:
             self.rejected += 1
-            self.last_error = detail or reason
-            first = reason not in self._seen_reasons
-            self._seen_reasons.add(reason)
-        if first:
-            self.log.warning("rejected a message: %s", detail or reason)
+            self.last_error = (detail or reason)[:_MAX_ERROR_TEXT]
+            first = reason not in self._seen_reasons and len(self._seen_reasons) <= _MAX_REASONS
+            if first:
+                self._seen_reasons.add(reason)
+        if first and len(self._seen_reasons) > _MAX_REASONS:
+            self.log.warning("rejected messages for more than %d reasons: further new reasons are counted, "
+                             "not logged", _MAX_REASONS)
+        elif first:
+            self.log.warning("rejected a message: %s", (detail or reason)[:_MAX_ERROR_TEXT])
 
     # --- publish -----------------------------------------------------------------
 

@@ -288,3 +288,37 @@ def test_hostile_live_observations_are_counted_and_the_run_goes_on(processes, ro
     output = processes.output(entity)
     assert output.count("duplicate observation") == 1, output
     publisher.undeclare()
+
+
+def test_a_recorded_sensor_stream_re_drives_a_twin_with_dtpf_play(processes, router, tmp_path):
+    run = ["--particles", "200", "--twin", "t-replay", "--seed", "9"]
+    log = tmp_path / "first.mcap"
+    entity = _start_layers(processes, router, run, log)
+    sensor = processes.start("sensor", ["-m", "scripts.sensor", "--connect", router.endpoint, *run,
+                                        "--steps", "25", "--rate", "50", "--no-truth"])
+    assert entity.wait(timeout=120) == 0, processes.output(entity)
+    assert sensor.wait(timeout=30) == 0, processes.output(sensor)
+    for process in processes.started:
+        if process.poll() is None:
+            process.send_signal(signal.SIGINT)
+    for process in processes.started:
+        process.wait(timeout=20)
+    router.collect(lambda m: False, timeout=0.5)
+    first = sorted((m for m in router.messages if isinstance(m, Estimate)), key=lambda e: e.step)
+    assert [e.step for e in first] == list(range(1, 26)) and all(e.truth is None for e in first)
+    router.messages.clear()
+
+    replay_log = tmp_path / "replay.mcap"
+    entity = _start_layers(processes, router, run, replay_log)
+    assert router.collect(lambda m: any(isinstance(s, Status) and s.layer.value == "entity"
+                                        and s.state == ServiceState.RUNNING for s in m), 60), \
+        processes.output(entity)
+    played = dtpf("play", str(log), "--topics", "sensor/observation", "--rate", "0", "--wait", "0.5", "-q",
+                  "--connect", router.endpoint)
+    assert played.returncode == 0, played.stderr
+    assert "published 26 messages" in played.stderr  # 25 observations and the end
+    assert entity.wait(timeout=120) == 0, processes.output(entity)
+    router.collect(lambda m: False, timeout=0.5)
+    again = sorted((m for m in router.messages if isinstance(m, Estimate)), key=lambda e: e.step)
+    np.testing.assert_array_equal([e.mean for e in again], [e.mean for e in first])
+    np.testing.assert_array_equal([e.log_predictive for e in again], [e.log_predictive for e in first])

@@ -324,7 +324,7 @@ def _series(estimates, name, index=0) -> np.ndarray:
 def _growth_model(config: dict):
     """The GrowthModel of the run's scenario (z = x^2/20 + v), or None if the log does not say."""
     scenario = config.get("scenario")
-    if not scenario:
+    if not scenario or config.get("model"):  # a user model of its own, whatever the scenario field says
         return None
     from entity import models
 
@@ -343,8 +343,15 @@ def _describe(run: RunLog) -> tuple[str, str]:
     model = _growth_model(c)
     if model is not None:
         scenario = f"{model.name}: growth model with {model.growth:g} x/(1+x²), z = x²/20 + v"
+    elif c.get("model"):
+        scenario = f"model {c['model']}"
     else:
         scenario = c.get("scenario", "scenario not recorded")
+    if any(x.truth is not None for x in e):
+        judged = f"RMSE {run.rmse:.3f}"
+    else:
+        lp = [x.log_predictive for x in e if x.log_predictive is not None]
+        judged = f"no truth; log predictive {np.mean(lp):.3f} per step" if lp else "no truth"
     preprocess = c.get("preprocess", run.preprocessed_count > 0 or any(x.ps is not None for x in e))
     ps_values = [x.ps for x in e if x.ps is not None]
     if preprocess:
@@ -357,7 +364,7 @@ def _describe(run: RunLog) -> tuple[str, str]:
         method = f"no preprocessing: plain {c.get('resampler', 'traditional')} resampling"
     line1 = (f"twin {run.twin}" + (f", run id {run.run_id!r}" if run.run_id else "")
              + f"  |  {scenario}  |  N = {n if n is not None else '?'}, {len(e)} steps"
-             + f"  |  RMSE {run.rmse:.3f}")
+             + f"  |  {judged}")
     degraded = sum(x.degraded for x in e)
     extras = [method]
     if "seed" in c:
@@ -437,6 +444,23 @@ def _plot_error(ax, run: RunLog, steps, model, steps_at):
                     label=r"$\pm$ 95% half-width $1.96\,\sigma_k$")
     ax.axhline(0.0, color="0.3", lw=0.6)
     if not np.isfinite(truth).any():
+        lp = np.array([np.nan if x.log_predictive is None else x.log_predictive for x in e])
+        if np.isfinite(lp).any():  # judged by how well it predicts its data instead
+            ax.cla()
+            ax.plot(steps, lp, color=COLOURS["estimate"], lw=1.3, marker="o", ms=2.5,
+                    label=r"$\log p(z_k \mid z_{1:k-1})$")
+            ax.axhline(float(np.nanmean(lp)), color="0.3", lw=0.8, ls="--",
+                       label=f"mean {np.nanmean(lp):.3f}")
+            ax.set_title("No truth in this log: the log predictive likelihood of each observation "
+                         "(higher is better)", loc="left", fontsize=10)
+            _mark_degraded(ax, steps, np.array([x.degraded for x in e]))
+            _mark_particle_steps(ax, steps_at)
+            ax.set_ylabel("log predictive")
+            ax.set_xlabel("time step k")
+            _headroom(ax, 0.15)
+            ax.legend(loc="upper left", fontsize=8, ncol=4, framealpha=0.9)
+            ax.margins(x=0.01)
+            return
         ax.text(0.5, 0.5, "no truth in this log: the error cannot be computed", transform=ax.transAxes,
                 ha="center", va="center", fontsize=10)
     else:

@@ -60,6 +60,9 @@ def test_the_example_model_launched_on_a_file_equals_dtpf_run_and_verifies(tmp_p
     assert summary.returncode == 0, summary.stderr
     assert "log predictive" in summary.stdout and "RMSE" not in summary.stdout
     assert EXAMPLE in summary.stdout  # the run configuration names the model reference
+    plotted = dtpf("plot", str(log), "-o", str(tmp_path / "rb.png"))
+    assert plotted.returncode == 0, plotted.stderr
+    assert (tmp_path / "rb.png").stat().st_size > 10_000
 
 
 def test_verify_says_what_to_pass_when_the_model_has_moved(tmp_path, monkeypatch):

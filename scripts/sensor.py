@@ -108,7 +108,12 @@ def register(subparsers) -> None:
     """Add the ``sensor`` command to an argparse subparsers object."""
     parser = subparsers.add_parser(
         "sensor", help="publish a model's simulated observations (or a file's) over Zenoh, like a sensor",
-        description=__doc__.split("\n\n", 1)[1].split("::")[0].replace("\n", " ").strip())
+        description="A stand-in for the physical system: simulates the run's model (a scenario or --model REF; "
+                    "the path dtpf run simulates for the same seed and twin) or reads --observations FILE, and "
+                    "publishes one observation per step on dtpf/<twin>/sensor/observation at --rate per second, "
+                    "with the truth unless --no-truth, then an end-of-stream message. A restarted sensor "
+                    "continues after the last observation the twin's entity accepted. Start the twin with "
+                    "'dtpf launch --observations live'.")
     add_run_arguments(parser)
     group = parser.add_argument_group("sensor")
     group.add_argument("--rate", type=float, default=10.0, metavar="PER_SECOND",

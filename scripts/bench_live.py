@@ -33,7 +33,7 @@ import numpy as np
 
 from entity import sources
 from messages import keys
-from messages.bus import Inbox, free_port, open_session, publisher, zenoh_config
+from messages.bus import BusError, Inbox, free_port, open_session, publisher, zenoh_config
 from messages.codec import MessageError, decode_for_key, encode
 from messages.config import RunConfig
 from messages.models import Estimate, Observation, ServiceState, Status, Time
@@ -62,7 +62,7 @@ def one_run(n: int, steps: int, warm_up: int, gap: float, seed: int, log_dir: Pa
                 session = open_session(zenoh_config(mode="client", connect=[f"tcp/127.0.0.1:{port}"],
                                                     cfg=["connect/timeout_ms:1000", "connect/exit_on_failure:true"]))
                 break
-            except Exception:
+            except BusError:
                 if time.monotonic() > deadline or launcher.poll() is not None:
                     raise RuntimeError(f"dtpf launch at N = {n} did not come up")
                 time.sleep(0.2)

@@ -58,7 +58,7 @@ def resolved_config(args: argparse.Namespace):
 def cmd_run(args: argparse.Namespace) -> int:
     from scripts.inprocess import run
 
-    config = resolved_config(args)
+    config = config_from_args(args)  # run() reads the file once; T is its rows unless --steps is smaller
     result = run(config, progress=None if args.quiet else Progress())
     ps = result.ps
     ps_text = "off" if not config.preprocess else f"{np.nanmin(ps):g} .. {np.nanmax(ps):g}"

@@ -437,32 +437,29 @@ def _inside(estimates):
 
 
 def _plot_error(ax, run: RunLog, steps, model, steps_at):
+    """The error against the truth (Fig. 8); without truth, the log predictive likelihood of each
+    observation, what a filter on real data is judged by."""
     e = run.estimates
     mean, truth, z = _series(e, "mean"), _series(e, "truth"), _series(e, "observation")
-    half = 1.96 * np.sqrt(_series(e, "var"))
-    ax.fill_between(steps, -half, half, color=COLOURS["band"], alpha=0.6, lw=0,
-                    label=r"$\pm$ 95% half-width $1.96\,\sigma_k$")
-    ax.axhline(0.0, color="0.3", lw=0.6)
+    lp = _series_optional(e, "log_predictive")
+    ylabel = "error (state units)"
+    predictive = not np.isfinite(truth).any() and np.isfinite(lp).any()
+    if predictive:
+        ax.plot(steps, lp, color=COLOURS["estimate"], lw=1.3, marker="o", ms=2.5,
+                label=r"$\log p(z_k \mid z_{1:k-1})$")
+        ax.axhline(float(np.nanmean(lp)), color="0.3", lw=0.8, ls="--", label=f"mean {np.nanmean(lp):.3f}")
+        ax.set_title("No truth in this log: the log predictive likelihood of each observation "
+                     "(higher is better)", loc="left", fontsize=10)
+        ylabel = "log predictive"
+    else:
+        half = 1.96 * np.sqrt(_series(e, "var"))
+        ax.fill_between(steps, -half, half, color=COLOURS["band"], alpha=0.6, lw=0,
+                        label=r"$\pm$ 95% half-width $1.96\,\sigma_k$")
+        ax.axhline(0.0, color="0.3", lw=0.6)
     if not np.isfinite(truth).any():
-        lp = np.array([np.nan if x.log_predictive is None else x.log_predictive for x in e])
-        if np.isfinite(lp).any():  # judged by how well it predicts its data instead
-            ax.cla()
-            ax.plot(steps, lp, color=COLOURS["estimate"], lw=1.3, marker="o", ms=2.5,
-                    label=r"$\log p(z_k \mid z_{1:k-1})$")
-            ax.axhline(float(np.nanmean(lp)), color="0.3", lw=0.8, ls="--",
-                       label=f"mean {np.nanmean(lp):.3f}")
-            ax.set_title("No truth in this log: the log predictive likelihood of each observation "
-                         "(higher is better)", loc="left", fontsize=10)
-            _mark_degraded(ax, steps, np.array([x.degraded for x in e]))
-            _mark_particle_steps(ax, steps_at)
-            ax.set_ylabel("log predictive")
-            ax.set_xlabel("time step k")
-            _headroom(ax, 0.15)
-            ax.legend(loc="upper left", fontsize=8, ncol=4, framealpha=0.9)
-            ax.margins(x=0.01)
-            return
-        ax.text(0.5, 0.5, "no truth in this log: the error cannot be computed", transform=ax.transAxes,
-                ha="center", va="center", fontsize=10)
+        if not predictive:
+            ax.text(0.5, 0.5, "no truth in this log: the error cannot be computed", transform=ax.transAxes,
+                    ha="center", va="center", fontsize=10)
     else:
         error = mean - truth
         if model is not None and np.isfinite(z).any():
@@ -481,7 +478,7 @@ def _plot_error(ax, run: RunLog, steps, model, steps_at):
                      loc="left", fontsize=10)
     _mark_degraded(ax, steps, np.array([x.degraded for x in e]))
     _mark_particle_steps(ax, steps_at)
-    ax.set_ylabel("error (state units)")
+    ax.set_ylabel(ylabel)
     ax.set_xlabel("time step k")
     _headroom(ax, 0.15)
     ax.legend(loc="upper left", fontsize=8, ncol=4, framealpha=0.9)

@@ -29,6 +29,7 @@ from entity.filter import ParticleFilter, Preprocessed
 from entity.intake import ObservationIntake
 from entity.tracking import VideoTrackingModel, encode_jpeg
 from information.rules import PreprocessReport
+from messages.admission import RunShape
 from messages.bus import add_zenoh_arguments
 from messages.config import RunConfig, add_run_arguments
 from messages.models import (ARRAYS_CHECKED, CompressedImage, Estimate, Observation, ParticleSet, ParticleSetKind,
@@ -79,7 +80,11 @@ class ZenohTwin:
                 continue
             report = PreprocessReport(answer.threshold, answer.n_large, answer.n_processed,
                                       answer.n_mixed, answer.n_plain, answer.ps)
-            return Preprocessed(answer.particles, answer.weights, report, checked=True)
+            try:
+                return Preprocessed(answer.particles, answer.weights, report, checked=True)
+            except ValueError as error:  # the shell checked the shape; anything else is counted too
+                shell.reject("preprocessed set the filter cannot take", f"step {step}: {error}",
+                             key=self.answers.key_expr)
         shell.log.warning("step %d: no preprocessed set within %.1f s, plain resampling", step, self.timeout)
         return None
 
@@ -94,6 +99,8 @@ def main(config: RunConfig, zenoh_config: zenoh.Config, args: argparse.Namespace
     model = sources.load_model(config)
     data = sources.observations_of(config, model)
     with ServiceShell("entity", config, zenoh_config) as shell:
+        steps = config.steps if config.steps is not None or data is None else len(data.observations)
+        shell.expect(RunShape(config.particles, model.dim, model.obs_dim, steps))
         wait_for = args.wait_for if args.wait_for is not None else (
             ["information", "system"] if config.preprocess else [])
         twin = ZenohTwin(shell, args.timeout) if config.preprocess else None

@@ -33,6 +33,10 @@ class InformationOutput:
     summary: WeightSummary
 
 
+#: Most PS commands waiting for their step (the system layer sends one per step, for the next).
+MAX_PENDING = 64
+
+
 class InformationLayer:
     """Mirror plus preprocessing rules for one twin.
 
@@ -72,9 +76,17 @@ class InformationLayer:
         summarise(particles, weights, self.threshold_rule, None)
 
     def set_ps(self, ps: float, applies_from_step: int) -> None:
-        """Schedule a new PS from the system layer, in force from ``applies_from_step``."""
-        self.pending.append((int(applies_from_step), check_probability(ps, "PS")))
+        """Schedule a new PS from the system layer, in force from ``applies_from_step``.
+
+        A later command for the same step replaces the earlier one; at most
+        MAX_PENDING steps wait (the farthest is dropped), so a flood of commands
+        cannot grow the schedule.
+        """
+        step, ps = int(applies_from_step), check_probability(ps, "PS")
+        self.pending = [item for item in self.pending if item[0] != step]
+        self.pending.append((step, ps))
         self.pending.sort(key=lambda item: item[0])
+        del self.pending[MAX_PENDING:]
 
     def ps_for(self, step: int) -> float:
         """The PS in force at ``step``: the latest scheduled one that applies by then."""

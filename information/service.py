@@ -19,6 +19,7 @@ import zenoh
 
 from entity import sources
 from information.layer import InformationLayer
+from messages.admission import RunShape
 from messages.bus import add_zenoh_arguments
 from messages.config import RunConfig, add_run_arguments
 from messages.models import ARRAYS_CHECKED, ParticleSet, ParticleSetKind, PSCommand, WeightState
@@ -67,9 +68,11 @@ def main(config: RunConfig, zenoh_config: zenoh.Config, args: argparse.Namespace
     layer = InformationLayer(model, ps=config.ps, threshold_rule=config.threshold,
                              weight_rule=config.weight_rule, seed=config.seed, twin=config.twin)
     with ServiceShell("information", config, zenoh_config) as shell:
+        shell.expect(RunShape.of(config, model))
         particle_sets = shell.inbox("entity", "particles")
         commands = PSInbox(shell, layer)
-        published: set[int] = set()  # steps whose weight state this process sent
+        published = 0  # the last step whose weight state this process sent
+        system_was_alive = True
         layer.warm_up()  # before the entity can send step 1
         shell.running()
         while not shell.stopping:
@@ -78,12 +81,27 @@ def main(config: RunConfig, zenoh_config: zenoh.Config, args: argparse.Namespace
                 continue
             step = message.step
             # The system decides on the weight state we sent; after a restart there is none to wait for.
-            if step - 1 in published and not commands.wait_for_decision(step - 1, args.timeout):
+            system_alive = "system" in shell.presence.alive
+            if system_alive != system_was_alive:
+                if system_alive:
+                    shell.log.info("step %d: the system layer is alive, taking its PS decisions again", step)
+                else:
+                    shell.log.warning("step %d: the system layer is gone, keeping PS = %g until it is back",
+                                      step, layer.ps)
+                system_was_alive = system_alive
+            if step - 1 == published and step > 1 and system_alive and \
+                    not commands.wait_for_decision(step - 1, args.timeout):
                 shell.log.warning("step %d: no PS decision of step %d within %.1f s, keeping PS = %g",
                                   step, step - 1, args.timeout, layer.ps)
             # The entity waits for the preprocessed set: it goes first, the rest of the mirror after.
             # The decoded message's arrays are validated: the layer does not scan them again.
-            result = layer.preprocess(step, message.particles, message.weights, message.observation, checked=True)
+            try:
+                result = layer.preprocess(step, message.particles, message.weights, message.observation,
+                                          checked=True)
+            except ValueError as error:  # a set the rules cannot take: counted, the service goes on
+                shell.reject("particle set the rules cannot take", f"step {step}: {error}",
+                             key=particle_sets.key_expr)
+                continue
             report = result.report
             counts = dict(n_large=report.n_large, n_processed=report.n_processed,
                           n_mixed=report.n_mixed, n_plain=report.n_plain)
@@ -94,7 +112,7 @@ def main(config: RunConfig, zenoh_config: zenoh.Config, args: argparse.Namespace
             summary = layer.mirror(message.particles, message.weights, message.parents, report.threshold,
                                    checked=True)
             shell.publish(WeightState(**shell.header(step), **summary.as_dict(), ps=report.ps, **counts))
-            published.add(step)
+            published = step
             layer.prepare(step + 1)  # while waiting for the next set
     return 0
 

@@ -142,27 +142,71 @@ class Received:
     payload: bytes
 
 
+#: Largest payload an inbox takes by default (a particle set of 1e6 particles in 16 dimensions fits).
+DEFAULT_MAX_PAYLOAD = 256 << 20
+#: Most samples and bytes an inbox holds by default before it drops what arrives.
+DEFAULT_MAX_ITEMS = 4096
+DEFAULT_MAX_BYTES = 1 << 30
+
+
 class Inbox:
     """Subscribers (one per key expression) whose samples wait in one queue until :meth:`get` takes them.
 
     Zenoh calls the callback on its own thread; the callback only copies the
     payload and enqueues it (nothing blocking or published in a callback).
+
+    The queue is bounded: a payload above ``max_payload`` bytes, or one that
+    arrives while ``max_items`` samples or ``max_bytes`` bytes wait, is dropped
+    (a flood cannot grow the process without bound) and reported to
+    ``on_drop(key, reason, detail)`` if given; :attr:`dropped` counts them.
     """
 
-    def __init__(self, session: zenoh.Session, key_expr: str, *more_key_exprs: str):
+    def __init__(self, session: zenoh.Session, key_expr: str, *more_key_exprs: str,
+                 max_payload: int = DEFAULT_MAX_PAYLOAD, max_items: int = DEFAULT_MAX_ITEMS,
+                 max_bytes: int = DEFAULT_MAX_BYTES, on_drop=None):
         self.key_expr = key_expr
+        self.max_payload = max_payload
+        self.max_items = max_items
+        self.max_bytes = max_bytes
+        self.on_drop = on_drop
+        self.dropped = 0
+        self._queued_bytes = 0
+        self._lock = threading.Lock()
         self._queue: queue.SimpleQueue[Received] = queue.SimpleQueue()
         self._subscribers = [session.declare_subscriber(k, self._on_sample) for k in (key_expr, *more_key_exprs)]
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
-        self._queue.put(Received(str(sample.key_expr), sample.payload.to_bytes()))
+        size = len(sample.payload)
+        key = str(sample.key_expr)
+        if size > self.max_payload:
+            self._drop(key, "payload larger than the inbox takes",
+                       f"a payload of {size} bytes on {key[:200]}, at most {self.max_payload} are taken")
+            return
+        with self._lock:
+            full = self._queue.qsize() >= self.max_items or self._queued_bytes + size > self.max_bytes
+            if not full:
+                self._queued_bytes += size
+        if full:
+            self._drop(key, "inbox full", f"inbox of {self.key_expr} full ({self.max_items} samples or "
+                                          f"{self.max_bytes} bytes waiting): dropped a sample on {key[:200]}")
+            return
+        self._queue.put(Received(key, sample.payload.to_bytes()))
+
+    def _drop(self, key: str, reason: str, detail: str) -> None:
+        with self._lock:
+            self.dropped += 1
+        if self.on_drop is not None:
+            self.on_drop(key, reason, detail)
 
     def get(self, timeout: float | None = None) -> Received | None:
         """The next sample, waiting up to ``timeout`` seconds (None: forever); None on timeout."""
         try:
-            return self._queue.get(timeout=timeout)
+            item = self._queue.get(timeout=timeout)
         except queue.Empty:
             return None
+        with self._lock:
+            self._queued_bytes -= len(item.payload)
+        return item
 
     def __len__(self) -> int:
         return self._queue.qsize()
@@ -182,9 +226,12 @@ class Presence:
     disappears within a few milliseconds (ECOSYSTEM.md).
     """
 
-    def __init__(self, session: zenoh.Session, twin: str, layer: str):
+    def __init__(self, session: zenoh.Session, twin: str, layer: str, names=None):
         self.twin = twin
         self.layer = layer
+        #: The layer names that count (None: any); a token of another name is ignored, so a flood of
+        #: made-up names cannot grow the set.
+        self.names = None if names is None else frozenset(names)
         self._alive: set[str] = set()
         self._lock = threading.Lock()
         self._changed = threading.Condition(self._lock)
@@ -201,7 +248,7 @@ class Presence:
 
     def _on_token(self, sample: zenoh.Sample) -> None:
         parts = str(sample.key_expr).split("/")
-        if len(parts) != 4:
+        if len(parts) != 4 or (self.names is not None and parts[2] not in self.names):
             return
         with self._changed:
             if sample.kind == zenoh.SampleKind.PUT:

@@ -25,6 +25,7 @@ from messages.models import (
     ParticleSet,
     ParticleSetKind,
     PSCommand,
+    Rejected,
     Status,
     WeightState,
     check_id,
@@ -60,6 +61,7 @@ TOPICS: dict[tuple[Layer, str], Topic] = {
         Topic(Layer.ENTITY, "estimate", Estimate),
         Topic(Layer.ENTITY, "frame", CompressedImage),  # the video scenario's frames
         Topic(Layer.SENSOR, "observation", Observation),  # the physical system's measurements
+        Topic(Layer.RECORDER, "rejected", Rejected),  # a sample of what the recorder did not record
         *(Topic(layer, "status", Status) for layer in Layer),
     )
 }

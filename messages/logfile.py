@@ -39,7 +39,7 @@ from __future__ import annotations
 import io
 import os
 import struct
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable, Iterable, Iterator
 
@@ -70,7 +70,7 @@ from messages.models import Message
 # mcap's readers and writer check and compute CRCs with it too (messages/crc.py).
 use_fast_crc()
 
-__all__ = ["Log", "LogMessage", "LogError", "CutRecord", "read_log", "write_log", "MAGIC"]
+__all__ = ["Log", "LogMessage", "LogError", "CutRecord", "read_log", "read_logs", "join_logs", "write_log", "MAGIC"]
 
 #: The eight bytes every MCAP file starts and ends with.
 MAGIC = b"\x89MCAP0\r\n"
@@ -142,6 +142,8 @@ class Log:
     read_to: int = 0        #: every record before this byte offset was read completely
     cut: CutRecord | None = None
     problems: list[str] = field(default_factory=list)
+    #: The files this log was joined from (:func:`join_logs`); empty for one file.
+    segments: list[Path] = field(default_factory=list)
 
     @property
     def problem(self) -> str | None:
@@ -515,6 +517,40 @@ def _chunk_records(data: bytes) -> tuple[list, int, Exception | None]:
 
 
 # --- writing ---
+
+def join_logs(logs: list[Log]) -> Log:
+    """The segments of one run (a recorder restarted into ``run.1.mcap``, ...) as one log.
+
+    Messages follow each other segment by segment; each segment's channel and
+    schema ids are moved to a range of their own, so no two segments' ids
+    collide. The joined log is complete when every segment is, and its
+    problems name the segment they come from. For reading; :func:`write_log`
+    writes one segment at a time.
+    """
+    if len(logs) == 1:
+        return logs[0]
+    joined = Log(path=logs[0].path, size=sum(log.size for log in logs), header=logs[0].header,
+                 complete=all(log.complete for log in logs), data_end=all(log.data_end for log in logs),
+                 segments=[log.path for log in logs])
+    for index, log in enumerate(logs):
+        offset = index << 16  # MCAP ids are 16 bits: each segment gets a range of its own
+        for sid, schema in log.schemas.items():
+            joined.schemas[sid + offset] = replace(schema, id=sid + offset)
+        for cid, channel in log.channels.items():
+            joined.channels[cid + offset] = replace(
+                channel, id=cid + offset, schema_id=channel.schema_id + offset if channel.schema_id else 0)
+        joined.messages.extend(replace(m, channel_id=m.channel_id + offset) for m in log.messages)
+        joined.attachments.extend(log.attachments)
+        joined.metadata.extend(log.metadata)
+        joined.problems.extend(f"{log.path}: {problem}" for problem in log.problems)
+        joined.cut = log.cut or joined.cut
+    return joined
+
+
+def read_logs(paths) -> Log:
+    """:func:`read_log` of each path, joined (:func:`join_logs`); LogError names the file."""
+    return join_logs([read_log(path) for path in paths])
+
 
 def write_log(log: Log, out_path: str | os.PathLike) -> int:
     """Write ``log`` as a new, finished MCAP file; returns the number of messages written.

@@ -476,6 +476,19 @@ class ObservationCounts(BaseModel):
     last_sequence: Count = Field(description="Sequence number of the last accepted observation (0: none yet).")
 
 
+#: Most kinds of rejection and keys a status lists (the rest are summed under "other").
+MAX_STATUS_COUNTS = 101
+
+
+class NamedCount(BaseModel):
+    """One line of a tally: a name (a kind of rejection, a key expression) and how often."""
+
+    model_config = _CONFIG
+
+    name: str = Field(max_length=300, description="What was counted: a kind of rejection or a key expression.")
+    count: Count = Field(description="How many times.")
+
+
 class Status(Message):
     """Health of one layer process, published periodically and on change."""
 
@@ -494,6 +507,12 @@ class Status(Message):
     observations: ObservationCounts | None = Field(
         default=None, description="A live entity's observation intake: accepted, rejected by reason, the "
                                   "last sequence number (a restarted sensor continues after it).")
+    rejections: list[NamedCount] = Field(
+        default_factory=list, max_length=MAX_STATUS_COUNTS,
+        description="Rejected messages by kind of reason (the reason without its numbers), most first.")
+    rejected_on: list[NamedCount] = Field(
+        default_factory=list, max_length=MAX_STATUS_COUNTS,
+        description="Rejected messages by the key expression they arrived on, most first.")
 
 
 def _base64(value: str) -> str:
@@ -549,8 +568,29 @@ class Observation(Message):
         return self
 
 
+#: Longest part of a rejected payload the recorder keeps (as base64 in :class:`Rejected`).
+MAX_REJECTED_SAMPLE = 1024
+
+
+class Rejected(Message):
+    """A payload the recorder did not write to its channel because a service would reject it.
+
+    The log records what the run is; this keeps a bounded sample of what else
+    arrived, for forensics: where, why, how big, and its first bytes.
+    """
+
+    producer: ClassVar[Layer] = Layer.RECORDER
+
+    key: str = Field(max_length=300, description="Key expression the payload arrived on (cut to 300 characters).")
+    reason: str = Field(max_length=500, description="Why a service would reject it.")
+    size: Count = Field(description="Size of the payload in bytes.")
+    sample: Annotated[str, AfterValidator(_base64)] = Field(
+        max_length=4 * MAX_REJECTED_SAMPLE // 3 + 4, json_schema_extra={"contentEncoding": "base64"},
+        description=f"The payload's first {MAX_REJECTED_SAMPLE} bytes, base64.")
+
+
 #: Every message class, by name.
 MESSAGE_CLASSES: dict[str, type[Message]] = {
     cls.__name__: cls for cls in (ParticleSet, WeightState, PSCommand, Estimate, Status, CompressedImage,
-                                  Observation)
+                                  Observation, Rejected)
 }

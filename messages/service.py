@@ -30,21 +30,33 @@ import zenoh
 from threadpoolctl import threadpool_limits
 
 from messages import keys
+from messages.admission import RunShape, kind_of
 from messages.bus import BusError, Inbox, Presence, Received, open_session, publisher
 from messages.codec import MessageError, decode_for_key, encode
 from messages.config import RunConfig
-from messages.models import Layer, Message, ServiceState, Status
+from messages.models import Layer, Message, NamedCount, ServiceState, Status
 
 __all__ = ["ServiceShell", "add_service_arguments", "run_service"]
 
 #: Seconds between two periodic status reports.
 STATUS_INTERVAL = 1.0
-#: Distinct reasons of rejection a service logs (each once); the rest are only counted.
-_MAX_REASONS = 100
+#: Seconds between two log lines that sum up the rejections since the last one.
+REJECTION_LOG_INTERVAL = 10.0
+#: Kinds of rejection (and keys) a service tallies by name; the rest are summed under "other".
+_MAX_KINDS = 100
 #: Longest error text a status or a log line carries.
 _MAX_ERROR_TEXT = 500
 #: What a status may list as a live peer (a liveliness token of any other name is not a peer).
 _LAYER_NAMES = frozenset(layer.value for layer in Layer)
+#: Seconds a service has to exit, from SIGINT/SIGTERM or from the end of its run, before it
+#: exits anyway (and says which step of its shutdown was slow).
+EXIT_GRACE = 1.8
+#: Largest JSON message a service takes (a status with its configuration is about 3 KB).
+MAX_JSON_PAYLOAD = 4 << 20
+#: Bytes an inbox may hold: this many of its largest payload, at least MIN_INBOX_BYTES.
+_INBOX_PAYLOADS, MIN_INBOX_BYTES = 16, 64 << 20
+#: Bytes of a particle set's envelope besides its arrays that an inbox allows.
+_ENVELOPE_ALLOWANCE = 1 << 20
 
 
 def add_service_arguments(parser: argparse.ArgumentParser) -> None:
@@ -64,6 +76,98 @@ def add_service_arguments(parser: argparse.ArgumentParser) -> None:
                        help="logging level on stderr (default: %(default)s)")
 
 
+class Tally:
+    """Counts by name, for at most ``limit`` names; later names are summed under ``other``."""
+
+    def __init__(self, limit: int = _MAX_KINDS, other: str = "other"):
+        self.limit = limit
+        self.other = other
+        self.counts: dict[str, int] = {}
+
+    def add(self, name: str) -> bool:
+        """Count one ``name``; True if it is a name not seen before (and not folded into other)."""
+        if name in self.counts:
+            self.counts[name] += 1
+            return False
+        if len(self.counts) < self.limit:
+            self.counts[name] = 1
+            return True
+        self.counts[self.other] = self.counts.get(self.other, 0) + 1
+        return False
+
+    def most_common(self) -> list[NamedCount]:
+        return [NamedCount(name=name, count=count)
+                for name, count in sorted(self.counts.items(), key=lambda item: (-item[1], item[0]))]
+
+
+class ExitWatchdog:
+    """Makes a process exit within :data:`EXIT_GRACE` seconds of a stop, whatever blocks it.
+
+    Armed by SIGINT/SIGTERM (through the interpreter's wakeup fd, so it works
+    even when the main thread is stuck in a call into Zenoh) or by
+    :meth:`arm` at the end of a run. When the grace runs out, it logs which
+    step of the shutdown (:attr:`step`) was still going and ends the process
+    with ``os._exit``; a second signal ends it at once.
+    """
+
+    def __init__(self, log: logging.Logger, grace: float = EXIT_GRACE):
+        self.log = log
+        self.grace = grace
+        self.step = "running"
+        self.code = 130
+        self._armed = threading.Event()
+        self._started = False
+
+    def install(self) -> None:
+        """Watch SIGINT/SIGTERM through the wakeup fd (main thread only; elsewhere :meth:`arm` alone)."""
+        try:
+            read_fd, write_fd = os.pipe()
+            os.set_blocking(write_fd, False)
+            signal.set_wakeup_fd(write_fd, warn_on_full_buffer=False)
+        except (ValueError, OSError):  # not the main thread: arm() alone
+            return
+        threading.Thread(target=self._watch_signals, args=(read_fd,), name="exit-signals", daemon=True).start()
+
+    def _watch_signals(self, read_fd: int) -> None:
+        signals = 0
+        while True:
+            try:
+                got = os.read(read_fd, 64)
+            except OSError:
+                return
+            if not got:
+                return
+            signals += len(got)
+            if signals >= 2 and self._started:
+                self.log.warning("second signal during shutdown (at %s): exiting now", self.step)
+                self._exit(130)
+            self.arm(code=130)
+
+    def arm(self, code: int | None = None) -> None:
+        """Start the grace period (once); ``code`` is the exit code if it runs out."""
+        if code is not None and not self._started:
+            self.code = code
+        if self._started:
+            return
+        self._started = True
+        threading.Thread(target=self._count_down, name="exit-watchdog", daemon=True).start()
+
+    def _count_down(self) -> None:
+        time.sleep(self.grace)
+        self.log.warning("did not exit within %.1f s of the stop (still at: %s); exiting now",
+                         self.grace, self.step)
+        self._exit(self.code)
+
+    @staticmethod
+    def _exit(code: int) -> None:
+        for stream in (sys.stdout, sys.stderr):
+            try:
+                stream.flush()
+            except (OSError, ValueError):
+                pass
+        os._exit(code)
+
+
 class ServiceShell:
     """Session, presence, publishers, counters and status of one layer process."""
 
@@ -79,14 +183,22 @@ class ServiceShell:
         self.detail: str | None = None
         #: Returns the observation counters of a live entity for its status (None: none).
         self.observation_counts = None
-        self._seen_reasons: set[str] = set()
+        #: The sizes a message must have to apply to this run (:meth:`expect`); None: not checked.
+        self.shape: RunShape | None = None
+        self.rejections = Tally()
+        self.rejected_on = Tally()
+        self._rejected_logged = 0
+        self._rejected_trimmed = 0
+        self._rejected_last_tick = 0
+        self._next_rejection_log = time.monotonic() + REJECTION_LOG_INTERVAL
         self._stop = threading.Event()
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._inboxes: list[Inbox] = []
         self._lock = threading.Lock()
         self._config_json = config.model_dump_json()
+        self.watchdog = ExitWatchdog(self.log)
         self.session = open_session(zenoh_config)
-        self.presence = Presence(self.session, config.twin, self.layer.value)
+        self.presence = Presence(self.session, config.twin, self.layer.value, names=_LAYER_NAMES)
         self._status_thread = threading.Thread(target=self._report, name="status", daemon=True)
 
     # --- lifecycle ---------------------------------------------------------------
@@ -94,6 +206,7 @@ class ServiceShell:
     def __enter__(self) -> "ServiceShell":
         for signum in (signal.SIGINT, signal.SIGTERM):
             signal.signal(signum, self._on_signal)
+        self.watchdog.install()
         self._status_thread.start()
         return self
 
@@ -103,13 +216,21 @@ class ServiceShell:
             self.last_error = f"{type(exc).__name__}: {exc}"
         elif self.state != ServiceState.FAILED:
             self.state = ServiceState.FINISHED
+        # From here on the process exits within the grace, however Zenoh's close behaves.
+        self.watchdog.arm(code=130 if self.stopping else (1 if self.state == ServiceState.FAILED else 0))
         self._stop.set()
-        self._status_thread.join(timeout=2.0)
+        self.watchdog.step = "status thread"
+        self._status_thread.join(timeout=0.5)
+        self.watchdog.step = "final status"
         self.publish_status()
+        self.watchdog.step = "closing subscribers"
         for inbox in self._inboxes:
             inbox.close()
+        self.watchdog.step = "closing the liveliness token"
         self.presence.close()
+        self.watchdog.step = "closing the Zenoh session"
         self.session.close()
+        self.watchdog.step = "exiting the interpreter"
 
     def _on_signal(self, signum, frame) -> None:
         self.log.info("received %s, stopping", signal.Signals(signum).name)
@@ -133,21 +254,36 @@ class ServiceShell:
         self.state = ServiceState.RUNNING
         self.publish_status()
 
+    def expect(self, shape: RunShape) -> None:
+        """Reject (count) every received message that does not fit ``shape``; call before :meth:`inbox`."""
+        self.shape = shape
+
     # --- receive -----------------------------------------------------------------
 
     def inbox(self, layer: str, topic: str) -> Inbox:
         """An inbox on ``dtpf/<twin>/<layer>/<topic>`` of this twin."""
         return self.inbox_on(keys.key(self.config.twin, layer, topic))
 
-    def inbox_on(self, key_expr: str) -> Inbox:
-        """An inbox on any key expression (closed with the shell)."""
-        inbox = Inbox(self.session, key_expr)
+    def inbox_on(self, key_expr: str, *more: str) -> Inbox:
+        """An inbox on key expressions (closed with the shell), bounded to what this run's messages
+        can weigh: what is bigger, or arrives while the inbox is full, is counted as rejected."""
+        largest = self.largest_payload()
+        inbox = Inbox(self.session, key_expr, *more, max_payload=largest,
+                      max_bytes=max(MIN_INBOX_BYTES, _INBOX_PAYLOADS * largest), on_drop=self._on_drop)
         self._inboxes.append(inbox)
         return inbox
 
+    def largest_payload(self) -> int:
+        """The largest payload a message of this run can have (its particle set, or a JSON message)."""
+        dim = self.shape.dim if self.shape is not None and self.shape.dim is not None else 16
+        return max(MAX_JSON_PAYLOAD, self.config.particles * (dim + 1) * 8 + _ENVELOPE_ALLOWANCE)
+
+    def _on_drop(self, key: str, reason: str, detail: str) -> None:
+        self.reject(reason, detail, key=key)
+
     def receive(self, item: Received | None, expected: type[Message]) -> Message | None:
-        """Decode ``item``; None if there was none, it is bad (logged once per reason,
-        counted), or it belongs to another run (ignored, not counted)."""
+        """Decode ``item``; None if there was none, it is bad or does not fit the run (logged
+        once per kind, counted), or it belongs to another run (ignored, not counted)."""
         if item is None:
             return None
         with self._lock:
@@ -157,30 +293,31 @@ class ServiceShell:
             if not isinstance(message, expected):
                 raise MessageError(f"expected {expected.__name__}, got {type(message).__name__}", key=item.key)
         except MessageError as error:
-            self.reject(error.reason, str(error))
+            self.reject(error.reason, str(error), key=item.key)
             return None
         if message.run_id != self.config.run_id:
             self.log.debug("ignored a message of run %r on %s", message.run_id, item.key)
             return None
+        misfit = self.shape.misfit(message) if self.shape is not None else None
+        if misfit is not None:
+            self.reject(misfit.kind, misfit.detail, key=item.key)
+            return None
         return message
 
-    def reject(self, reason: str, detail: str | None = None) -> None:
-        """Count a rejected message; log its reason the first time it is seen.
-
-        ``detail``: the same with this message's numbers, for the status's
-        last error (the log keeps to one line per ``reason``).
-        """
+    def reject(self, reason: str, detail: str | None = None, key: str | None = None) -> None:
+        """Count a rejected message by the kind of its reason (and its key); log a kind the first
+        time it is seen. ``detail``: the same with this message's numbers, for the status's last
+        error; every REJECTION_LOG_INTERVAL seconds one line sums up the rejections since."""
+        kind = kind_of(reason)
         with self._lock:
             self.rejected += 1
             self.last_error = (detail or reason)[:_MAX_ERROR_TEXT]
-            first = reason not in self._seen_reasons and len(self._seen_reasons) <= _MAX_REASONS
-            if first:
-                self._seen_reasons.add(reason)
-        if first and len(self._seen_reasons) > _MAX_REASONS:
-            self.log.warning("rejected messages for more than %d reasons: further new reasons are counted, "
-                             "not logged", _MAX_REASONS)
-        elif first:
-            self.log.warning("rejected a message: %s", (detail or reason)[:_MAX_ERROR_TEXT])
+            first = self.rejections.add(kind)
+            if key is not None:
+                self.rejected_on.add(key[:200])
+        if first:
+            self.log.warning("rejected a message (%s; further ones of this kind are counted): %s",
+                             kind, (detail or reason)[:_MAX_ERROR_TEXT])
 
     # --- publish -----------------------------------------------------------------
 
@@ -203,7 +340,8 @@ class ServiceShell:
             return Status(**self.header(0), layer=self.layer, state=self.state, pid=os.getpid(),
                           received=self.received, rejected=self.rejected, last_error=self.last_error,
                           peers_alive=sorted(self.presence.alive & _LAYER_NAMES), config_json=self._config_json,
-                          detail=self.detail, observations=counts)
+                          detail=self.detail, observations=counts, rejections=self.rejections.most_common(),
+                          rejected_on=self.rejected_on.most_common())
 
     def publish_status(self) -> None:
         status = self.status()
@@ -215,12 +353,44 @@ class ServiceShell:
     def _report(self) -> None:
         while not self._stop.wait(STATUS_INTERVAL):
             self.publish_status()
+            self._sum_up_rejections()
+
+    def _sum_up_rejections(self) -> None:
+        """Every REJECTION_LOG_INTERVAL: one line for the rejections since the last; after a flood
+        (rejections that have stopped for a status interval), the freed memory goes back to the system."""
+        now = time.monotonic()
+        rejected = self.rejected
+        if rejected != self._rejected_trimmed and rejected == self._rejected_last_tick:
+            release_memory()
+            self._rejected_trimmed = rejected
+        self._rejected_last_tick = rejected
+        if now < self._next_rejection_log:
+            return
+        self._next_rejection_log = now + REJECTION_LOG_INTERVAL
+        new = rejected - self._rejected_logged
+        if new:
+            self._rejected_logged = rejected
+            kinds = ", ".join(f"{c.name}: {c.count}" for c in self.rejections.most_common()[:5])
+            self.log.warning("rejected %d messages in the last %.0f s (%d in all; by kind: %s)",
+                             new, REJECTION_LOG_INTERVAL, rejected, kinds)
 
     def wait_for_layers(self, layers, timeout: float) -> None:
         """Wait until ``layers`` are alive; log the ones still missing (the run goes on)."""
         missing = self.presence.wait_for(layers, timeout)
         if missing:
             self.log.warning("going on without %s: not alive after %.1f s", ", ".join(sorted(missing)), timeout)
+
+
+def release_memory() -> bool:
+    """Give the heap's free pages back to the system (glibc ``malloc_trim``); False elsewhere.
+
+    A layer keeps freed blocks for reuse (:func:`keep_large_blocks`); after a
+    flood of rejected messages that would keep the flood's memory for good.
+    """
+    try:
+        return bool(ctypes.CDLL("libc.so.6").malloc_trim(0))
+    except (OSError, AttributeError):
+        return False
 
 
 #: glibc mallopt parameters (malloc.h) and the values a layer process uses.
@@ -285,11 +455,18 @@ def run_service(layer: str, main, parser: argparse.ArgumentParser, argv=None) ->
     from entity.observations import ObservationError
 
     try:
-        return main(config, zconf, args)
+        code = main(config, zconf, args)
     except (ModelError, ObservationError) as error:  # the user's model or file: one line, no traceback
         parser.exit(2, f"{parser.prog}: error: {error}\n")
     except BusError as error:
         logging.getLogger(f"dtpf.{layer}").error("%s", error)
-        return 2
+        code = 2
     except KeyboardInterrupt:
-        return 130
+        code = 130
+    except Exception:  # a bug of ours: its traceback, exit 1
+        logging.getLogger(f"dtpf.{layer}").exception("failed")
+        code = 1
+    # The session is closed and the log finished: leave without the interpreter's teardown, where
+    # Zenoh's runtime threads have kept a process from exiting (issue: "a service hangs at exit").
+    logging.shutdown()
+    ExitWatchdog._exit(code if isinstance(code, int) else 1)

@@ -104,11 +104,16 @@ def cmd_launch(args: argparse.Namespace) -> int:
         result = launch(config, log_path=args.log, port=args.port, timeout=args.timeout,
                         startup_timeout=args.startup_timeout, log_level=args.log_level, rate=args.rate,
                         progress=None if args.quiet else Progress(),
-                        observation_timeout=args.observation_timeout)
+                        observation_timeout=args.observation_timeout,
+                        restarts=0 if args.no_restart else args.restarts, keep_estimates=False,
+                        notify=lambda text: print(f"\ndtpf launch: {text}", file=sys.stderr, flush=True))
     except LaunchError as error:
         print(f"dtpf launch: error: {error}", file=sys.stderr)
         return 1
     print(result.summary())
+    if result.failure:
+        print(f"dtpf launch: error: {result.failure}", file=sys.stderr)
+        return 1
     return 130 if result.interrupted else 0
 
 
@@ -156,6 +161,12 @@ def build_parser() -> argparse.ArgumentParser:
                             "status and keeps waiting (default: %(default)s)")
     group.add_argument("--log-level", default="WARNING", choices=["DEBUG", "INFO", "WARNING", "ERROR"],
                        help="logging level of the services on stderr (default: %(default)s)")
+    group.add_argument("--restarts", type=int, default=3, metavar="COUNT",
+                       help="start a dead information, system or recorder service again at most this many "
+                            "times each; the entity runs on meanwhile with plain resampling (its estimates say "
+                            "degraded), a new recorder writes the next segment of the log (default: %(default)s)")
+    group.add_argument("--no-restart", action="store_true",
+                       help="never start a dead service again (the run still goes on without it)")
     group.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
     launch.set_defaults(handler=cmd_launch)
 

@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from messages.codec import MessageError, class_for_schema, schema_for
-from messages.logfile import Log, LogError, read_log, write_log
+from messages.logfile import Log, LogError, read_log, read_logs, write_log
 from messages.models import Estimate, PSCommand, Status
 
 __all__ = ["LogInfo", "TopicInfo", "SchemaInfo", "LogSummary", "TwinSummary", "Trajectory", "LayerStatus",
@@ -209,7 +209,8 @@ class Trajectory:
 
 @dataclass
 class LayerStatus:
-    """The last Status a layer published in the log."""
+    """The last Status a layer published in the log; received and rejected summed over every
+    process the layer had (a layer the launcher restarted has several)."""
 
     layer: str
     state: str
@@ -217,6 +218,7 @@ class LayerStatus:
     rejected: int
     last_error: str | None
     step: int
+    processes: int = 1
 
 
 @dataclass
@@ -228,8 +230,10 @@ class TwinSummary:
     config: dict | None = None          #: the RunConfig from a Status message, when recorded
     steps: list[int] = field(default_factory=list)  #: steps with an estimate, ascending
     expected_steps: int | None = None   #: T from the recorded configuration
-    missing_steps: list[int] = field(default_factory=list)
+    missing_steps: list[int] = field(default_factory=list)  #: the first MAX_LISTED missing steps
+    missing_count: int = 0              #: every missing step, listed or not
     duplicate_estimates: int = 0
+    out_of_range: int = 0               #: estimates beyond the recorded T (not used)
     rmse: float | None = None           #: over the steps whose estimate records the truth
     truth_steps: int = 0
     log_predictive: float | None = None  #: mean of log p(z_k | z_1:k-1) over the steps that record it
@@ -265,6 +269,7 @@ class LogSummary:
     undecodable: int
     errors: list[str]                  #: the first few decode errors
     twins: list[TwinSummary]
+    segments: list[Path] = field(default_factory=list)  #: the files of a joined log (empty: one file)
 
     @property
     def problem(self) -> str | None:
@@ -298,15 +303,22 @@ def summarise(log: Log) -> LogSummary:
             group["status"].append(message)
     twins = [_twin_summary(twin, run, **group) for (twin, run), group in groups.items()]
     return LogSummary(log.path, log.size, log.complete, list(log.problems), len(log.messages), undecodable, errors,
-                      twins)
+                      twins, list(log.segments))
 
 
 def _twin_summary(twin: str, run_id: str, estimates: list[Estimate], ps: list[PSCommand],
                   status: list[Status]) -> TwinSummary:
     out = TwinSummary(twin, run_id)
+    last_of_process: dict[tuple[str, int], Status] = {}
     for message in status:
-        out.statuses[message.layer.value] = LayerStatus(message.layer.value, message.state.value, message.received,
-                                                        message.rejected, message.last_error, message.step)
+        last_of_process[(message.layer.value, message.pid)] = message
+    for (layer, _), message in last_of_process.items():  # in the order of each process's first status
+        before = out.statuses.get(layer)
+        out.statuses[layer] = LayerStatus(
+            layer, message.state.value, message.received + (before.received if before else 0),
+            message.rejected + (before.rejected if before else 0), message.last_error or (
+                before.last_error if before else None), message.step, 1 + (before.processes if before else 0))
+    for message in status:
         if message.layer.value == "entity" and message.observations is not None:
             out.observations = message.observations.model_dump()
         config_json = getattr(message, "config_json", None)
@@ -320,14 +332,16 @@ def _twin_summary(twin: str, run_id: str, estimates: list[Estimate], ps: list[PS
         out.expected_steps = out.config["steps"]
     by_step: dict[int, Estimate] = {}
     for estimate in estimates:
-        if estimate.step in by_step:
+        if out.expected_steps is not None and estimate.step > out.expected_steps:
+            out.out_of_range += 1
+        elif estimate.step in by_step:
             out.duplicate_estimates += 1
         else:
             by_step[estimate.step] = estimate
     ordered = [by_step[k] for k in sorted(by_step)]
     out.steps = [e.step for e in ordered]
     last = max(out.expected_steps or 0, out.steps[-1] if out.steps else 0)
-    out.missing_steps = sorted(set(range(1, last + 1)) - set(by_step))
+    out.missing_count, out.missing_steps = _missing(out.steps, last)
     with_truth = [e for e in ordered if e.truth is not None]
     out.truth_steps = len(with_truth)
     if with_truth:
@@ -352,6 +366,23 @@ def _twin_summary(twin: str, run_id: str, estimates: list[Estimate], ps: list[PS
     out.policies = list(dict.fromkeys(c.policy for c in ps))
     out.last_reason = commands[-1][1].reason if commands else None
     return out
+
+
+#: Most missing steps a summary lists (a forged step 4294967295 would otherwise list billions).
+MAX_LISTED = 10_000
+
+
+def _missing(steps: list[int], last: int) -> tuple[int, list[int]]:
+    """How many of 1..last are not in the ascending ``steps``, and the first MAX_LISTED of them;
+    walks the gaps, so the cost is len(steps) + MAX_LISTED whatever ``last`` is."""
+    count, listed, expected = 0, [], 1
+    for step in [*steps, last + 1]:
+        if step > expected:
+            gap = step - expected
+            count += gap
+            listed.extend(range(expected, min(step, expected + MAX_LISTED - len(listed))))
+        expected = max(expected, step + 1)
+    return count, listed
 
 
 def format_ranges(steps: list[int]) -> str:
@@ -381,6 +412,7 @@ def _trajectory(t: Trajectory | None, what: str) -> str:
 def format_summary(summary: LogSummary) -> str:
     """``summary`` as text: the file's state first, then each twin."""
     lines = [f"log           {summary.path} ({summary.size:,} bytes)",
+             *([f"segments      {' + '.join(str(path) for path in summary.segments)}"] if summary.segments else []),
              *_state("state", summary.complete, summary.problems, 14),
              f"messages      {summary.messages:,}"
              + (f" ({summary.undecodable:,} undecodable)" if summary.undecodable else "")]
@@ -400,7 +432,10 @@ def format_summary(summary: LogSummary) -> str:
         span = f" ({format_ranges(t.steps)})" if t.steps else ""
         lines.append(f"  steps         {count}{span}")
         if t.missing_steps:
-            lines.append(f"  missing       {format_ranges(t.missing_steps)}")
+            more = f" ... ({t.missing_count} in all)" if t.missing_count > len(t.missing_steps) else ""
+            lines.append(f"  missing       {format_ranges(t.missing_steps)}{more}")
+        if t.out_of_range:
+            lines.append(f"  out of range  {t.out_of_range} estimates beyond step {t.expected_steps} (not used)")
         if t.duplicate_estimates:
             lines.append(f"  duplicates    {t.duplicate_estimates} estimates repeat a step (the first is used)")
         if t.rmse is not None:
@@ -432,8 +467,9 @@ def format_summary(summary: LogSummary) -> str:
             lines.append("  rejected      - (no status recorded)")
         for i, s in enumerate(t.statuses.values()):
             error = f", last error: {s.last_error}" if s.last_error else ""
+            processes = f", {s.processes} processes" if s.processes > 1 else ""
             lines.append(f"  {'rejected' if i == 0 else '':<13} {s.layer:<12} {s.rejected} of {s.received} "
-                         f"received ({s.state}){error}")
+                         f"received ({s.state}{processes}){error}")
     return "\n".join(lines)
 
 
@@ -441,7 +477,7 @@ def format_summary(summary: LogSummary) -> str:
 
 def _read(args: argparse.Namespace, command: str) -> Log | None:
     try:
-        return read_log(args.log)
+        return read_logs(args.log) if isinstance(args.log, list) else read_log(args.log)
     except LogError as error:
         print(f"dtpf {command}: error: {error}", file=sys.stderr)
         return None
@@ -553,7 +589,9 @@ def register(subparsers) -> None:
                     "and applied by the entity), degraded steps, and the last status of each layer (messages "
                     "received and rejected, last error). On a damaged file it says first what is missing. "
                     "Exit code 0 when the file could be read, 1 when it is not an MCAP log.")
-    summary.add_argument("log", type=Path, metavar="LOG", help="MCAP file written by dtpf")
+    summary.add_argument("log", type=Path, nargs="+", metavar="LOG",
+                         help="MCAP file written by dtpf; several: the segments of one run, in order (dtpf "
+                              "launch names them when its recorder was restarted)")
     summary.set_defaults(handler=cmd_summary)
 
     recover = subparsers.add_parser(

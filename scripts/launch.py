@@ -1,9 +1,16 @@
 """``dtpf launch``: the three layers and the recorder, with an embedded Zenoh.
 
 The launcher opens a Zenoh session in router mode on a free loopback port
-(nothing to install, no multicast), starts the recorder, the system, the
+(nothing to install, no multicast), starts the recorder and waits until it
+listens (so the log holds every layer's first status), then the system, the
 information and the entity services as child processes connected to it,
 shows the entity's progress, and prints a summary when the run ends.
+
+Only the entity's end ends the run. When the information or the system
+service dies, the launcher says so, the entity runs on with plain resampling
+(its estimates say ``degraded``) and the layer is started again, at most
+``restarts`` times; when the recorder dies, a new recorder writes the rest of
+the run into the next segment of the log (``run.1.mcap``, ``run.2.mcap``, ...).
 Ctrl-C (or SIGTERM) stops every child; the recorder finishes its file, so
 the log stays readable.
 """
@@ -22,21 +29,133 @@ from pathlib import Path
 import numpy as np
 
 from messages import keys
-from messages.bus import BusError, Inbox, free_port, open_session, zenoh_config
+from messages.bus import BusError, Inbox, Presence, free_port, open_session, zenoh_config
 from messages.codec import MessageError, decode_for_key
 from messages.config import RunConfig
-from messages.models import Estimate, ServiceState, Status
+from messages.models import Estimate, Layer, ServiceState, Status
 
-__all__ = ["launch", "LaunchResult", "LaunchError"]
+__all__ = ["launch", "LaunchResult", "LaunchError", "EstimateTally", "Restart", "segment_path"]
 
 #: Start order: the recorder first (so nothing is missed), the entity last.
 LAYERS = ("recorder", "system", "information", "entity")
 MODULES = {"recorder": "scripts.record", "system": "system.service",
            "information": "information.service", "entity": "entity.service"}
+#: How many times a dead layer is started again by default.
+DEFAULT_RESTARTS = 3
+#: Most messages the launcher takes from its inbox before it looks at its children again.
+_BATCH = 64
 
 
 class LaunchError(RuntimeError):
     """A service could not be started or failed; the message says which and why."""
+
+
+@dataclass(frozen=True)
+class Restart:
+    """A layer process that died during the run, and what the launcher did about it."""
+
+    layer: str
+    step: int            #: the last step the launcher had seen when it noticed
+    code: int | None     #: the dead process's exit code (negative: killed by that signal)
+    restarted: bool      #: False once the layer's restarts were used up
+    segment: Path | None = None  #: the recorder only: the file the new recorder writes
+
+    def describe(self) -> str:
+        how = _describe_code(self.code)
+        then = (f"started again, writing {self.segment}" if self.segment else "started again") \
+            if self.restarted else "not started again (no restarts left)"
+        when = f"after step {self.step}" if self.step else "before the first step"
+        return f"the {self.layer} service died {when} ({how}); {then}"
+
+
+def _describe_code(code: int | None) -> str:
+    if code is not None and code < 0:
+        try:
+            return f"killed by {signal.Signals(-code).name}"
+        except ValueError:
+            return f"killed by signal {-code}"
+    return f"exit code {code}"
+
+
+class EstimateTally:
+    """The figures of the launch summary, folded from the estimates as they arrive.
+
+    Constant memory on runs of any length (``keep`` also keeps the estimates,
+    for callers that want them). Estimates must come in step order 1, 2, ...
+    (the entity publishes them so); one that repeats a step, skips ahead or
+    lies beyond T is counted in :attr:`ignored` and not used.
+    """
+
+    def __init__(self, steps: int | None, keep: bool = False):
+        self.steps = steps
+        self.estimates: list[Estimate] | None = [] if keep else None
+        self.count = 0
+        self.ignored = 0
+        self.truth_steps = 0
+        self._squared_error = 0.0
+        self._squared_error_values = 0
+        self._ess = 0.0
+        self.resamplings = 0
+        self.degraded = 0
+        self.ps_min = self.ps_max = None
+        self._lp_sum, self._lp_count = 0.0, 0
+        self._nis_sum, self._nis_count = 0.0, 0
+        self.observed_values = 0
+
+    def add(self, estimate: Estimate) -> bool:
+        """Fold one estimate in; False (and counted as ignored) if it is not the next step."""
+        if estimate.step != self.count + 1 or (self.steps is not None and estimate.step > self.steps):
+            self.ignored += 1
+            return False
+        self.count += 1
+        if self.estimates is not None:
+            self.estimates.append(estimate)
+        if estimate.truth is not None:
+            error = np.subtract(estimate.mean, estimate.truth)
+            self.truth_steps += 1
+            self._squared_error += float(np.sum(error ** 2))
+            self._squared_error_values += error.size
+        self._ess += estimate.ess
+        self.resamplings += estimate.resampled
+        self.degraded += estimate.degraded
+        if estimate.ps is not None:
+            self.ps_min = estimate.ps if self.ps_min is None else min(self.ps_min, estimate.ps)
+            self.ps_max = estimate.ps if self.ps_max is None else max(self.ps_max, estimate.ps)
+        if estimate.log_predictive is not None:
+            self._lp_sum += estimate.log_predictive
+            self._lp_count += 1
+        if estimate.innovation is not None:
+            self._nis_sum += estimate.innovation
+            self._nis_count += 1
+        self.observed_values = len(estimate.observation or [])
+        return True
+
+    @property
+    def rmse(self) -> float:
+        """RMSE against the truth the estimates carry (NaN when none does)."""
+        if not self._squared_error_values:
+            return float("nan")
+        return float(np.sqrt(self._squared_error / self._squared_error_values))
+
+    @property
+    def mean_ess(self) -> float | None:
+        return self._ess / self.count if self.count else None
+
+    def judgement_lines(self) -> list[str]:
+        """How well the filter did: RMSE where the estimates carry the truth, else (and besides) the
+        mean log predictive likelihood of the observations and the normalised innovation."""
+        lines = []
+        if self.truth_steps:
+            lines.append(f"RMSE            {self.rmse:.4f}" + (
+                f" (truth at {self.truth_steps} of {self.count} steps)" if self.truth_steps != self.count else ""))
+        if self.truth_steps != self.count or not self.count:
+            lines.append(f"log predictive  {self._lp_sum / self._lp_count:.4f} per step (mean of log "
+                         f"p(z_k | z_1:k-1), {self._lp_count} steps; no truth)" if self._lp_count
+                         else "log predictive  -")
+            if self._nis_count:
+                lines.append(f"innovation      {self._nis_sum / self._nis_count:.3f} mean normalised innovation "
+                             f"squared (about {self.observed_values or 1} when consistent)")
+        return lines
 
 
 @dataclass
@@ -45,68 +164,86 @@ class LaunchResult:
 
     config: RunConfig
     log_path: Path
-    estimates: list[Estimate] = field(default_factory=list)
-    statuses: dict[str, Status] = field(default_factory=dict)
+    tally: EstimateTally = None
+    #: The last status of every layer process, by process id (only the launcher's own children).
+    statuses_by_pid: dict[int, Status] = field(default_factory=dict)
     exit_codes: dict[str, int | None] = field(default_factory=dict)
+    restarts: list[Restart] = field(default_factory=list)
+    #: The files that make up the log, in order (more than one when the recorder was restarted).
+    segments: list[Path] = field(default_factory=list)
+    ignored_statuses: int = 0
+    #: Set when the entity did not end its run normally (what happened, in words).
+    failure: str | None = None
     elapsed: float = 0.0
     interrupted: bool = False
 
+    def __post_init__(self):
+        if self.tally is None:
+            self.tally = EstimateTally(self.config.steps, keep=True)
+        if not self.segments:
+            self.segments = [self.log_path]
+
+    @property
+    def estimates(self) -> list[Estimate]:
+        """The estimates, in step order (empty when the launch did not keep them)."""
+        return self.tally.estimates or []
+
+    @property
+    def statuses(self) -> dict[str, Status]:
+        """The last status of each layer (of its latest process)."""
+        latest: dict[str, Status] = {}
+        for status in self.statuses_by_pid.values():
+            latest[status.layer.value] = status
+        return latest
+
     @property
     def rmse(self) -> float:
-        """RMSE against the truth the estimates carry (NaN when none does)."""
-        errors = [np.subtract(e.mean, e.truth) for e in self.estimates if e.truth is not None]
-        return float(np.sqrt(np.mean(np.square(errors)))) if errors else float("nan")
+        return self.tally.rmse
 
     @property
     def truth_steps(self) -> int:
-        return sum(e.truth is not None for e in self.estimates)
+        return self.tally.truth_steps
 
     @property
     def rejected(self) -> dict[str, int]:
-        return {layer: status.rejected for layer, status in self.statuses.items()}
+        """Rejected messages per layer, summed over every process the layer had."""
+        totals: dict[str, int] = {}
+        for status in self.statuses_by_pid.values():
+            totals[status.layer.value] = totals.get(status.layer.value, 0) + status.rejected
+        return totals
 
     def summary(self) -> str:
-        e = self.estimates
+        t = self.tally
         c = self.config
-        ps = [x.ps for x in e if x.ps is not None]
         of = f" of {c.steps}" if c.steps is not None else ""
+        log = " + ".join(str(path) for path in self.segments)
         lines = [
             f"{'model' if c.model else 'scenario':<16}{c.model_ref} (N = {c.particles}, "
             f"{'T = ' + str(c.steps) if c.steps is not None else 'live'}, seed {c.seed}, twin {c.twin})",
             *([f"observations    {c.observations}"] if c.observations else []),
-            f"steps           {len(e)}{of}{' (interrupted)' if self.interrupted else ''}",
-            *judgement_lines(e),
-            f"mean ESS        {np.mean([x.ess for x in e]):.1f}" if e else "mean ESS        -",
-            f"resamplings     {sum(x.resampled for x in e)}",
-            f"PS range        {min(ps):g} .. {max(ps):g}" if ps else "PS range        - (no preprocessed step)",
-            f"degraded steps  {sum(x.degraded for x in e)}",
+            f"steps           {t.count}{of}{' (interrupted)' if self.interrupted else ''}",
+            *t.judgement_lines(),
+            f"mean ESS        {t.mean_ess:.1f}" if t.count else "mean ESS        -",
+            f"resamplings     {t.resamplings}",
+            f"PS range        {t.ps_min:g} .. {t.ps_max:g}" if t.ps_min is not None
+            else "PS range        - (no preprocessed step)",
+            f"degraded steps  {t.degraded}",
             "rejected        " + (", ".join(f"{k} {v}" for k, v in sorted(self.rejected.items())) or "-"),
+            *(["restarts        " + "; ".join(r.describe() for r in self.restarts)] if self.restarts else []),
+            *([f"ignored         {t.ignored} estimates and {self.ignored_statuses} statuses that were not the "
+               f"run's own (repeated or out-of-order steps, unknown processes)"]
+              if t.ignored or self.ignored_statuses else []),
+            *([f"failed          {self.failure}"] if self.failure else []),
             f"time            {self.elapsed:.2f} s",
-            f"log             {self.log_path}",
+            f"log             {log}",
         ]
         return "\n".join(lines)
 
 
-def judgement_lines(estimates) -> list[str]:
-    """How well the filter did: RMSE where the estimates carry the truth, else (and besides) the
-    mean log predictive likelihood of the observations and the normalised innovation."""
-    lines = []
-    truth = [x for x in estimates if x.truth is not None]
-    if truth:
-        errors = np.array([np.subtract(x.mean, x.truth) for x in truth])
-        rmse = float(np.sqrt(np.mean(errors ** 2)))
-        lines.append(f"RMSE            {rmse:.4f}" + (f" (truth at {len(truth)} of {len(estimates)} steps)"
-                                                      if len(truth) != len(estimates) else ""))
-    if len(truth) != len(estimates) or not estimates:
-        lp = [x.log_predictive for x in estimates if x.log_predictive is not None]
-        lines.append(f"log predictive  {np.mean(lp):.4f} per step (mean of log p(z_k | z_1:k-1), "
-                     f"{len(lp)} steps; no truth)" if lp else "log predictive  -")
-        nis = [x.innovation for x in estimates if x.innovation is not None]
-        if nis:
-            m = len(estimates[-1].observation or []) or 1
-            lines.append(f"innovation      {np.mean(nis):.3f} mean normalised innovation squared "
-                         f"(about {m} when consistent)")
-    return lines
+def segment_path(log_path: Path, index: int) -> Path:
+    """The file of the log's segment ``index``: the log itself for 0, ``run.<index>.mcap`` after."""
+    log_path = Path(log_path)
+    return log_path if index == 0 else log_path.with_name(f"{log_path.stem}.{index}{log_path.suffix}")
 
 
 def default_log_path(config: RunConfig) -> Path:
@@ -152,7 +289,8 @@ def service_command(layer: str, config: RunConfig, endpoint: str, *, timeout: fl
 def launch(config: RunConfig, *, log_path: Path | None = None, port: int | None = None,
            timeout: float = 2.0, startup_timeout: float = 20.0, log_level: str = "WARNING",
            rate: float | None = None, progress=None, child_output=None,
-           observation_timeout: float | None = None) -> LaunchResult:
+           observation_timeout: float | None = None, restarts: int = DEFAULT_RESTARTS,
+           keep_estimates: bool = True, notify=None) -> LaunchResult:
     """Run ``config`` as four processes around an embedded Zenoh router.
 
     ``rate`` caps the entity's steps per second (None: as fast as it can).
@@ -161,57 +299,112 @@ def launch(config: RunConfig, *, log_path: Path | None = None, port: int | None 
     is the entity's ``--observation-timeout``.
     ``progress(step, total)`` is called for every estimate received.
     ``child_output`` is where the children's stderr goes (default: inherited).
-    Raises LaunchError when the router cannot listen or a service fails to start.
+    ``restarts``: how many times a dead information, system or recorder
+    process is started again (0: never; the run goes on without it).
+    ``keep_estimates``: keep every Estimate in the result (False: only the
+    summary's figures, constant memory on long runs).
+    ``notify(text)`` is told at once when a layer dies or is started again
+    (default: a line on stderr).
+    Raises LaunchError when the router cannot listen, a service fails to start
+    or refuses its configuration; the entity's failure ends the run with
+    :attr:`LaunchResult.failure` set.
     """
     log_path = Path(log_path) if log_path else default_log_path(config)
     port = port or free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
+    notify = notify or (lambda text: print(f"dtpf launch: {text}", file=sys.stderr, flush=True))
     try:
         router = open_session(zenoh_config(mode="router", listen=[endpoint]))
     except BusError as error:
         raise LaunchError(f"embedded Zenoh router cannot start on {endpoint}: {error}") from None
-    result = LaunchResult(config, log_path)
+    result = LaunchResult(config, log_path, tally=EstimateTally(config.steps, keep=keep_estimates))
     children: dict[str, subprocess.Popen] = {}
+    layer_of_pid: dict[int, str] = {}
+    used = {layer: 0 for layer in LAYERS}
+    gone: set[str] = set()  # layers that died with no restart left
     start = time.monotonic()
+
+    def start_child(layer: str, output: Path) -> None:
+        children[layer] = subprocess.Popen(
+            service_command(layer, config, endpoint, timeout=timeout, log_path=output, log_level=log_level,
+                            rate=rate, observation_timeout=observation_timeout),
+            stderr=child_output, start_new_session=True)
+        layer_of_pid[children[layer].pid] = layer
+
+    def revive(layer: str) -> None:
+        code = children[layer].returncode
+        if code == 2:  # the service refused its arguments or configuration: starting it again cannot help
+            raise LaunchError(f"the {layer} service exited with code 2 (a configuration error; see above)")
+        again = used[layer] < restarts
+        segment = None
+        if again:
+            used[layer] += 1
+            if layer == "recorder":
+                segment = segment_path(log_path, len(result.segments))
+                result.segments.append(segment)
+            start_child(layer, segment or log_path)
+        else:
+            gone.add(layer)
+        event = Restart(layer, result.tally.count, code, again, segment)
+        result.restarts.append(event)
+        notify(event.describe())
+
+    presence = None
     try:
         # Only what the summary needs: the particle sets are not copied into this process.
-        watch = Inbox(router, keys.key(config.twin, "entity", "estimate"), keys.any_layer_pattern(config.twin, "status"))
-        for layer in LAYERS:
-            children[layer] = subprocess.Popen(
-                service_command(layer, config, endpoint, timeout=timeout, log_path=log_path, log_level=log_level,
-                                rate=rate, observation_timeout=observation_timeout),
-                stderr=child_output, start_new_session=True)
-        entity = children["entity"]
+        watch = Inbox(router, keys.key(config.twin, "entity", "estimate"), keys.any_layer_pattern(config.twin, "status"),
+                      max_payload=1 << 20, max_items=10_000)
+        presence = Presence(router, config.twin, "launcher", names=[layer.value for layer in Layer])
+        # The recorder first, and listening, before any layer says it is running.
+        start_child("recorder", log_path)
+        _wait_for_recorder(children["recorder"], presence, startup_timeout)
+        for layer in LAYERS[1:]:
+            start_child(layer, log_path)
         per_step = timeout + (1.0 / rate if rate else 0.0)
         # A live run waits for its sensor as long as it takes; a file or simulation has T steps.
         deadline = float("inf") if config.live else (
             time.monotonic() + startup_timeout + per_step * (config.steps or _rows(config)) + 60.0)
         while True:
-            for layer, child in children.items():
-                if layer != "entity" and child.poll() is not None:
-                    raise LaunchError(f"the {layer} service exited with code {child.returncode} "
-                                      f"before the run ended")
+            # Every turn looks at the children and the deadline, whatever arrives (a flood cannot hold it).
             item = watch.get(timeout=0.1)
-            if item is not None:
-                _take(result, item, progress)
-                continue
-            if entity.poll() is not None:
+            taken = 0
+            while item is not None:
+                _take(result, item, progress, layer_of_pid)
+                taken += 1
+                item = watch.get(timeout=0) if taken < _BATCH else None
+            if children["entity"].poll() is not None:
                 break
+            for layer in LAYERS[:-1]:
+                if layer not in gone and children[layer].poll() is not None:
+                    revive(layer)
             if time.monotonic() > deadline:
                 raise LaunchError("the run did not finish in time")
-        if entity.returncode != 0:
-            raise LaunchError(f"the entity service exited with code {entity.returncode}")
+        entity_code = children["entity"].returncode
+        if entity_code != 0:
+            result.failure = f"the entity service ended the run: {_describe_code(entity_code)}"
         # Final statuses of the other services arrive when they stop.
         _stop(children, ("information", "system"), result)
-        _drain(watch, result, progress, quiet=0.3)
+        _drain(watch, result, progress, layer_of_pid, quiet=0.3)
         _stop(children, ("recorder",), result)
     except KeyboardInterrupt:
         result.interrupted = True
     finally:
         _stop(children, tuple(reversed(LAYERS)), result)
         result.elapsed = time.monotonic() - start
+        if presence is not None:
+            presence.close()
         router.close()
     return result
+
+
+def _wait_for_recorder(recorder: subprocess.Popen, presence: Presence, timeout: float) -> None:
+    """Until the recorder's liveliness token is up (it declares it once it is subscribed)."""
+    deadline = time.monotonic() + timeout
+    while "recorder" in presence.wait_for(["recorder"], 0.1):
+        if recorder.poll() is not None:
+            raise LaunchError(f"the recorder exited with code {recorder.returncode} before it started")
+        if time.monotonic() > deadline:
+            raise LaunchError(f"the recorder did not come up within {timeout:g} s")
 
 
 def _rows(config: RunConfig) -> int:
@@ -220,8 +413,9 @@ def _rows(config: RunConfig) -> int:
     return read_observations(config.observation_file).steps
 
 
-def _take(result: LaunchResult, item, progress) -> None:
-    """Fold one received message into the result."""
+def _take(result: LaunchResult, item, progress, layer_of_pid: dict[int, str]) -> None:
+    """Fold one received message into the result: estimates of this run in step order, and
+    statuses of the launcher's own children (a status of any other process is ignored)."""
     try:
         message = decode_for_key(item.key, item.payload)
     except MessageError:
@@ -229,16 +423,19 @@ def _take(result: LaunchResult, item, progress) -> None:
     if message.run_id != result.config.run_id:
         return
     if isinstance(message, Estimate):
-        result.estimates.append(message)
-        if progress is not None:
+        if result.tally.add(message) and progress is not None:
             progress(message.step, result.config.steps)
     elif isinstance(message, Status):
-        result.statuses[message.layer.value] = message
+        if layer_of_pid.get(message.pid) != message.layer.value:
+            result.ignored_statuses += 1
+            return
+        result.statuses_by_pid[message.pid] = message
 
 
-def _drain(watch: Inbox, result: LaunchResult, progress, quiet: float) -> None:
-    while (item := watch.get(timeout=quiet)) is not None:
-        _take(result, item, progress)
+def _drain(watch: Inbox, result: LaunchResult, progress, layer_of_pid, quiet: float) -> None:
+    deadline = time.monotonic() + 5.0  # a flood cannot keep the launcher here
+    while time.monotonic() < deadline and (item := watch.get(timeout=quiet)) is not None:
+        _take(result, item, progress, layer_of_pid)
 
 
 def _stop(children: dict[str, subprocess.Popen], layers, result: LaunchResult, grace: float = 10.0) -> None:

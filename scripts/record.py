@@ -2,23 +2,30 @@
 
 Subscribes to ``dtpf/<twin>/**`` (``--all-twins``: ``dtpf/**``) and writes
 each message as received, bytes untouched, one channel per key expression,
-schemas embedded. SIGINT or SIGTERM: the messages already received are
-written and the file is finished (summary and footer), so the log stays
-readable; a SIGKILL loses at most the last ``--flush-interval`` seconds.
+schemas embedded. The log records what the run is: a payload that a service
+would reject (it does not decode, belongs to another run, or does not fit
+the run's N, dimension or steps) is not written to its channel; it is
+counted, and a bounded sample of them (where, why, the first bytes) goes to
+``dtpf/<twin>/recorder/rejected``. SIGINT or SIGTERM: the messages already
+received are written and the file is finished (summary and footer), so the
+log stays readable; a SIGKILL loses at most the last ``--flush-interval``
+seconds.
 
 Run ``python -m scripts.record --help`` for the options.
 """
 from __future__ import annotations
 
 import argparse
+import base64
 import time
 
 import zenoh
 
 from messages import keys
-from messages.bus import Inbox, add_zenoh_arguments
-from messages.codec import encode
-from messages.models import ServiceState
+from messages.bus import add_zenoh_arguments
+from messages.admission import RunShape, kind_of
+from messages.codec import MessageError, decode_for_key, encode
+from messages.models import MAX_REJECTED_SAMPLE, Rejected, ServiceState
 from messages.config import RunConfig, add_run_arguments
 from entity import model_ref
 from messages.recording import COMPRESSION, McapRecording, auto_compression
@@ -31,11 +38,14 @@ def main(config: RunConfig, zenoh_config: zenoh.Config, args: argparse.Namespace
     """Record until SIGINT/SIGTERM."""
     pattern = keys.ALL if args.all_twins else keys.twin_pattern(config.twin)
     compression = args.compression
+    dim = model_ref.resolve(config.model_ref).dim
     if compression == "auto":
-        compression = auto_compression(config.particles * (model_ref.resolve(config.model_ref).dim + 1) * 8)
+        compression = auto_compression(config.particles * (dim + 1) * 8)
     # The file is finished before the Zenoh session closes, so a session slow to close (the
     # launcher SIGKILLs a service after 10 s) cannot cost the log its summary and footer.
     with ServiceShell("recorder", config, zenoh_config) as shell:
+        if not args.all_twins:  # other twins may run other sizes
+            shell.expect(RunShape(config.particles, dim, None, config.steps))
         try:
             recording = McapRecording(args.output, compression=compression, flush_interval=args.flush_interval)
         except OSError as error:
@@ -52,14 +62,14 @@ def _record(shell: ServiceShell, recording: McapRecording, pattern: str, compres
     # A live twin may follow another twin's sensor: its observations are recorded too.
     sensor = shell.config.observation_key()
     extra = [sensor] if sensor and not args.all_twins and not sensor.startswith(pattern[:-2]) else []
-    inbox = Inbox(shell.session, pattern, *extra)
+    inbox = shell.inbox_on(pattern, *extra)
+    admission = Admission(shell, all_twins=args.all_twins)
     shell.running()
     shell.log.info("recording %s into %s (%s chunks)", pattern, args.output, compression)
     while not shell.stopping:
         item = inbox.get(timeout=0.2)
         if item is not None:
-            recording.write(item.key, item.payload)
-            shell.received += 1
+            admission.record(recording, item)
         else:
             recording.flush_if_due()
     # Stopping: write what already arrived (a short grace period for messages in flight).
@@ -68,8 +78,7 @@ def _record(shell: ServiceShell, recording: McapRecording, pattern: str, compres
         item = inbox.get(timeout=0.05)
         if item is None:
             break
-        recording.write(item.key, item.payload)
-        shell.received += 1
+        admission.record(recording, item)
     inbox.close()
     # The recorder's own last word goes into its log too (its published one would arrive too late).
     shell.state = ServiceState.FINISHED
@@ -77,6 +86,50 @@ def _record(shell: ServiceShell, recording: McapRecording, pattern: str, compres
     recording.write(keys.key_for(final), encode(final))
     shell.log.info("wrote %d messages to %s", recording.messages, args.output)
     return 0
+
+
+#: Rejected payloads the recorder keeps a sample of: in all, and of one kind of reason.
+MAX_SAMPLES, MAX_SAMPLES_PER_KIND = 1000, 10
+
+
+class Admission:
+    """What the recorder writes: the run's valid messages; a bounded sample of the rest."""
+
+    def __init__(self, shell: ServiceShell, all_twins: bool):
+        self.shell = shell
+        self.all_twins = all_twins
+        self.samples = 0
+        self.samples_of: dict[str, int] = {}
+
+    def record(self, recording: McapRecording, item) -> bool:
+        """Write ``item`` if a service would take it (True); else count it and maybe sample it."""
+        shell = self.shell
+        shell.received += 1
+        try:
+            message = decode_for_key(item.key, item.payload)
+        except MessageError as error:
+            return self._reject(recording, item, error.reason, str(error))
+        if not self.all_twins and message.run_id != shell.config.run_id:
+            return self._reject(recording, item, "message of another run",
+                                f"a message of run {message.run_id!r} on {item.key}, recording run "
+                                f"{shell.config.run_id!r}")
+        misfit = shell.shape.misfit(message) if shell.shape is not None else None
+        if misfit is not None:
+            return self._reject(recording, item, misfit.kind, misfit.detail)
+        recording.write(item.key, item.payload)
+        return True
+
+    def _reject(self, recording: McapRecording, item, reason: str, detail: str) -> bool:
+        shell = self.shell
+        shell.reject(reason, detail, key=item.key)
+        kind = kind_of(reason)
+        if self.samples < MAX_SAMPLES and self.samples_of.get(kind, 0) < MAX_SAMPLES_PER_KIND:
+            self.samples += 1
+            self.samples_of[kind] = self.samples_of.get(kind, 0) + 1
+            sample = Rejected(**shell.header(0), key=item.key[:300], reason=detail[:500], size=len(item.payload),
+                              sample=base64.b64encode(item.payload[:MAX_REJECTED_SAMPLE]).decode("ascii"))
+            recording.write(keys.key_for(sample), encode(sample))
+        return False
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -92,7 +145,7 @@ def build_parser() -> argparse.ArgumentParser:
                              "(default: %(default)s)")
     parser.add_argument("--flush-interval", type=float, default=1.0, metavar="SECONDS",
                         help="flush the open chunk at least this often (default: %(default)s)")
-    parser.add_argument("--drain", type=float, default=2.0, metavar="SECONDS",
+    parser.add_argument("--drain", type=float, default=0.5, metavar="SECONDS",
                         help="on SIGINT/SIGTERM, keep writing messages still arriving for at most this "
                              "long (default: %(default)s)")
     add_run_arguments(parser)

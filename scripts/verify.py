@@ -18,7 +18,7 @@ import numpy as np
 
 from information.layer import InformationLayer
 from messages.config import RunConfig
-from messages.logfile import Log, LogError, read_log
+from messages.logfile import Log, LogError, read_logs
 from messages.models import ParticleSet, Status
 from system.layer import SystemLayer
 from system.predict import Snapshot
@@ -197,7 +197,7 @@ def _ranges(steps: list[int]) -> str:
 
 def cmd_verify(args: argparse.Namespace) -> int:
     try:
-        log = read_log(args.log)
+        log = read_logs(args.log)
         result = verify(log, args.twin, args.model)
     except LogError as error:
         print(f"dtpf verify: error: {error}")
@@ -228,7 +228,9 @@ def register(subparsers) -> None:
     parser = subparsers.add_parser(
         "verify", help="re-run the information and system layers on a log and check every recorded output",
         description=__doc__.split("\n\n", 1)[1].replace("\n", " "))
-    parser.add_argument("log", help="MCAP log written by dtpf launch or the recorder")
+    parser.add_argument("log", nargs="+", metavar="LOG",
+                        help="MCAP log written by dtpf launch or the recorder; several: the segments of one "
+                             "run, in order")
     parser.add_argument("--twin", help="twin to verify (default: the only twin in the log)")
     parser.add_argument("--model", metavar="REF", default=None,
                         help="load the run's model from this reference instead of the one the log names "

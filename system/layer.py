@@ -16,6 +16,7 @@ service, the in-process pipeline and ``dtpf verify`` decide identically.
 """
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import replace
 
 from information.mirror import WeightSummary
@@ -36,19 +37,23 @@ class SystemLayer:
         Default: one without a model (history figures only).
     seed, twin :
         Key of the random streams: step k draws from ``stream(seed, twin, k, "system")``.
+    keep : int, optional
+        Keep only the last ``keep`` summaries, forecasts and decisions (a service
+        on a long run); None keeps all (the experiments read them).
     """
 
-    def __init__(self, policy: PSPolicy, predictor: Predictor | None = None, *, seed: int = 0, twin: str = "twin"):
+    def __init__(self, policy: PSPolicy, predictor: Predictor | None = None, *, seed: int = 0, twin: str = "twin",
+                 keep: int | None = None):
         self.policy = policy
         self.predictor = predictor if predictor is not None else Predictor()
         self.seed = int(seed)
         self.twin = twin
-        self.history: list[tuple[int, WeightSummary]] = []
-        self.forecasts: list[Forecast] = []
-        self.decisions: list[PSDecision] = []
+        self.history: deque[tuple[int, WeightSummary]] = deque(maxlen=keep)
+        self.forecasts: deque[Forecast] = deque(maxlen=keep)
+        self.decisions: deque[PSDecision] = deque(maxlen=keep)
 
     @classmethod
-    def from_config(cls, config, twin: str | None = None, model=None) -> "SystemLayer":
+    def from_config(cls, config, twin: str | None = None, model=None, keep: int | None = None) -> "SystemLayer":
         """The system layer of a :class:`~messages.config.RunConfig` (``twin`` overrides its twin id).
 
         A simulating policy gets a predictor over the run's model (``model``, or
@@ -64,7 +69,7 @@ class SystemLayer:
         predictor = Predictor(model, resampler=config.resampler,
                               threshold_rule=config.threshold, weight_rule=config.weight_rule) \
             if policy.simulates else Predictor()
-        return cls(policy, predictor, seed=config.seed, twin=twin or config.twin)
+        return cls(policy, predictor, seed=config.seed, twin=twin or config.twin, keep=keep)
 
     @property
     def needs_particles(self) -> bool:

@@ -19,6 +19,7 @@ import zenoh
 
 from entity import sources
 from information.mirror import WeightSummary
+from messages.admission import RunShape
 from messages.bus import add_zenoh_arguments
 from messages.config import RunConfig, add_run_arguments
 from messages.models import ParticleSet, PSCommand, WeightState
@@ -32,6 +33,10 @@ __all__ = ["main", "summary_of", "ParticleSets"]
 def summary_of(state: WeightState) -> WeightSummary:
     """The mirror's summary carried by a WeightState message."""
     return WeightSummary(**{name: getattr(state, name) for name in WeightSummary.__dataclass_fields__})
+
+
+#: How many steps ahead of the one it decides on the service keeps a particle set.
+MAX_AHEAD = 4
 
 
 class ParticleSets:
@@ -50,7 +55,7 @@ class ParticleSets:
             if remaining <= 0:
                 break
             message = self.shell.receive(self.inbox.get(timeout=min(remaining, 0.2)), ParticleSet)
-            if message is not None:
+            if message is not None and step <= message.step <= step + MAX_AHEAD:
                 self.pending[message.step] = message
         for old in [s for s in self.pending if s < step]:
             del self.pending[old]
@@ -62,8 +67,11 @@ class ParticleSets:
 
 def main(config: RunConfig, zenoh_config: zenoh.Config, args: argparse.Namespace) -> int:
     """Serve PS decisions for the twin of ``config`` until SIGINT/SIGTERM."""
-    layer = SystemLayer.from_config(config, model=sources.load_model(config))
+    model = sources.load_model(config)
+    # The service keeps only what the policies look back on, not the run's whole history.
+    layer = SystemLayer.from_config(config, model=model, keep=16)
     with ServiceShell("system", config, zenoh_config) as shell:
+        shell.expect(RunShape.of(config, model))
         states = shell.inbox("information", "weight_state")
         sets = ParticleSets(shell) if layer.needs_particles else None
         shell.running()
@@ -77,7 +85,12 @@ def main(config: RunConfig, zenoh_config: zenoh.Config, args: argparse.Namespace
                 if snapshot is None:
                     shell.log.warning("step %d: no preprocessed set within %.1f s, deciding from the weight "
                                       "state alone", state.step, args.timeout)
-            decision = layer.observe(state.step, summary_of(state), snapshot)
+            try:
+                decision = layer.observe(state.step, summary_of(state), snapshot)
+            except ValueError as error:  # a state the predictor cannot take: counted, the service goes on
+                shell.reject("weight state the predictor cannot take", f"step {state.step}: {error}",
+                             key=states.key_expr)
+                continue
             shell.publish(PSCommand(**shell.header(state.step), **decision.command_fields()))
     return 0
 

@@ -37,7 +37,7 @@ from messages import (
     schema_for,
 )
 from messages.codec import ENVELOPE_ENCODING, EnvelopeHeader
-from messages.models import MESSAGE_CLASSES, CompressedImage, Observation, ParticleSetHeader
+from messages.models import MESSAGE_CLASSES, CompressedImage, Observation, ParticleSetHeader, Rejected
 from messages.schema import foxglove_problems
 
 HEADER = dict(run_id="run-1", twin_id="ungm-1", step=7, stamp=Time(sec=1_700_000_000, nsec=123_456_789))
@@ -467,7 +467,8 @@ def test_topic_table():
     assert table[("entity", "frame")] == (CompressedImage, None)
     assert table[("sensor", "observation")] == (Observation, None)
     assert table[("sensor", "status")] == (Status, None)
-    assert len(table) == 12
+    assert table[("recorder", "rejected")] == (Rejected, None)
+    assert len(table) == 13
 
 
 @pytest.mark.parametrize("make, key", [

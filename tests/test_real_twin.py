@@ -176,11 +176,13 @@ def test_a_live_run_is_refused_by_dtpf_run_and_a_bad_live_key_at_startup():
 # --- live: a sensor process feeding a launched twin ----------------------------------------------
 
 def _start_layers(processes, router, run, log, *entity_extra):
+    # Every layer runs the same configuration (a live run has no last step), as dtpf launch starts them.
+    run = [*run, "--observations", "live"]
     processes.start("recorder", service_args("scripts.record", router.endpoint, *run, "--output", str(log)))
     processes.start("system", service_args("system.service", router.endpoint, *run))
     processes.start("information", service_args("information.service", router.endpoint, *run))
     return processes.start("entity", service_args(
-        "entity.service", router.endpoint, *run, "--observations", "live", "--wait-for", "recorder",
+        "entity.service", router.endpoint, *run, "--wait-for", "recorder",
         "--wait-for", "information", "--wait-for", "system", *entity_extra))
 
 
@@ -289,7 +291,7 @@ def test_hostile_live_observations_are_counted_and_the_run_goes_on(processes, ro
     assert final.rejected == sum(sent.values())
     # Logged once per reason, not once per message.
     output = processes.output(entity)
-    assert output.count("duplicate observation") == 1, output
+    assert output.count("rejected a message (duplicate observation") == 1, output
     publisher.undeclare()
 
 

@@ -275,6 +275,8 @@ class _Reading:
         self.log = log
         self.file = file
         self.unknown_channel = 0
+        #: Messages read before their channel: (their place in the messages, the record).
+        self.orphans: list[tuple[int, McapMessage]] = []
         self.stopped: str | None = None  # why reading stopped before the end, if it did
 
     def run(self) -> None:
@@ -334,7 +336,8 @@ class _Reading:
         else:
             channel = log.channels.get(record.channel_id)
             if channel is None:
-                self.unknown_channel += 1
+                # Its channel record may have been in a damaged chunk: the summary section repeats it.
+                self.orphans.append((len(log.messages), record))
                 return
             log.messages.append(LogMessage(channel.topic, record.channel_id, record.log_time,
                                            record.publish_time, record.sequence, record.data))
@@ -409,8 +412,27 @@ class _Reading:
             self.stopped = (f"unreadable record at byte {offset:,} ({text}); "
                             f"the last {self.log.size - offset:,} bytes were not read")
 
+    def _adopt_orphans(self) -> None:
+        """Put the messages whose channel was defined only later (in the summary) in their place."""
+        if not self.orphans:
+            return
+        log = self.log
+        merged, taken = [], 0
+        for place, record in self.orphans:
+            channel = log.channels.get(record.channel_id)
+            if channel is None:
+                self.unknown_channel += 1
+                continue
+            merged.extend(log.messages[taken:place])
+            taken = place
+            merged.append(LogMessage(channel.topic, record.channel_id, record.log_time,
+                                     record.publish_time, record.sequence, record.data))
+        merged.extend(log.messages[taken:])
+        log.messages[:] = merged
+
     def _finish(self) -> None:
         log = self.log
+        self._adopt_orphans()
         head = []
         if not log.complete:
             missing = "no footer" if log.data_end else "no data end, summary or footer"
@@ -523,15 +545,20 @@ def join_logs(logs: list[Log]) -> Log:
 
     Messages follow each other segment by segment; each segment's channel and
     schema ids are moved to a range of their own, so no two segments' ids
-    collide. The joined log is complete when every segment is, and its
+    collide. Segments are taken in the order of their first message, so they
+    may be named in any order. A message that is in two adjacent segments (the same bytes on
+    the same topic: two recorders overlapped) is kept once. The joined log is complete when every segment is, and its
     problems name the segment they come from. For reading; :func:`write_log`
     writes one segment at a time.
     """
     if len(logs) == 1:
         return logs[0]
+    # In the order they were written, whatever order they were named in (a shell glob sorts run.mcap last).
+    logs = sorted(logs, key=lambda log: log.messages[0].log_time if log.messages else float("inf"))
     joined = Log(path=logs[0].path, size=sum(log.size for log in logs), header=logs[0].header,
                  complete=all(log.complete for log in logs), data_end=all(log.data_end for log in logs),
                  segments=[log.path for log in logs])
+    seen: set[tuple[str, bytes]] = set()
     for index, log in enumerate(logs):
         offset = index << 16  # MCAP ids are 16 bits: each segment gets a range of its own
         for sid, schema in log.schemas.items():
@@ -539,7 +566,12 @@ def join_logs(logs: list[Log]) -> Log:
         for cid, channel in log.channels.items():
             joined.channels[cid + offset] = replace(
                 channel, id=cid + offset, schema_id=channel.schema_id + offset if channel.schema_id else 0)
-        joined.messages.extend(replace(m, channel_id=m.channel_id + offset) for m in log.messages)
+        before = seen
+        seen = set()
+        for m in log.messages:
+            seen.add((m.topic, m.data))
+            if (m.topic, m.data) not in before:
+                joined.messages.append(replace(m, channel_id=m.channel_id + offset))
         joined.attachments.extend(log.attachments)
         joined.metadata.extend(log.metadata)
         joined.problems.extend(f"{log.path}: {problem}" for problem in log.problems)

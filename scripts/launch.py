@@ -59,11 +59,15 @@ class Restart:
     code: int | None     #: the dead process's exit code (negative: killed by that signal)
     restarted: bool      #: False once the layer's restarts were used up
     segment: Path | None = None  #: the recorder only: the file the new recorder writes
+    bridge: Path | None = None   #: the recorder only: the file the launcher wrote until then
 
     def describe(self) -> str:
         how = _describe_code(self.code)
-        then = (f"started again, writing {self.segment}" if self.segment else "started again") \
-            if self.restarted else "not started again (no restarts left)"
+        then = "not started again (no restarts left)"
+        if self.restarted:
+            then = f"started again, writing {self.segment}" if self.segment else "started again"
+        if self.bridge:
+            then += f" (the launcher recorded the messages until then into {self.bridge})"
         when = f"after step {self.step}" if self.step else "before the first step"
         return f"the {self.layer} service died {when} ({how}); {then}"
 
@@ -240,6 +244,47 @@ class LaunchResult:
         return "\n".join(lines)
 
 
+class Bridge:
+    """The twin's messages, recorded by the launcher between a recorder's death and its successor.
+
+    The launcher subscribes as soon as it sees the recorder gone and writes
+    what a service would accept into a segment of its own, until the new
+    recorder is listening; so a recorder's death loses only what it had not
+    flushed. The new recorder's first messages may also be in the bridge's
+    segment: :func:`messages.logfile.join_logs` drops such repeats.
+    """
+
+    def __init__(self, router, config: RunConfig, path: Path):
+        from messages.admission import RunShape
+        from messages.recording import McapRecording
+
+        self.config = config
+        self.path = path
+        self.shape = RunShape(config.particles, None, None, config.steps)
+        self.recording = McapRecording(path, compression="none")
+        sensor = config.observation_key()
+        pattern = keys.twin_pattern(config.twin)
+        extra = [sensor] if sensor and not sensor.startswith(pattern[:-2]) else []
+        self.inbox = Inbox(router, pattern, *extra)
+        self.written = 0
+
+    def pump(self) -> None:
+        """Write what has arrived."""
+        while (item := self.inbox.get(timeout=0)) is not None:
+            try:
+                message = decode_for_key(item.key, item.payload)
+            except MessageError:
+                continue
+            if message.run_id == self.config.run_id and self.shape.misfit(message) is None:
+                self.recording.write(item.key, item.payload)
+                self.written += 1
+
+    def close(self) -> None:
+        self.inbox.close()
+        self.pump()
+        self.recording.close()
+
+
 def segment_path(log_path: Path, index: int) -> Path:
     """The file of the log's segment ``index``: the log itself for 0, ``run.<index>.mcap`` after."""
     log_path = Path(log_path)
@@ -322,6 +367,7 @@ def launch(config: RunConfig, *, log_path: Path | None = None, port: int | None 
     layer_of_pid: dict[int, str] = {}
     used = {layer: 0 for layer in LAYERS}
     gone: set[str] = set()  # layers that died with no restart left
+    bridges: list[Bridge] = []  # the launcher's own recording while a new recorder starts
     start = time.monotonic()
 
     def start_child(layer: str, output: Path) -> None:
@@ -336,7 +382,11 @@ def launch(config: RunConfig, *, log_path: Path | None = None, port: int | None 
         if code == 2:  # the service refused its arguments or configuration: starting it again cannot help
             raise LaunchError(f"the {layer} service exited with code 2 (a configuration error; see above)")
         again = used[layer] < restarts
-        segment = None
+        segment = bridge = None
+        if layer == "recorder":  # the launcher records until a new recorder listens (or to the end)
+            bridge = segment_path(log_path, len(result.segments))
+            bridges.append(Bridge(router, config, bridge))
+            result.segments.append(bridge)
         if again:
             used[layer] += 1
             if layer == "recorder":
@@ -345,7 +395,7 @@ def launch(config: RunConfig, *, log_path: Path | None = None, port: int | None 
             start_child(layer, segment or log_path)
         else:
             gone.add(layer)
-        event = Restart(layer, result.tally.count, code, again, segment)
+        event = Restart(layer, result.tally.count, code, again, segment, bridge)
         result.restarts.append(event)
         notify(event.describe())
 
@@ -372,6 +422,10 @@ def launch(config: RunConfig, *, log_path: Path | None = None, port: int | None 
                 _take(result, item, progress, layer_of_pid)
                 taken += 1
                 item = watch.get(timeout=0) if taken < _BATCH else None
+            for bridge in bridges:
+                bridge.pump()
+            if bridges and "recorder" not in gone and children["recorder"].pid in result.statuses_by_pid:
+                bridges.pop().close()  # the new recorder listens: it said so
             if children["entity"].poll() is not None:
                 break
             for layer in LAYERS[:-1]:
@@ -389,6 +443,8 @@ def launch(config: RunConfig, *, log_path: Path | None = None, port: int | None 
     except KeyboardInterrupt:
         result.interrupted = True
     finally:
+        for bridge in bridges:
+            bridge.close()
         _stop(children, tuple(reversed(LAYERS)), result)
         result.elapsed = time.monotonic() - start
         if presence is not None:

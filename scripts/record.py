@@ -25,7 +25,7 @@ from messages import keys
 from messages.bus import add_zenoh_arguments
 from messages.admission import RunShape, kind_of
 from messages.codec import MessageError, decode_for_key, encode
-from messages.models import MAX_REJECTED_SAMPLE, Rejected, ServiceState
+from messages.models import MAX_REJECTED_SAMPLE, Estimate, Rejected, ServiceState
 from messages.config import RunConfig, add_run_arguments
 from entity import model_ref
 from messages.recording import COMPRESSION, McapRecording, auto_compression
@@ -100,6 +100,7 @@ class Admission:
         self.all_twins = all_twins
         self.samples = 0
         self.samples_of: dict[str, int] = {}
+        self.last_estimate: dict[str, int] = {}  # by key (--all-twins records many)
 
     def record(self, recording: McapRecording, item) -> bool:
         """Write ``item`` if a service would take it (True); else count it and maybe sample it."""
@@ -116,6 +117,13 @@ class Admission:
         misfit = shell.shape.misfit(message) if shell.shape is not None else None
         if misfit is not None:
             return self._reject(recording, item, misfit.kind, misfit.detail)
+        if isinstance(message, Estimate):  # the entity estimates each step once, in order
+            last = self.last_estimate.get(item.key, 0)
+            if message.step <= last:
+                return self._reject(recording, item, "estimate of a step already recorded",
+                                    f"an estimate of step {message.step} on {item.key} after step {last}")
+            if len(self.last_estimate) < 1000:
+                self.last_estimate[item.key] = message.step
         recording.write(item.key, item.payload)
         return True
 

@@ -234,8 +234,11 @@ def test_a_launched_adaptive_run_changes_ps_with_reasons_and_verifies(adaptive_l
     assert all(c.surprise is not None for k, c in commands.items() if k > 1)
     # The information layer used each PS from the step after the decision on.
     assert all(estimates[k + 1].ps == commands[k].ps for k in range(1, 30))
-    # Over Zenoh as in one process, number for number.
-    assert result.rmse == run(config).rmse
+    # Over Zenoh as in one process, number for number (the launcher sums the RMSE as the steps come,
+    # so it may differ in the last bit).
+    reference = run(config)
+    np.testing.assert_array_equal([e.mean for e in result.estimates], reference.means)
+    assert result.rmse == pytest.approx(reference.rmse, rel=1e-12)
     verification = verify(log)
     assert verification.ok, str(verification.mismatch)
     assert verification.checked == list(range(1, 31))

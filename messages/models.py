@@ -507,6 +507,8 @@ class Status(Message):
     observations: ObservationCounts | None = Field(
         default=None, description="A live entity's observation intake: accepted, rejected by reason, the "
                                   "last sequence number (a restarted sensor continues after it).")
+    queued: Count = Field(default=0, description="Messages received but not yet handled (waiting in the "
+                                                 "process's inboxes): a process that falls behind shows it here.")
     rejections: list[NamedCount] = Field(
         default_factory=list, max_length=MAX_STATUS_COUNTS,
         description="Rejected messages by kind of reason (the reason without its numbers), most first.")

@@ -72,13 +72,23 @@ def _record(shell: ServiceShell, recording: McapRecording, pattern: str, compres
             admission.record(recording, item)
         else:
             recording.flush_if_due()
-    # Stopping: write what already arrived (a short grace period for messages in flight).
+    # Stopping: write what had arrived (the inbox's bound bounds it: the exit watchdog waits while
+    # this moves), then what is still in flight for at most --drain seconds.
+    shell.watchdog.step = "writing the messages received before the stop"
+    for _ in range(len(inbox)):
+        item = inbox.get(timeout=0)
+        if item is None:
+            break
+        admission.record(recording, item)
+        shell.watchdog.progress()
+    shell.watchdog.step = "writing the messages in flight"
     inbox_deadline = time.monotonic() + args.drain
     while time.monotonic() < inbox_deadline:
         item = inbox.get(timeout=0.05)
         if item is None:
             break
         admission.record(recording, item)
+    shell.watchdog.step = "finishing the log"
     inbox.close()
     # The recorder's own last word goes into its log too (its published one would arrive too late).
     shell.state = ServiceState.FINISHED
@@ -154,8 +164,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--flush-interval", type=float, default=1.0, metavar="SECONDS",
                         help="flush the open chunk at least this often (default: %(default)s)")
     parser.add_argument("--drain", type=float, default=0.5, metavar="SECONDS",
-                        help="on SIGINT/SIGTERM, keep writing messages still arriving for at most this "
-                             "long (default: %(default)s)")
+                        help="on SIGINT/SIGTERM, after writing every message already received, keep writing "
+                             "the ones still arriving for at most this long; it stops as soon as none comes "
+                             "for 50 ms (default: %(default)s)")
     add_run_arguments(parser)
     add_service_arguments(parser)
     add_zenoh_arguments(parser)

@@ -72,8 +72,13 @@ class ZenohTwin:
             remaining = deadline - time.monotonic()
             if remaining <= 0:
                 break
-            answer = shell.receive(self.answers.get(timeout=min(remaining, 0.2)), ParticleSet)
+            answer = shell.receive(self.answers.get(timeout=min(remaining, 0.05)), ParticleSet)
             if answer is None:
+                if "information" not in shell.presence.alive and len(self.answers) == 0:
+                    shell.log.warning("step %d: the information layer died before it answered, plain "
+                                      "resampling", step)
+                    self.information_was_alive = False
+                    return None  # it died while we waited: no answer will come
                 continue
             if answer.step != step:
                 shell.log.debug("ignored a late preprocessed set of step %d at step %d", answer.step, step)

@@ -321,6 +321,13 @@ def _read_arrays(view: memoryview, header: EnvelopeHeader, data_start: int, step
     if len(particles_shape) != 2 or len(weights_shape) != 1:
         raise MessageError(f"{ENVELOPE_ENCODING} shapes must be [N, d] and [N], got particles {particles_shape}, "
                            f"weights {weights_shape}", step=step)
+    # No axis can be longer than the payload has float64s (a zero-length axis beside a 2**62 one
+    # would pass the size check and break numpy's reshape).
+    most = len(view) // 8
+    for array in header.arrays:
+        if any(length > most for length in array.shape):
+            raise MessageError(f"{ENVELOPE_ENCODING} array {array.name} claims shape {array.shape}, longer than "
+                               f"the {len(view)}-byte payload can hold", step=step)
     out, position = {}, 0
     for array in header.arrays:
         if array.offset != position:

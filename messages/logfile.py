@@ -496,14 +496,51 @@ def _opcode_name(opcode: int) -> str:
         return f"unknown (opcode {opcode:#04x})"
 
 
+#: Piece by which a chunk is decompressed (nothing is allocated for what a chunk only claims).
+_PIECE = 1 << 20
+#: Most bytes a chunk may decompress to: its claimed size, and at most this many times its
+#: compressed size (lz4 tops out near 255) or _MIN_EXPANSION_LIMIT, whichever is larger.
+_MAX_RATIO, _MIN_EXPANSION_LIMIT = 256, 64 << 20
+
+
 def _decompress(compression: str, data: bytes, size: int) -> bytes:
+    """The chunk's records, decompressed piece by piece up to the size the chunk claims.
+
+    Neither the chunk's ``uncompressed_size`` nor a frame header's content size
+    is believed before the bytes exist: a few-KB file claiming 8 GiB allocates
+    what its data really expands to, and a decompression bomb stops at the
+    limit (ValueError, the chunk is dropped).
+    """
     if compression == "":
         return data
+    limit = min(size, max(_MIN_EXPANSION_LIMIT, _MAX_RATIO * len(data)))
     if compression == "lz4":
-        return lz4.frame.decompress(data)
-    if compression == "zstd":
-        return zstandard.ZstdDecompressor().decompress(data, max_output_size=size)
-    raise ValueError(f"unknown compression {compression!r}")
+        reader = lz4.frame.LZ4FrameDecompressor()
+        pieces, total, pending = [], 0, data
+        while not reader.eof:
+            piece = reader.decompress(pending, max_length=_PIECE)
+            pending = b""
+            if not piece and reader.needs_input:
+                break  # the frame is cut: what came out is checked against the CRC and size
+            pieces.append(piece)
+            total += len(piece)
+            if total > limit:
+                break
+        out = b"".join(pieces)
+    elif compression == "zstd":
+        with zstandard.ZstdDecompressor().stream_reader(data) as reader:
+            pieces, total = [], 0
+            while piece := reader.read(_PIECE):
+                pieces.append(piece)
+                total += len(piece)
+                if total > limit:
+                    break
+        out = b"".join(pieces)
+    else:
+        raise ValueError(f"unknown compression {compression!r}")
+    if len(out) > limit:
+        raise ValueError(f"decompresses to more than {limit:,} bytes (the chunk claims {size:,})")
+    return out
 
 
 def _chunk_records(data: bytes) -> tuple[list, int, Exception | None]:

@@ -261,3 +261,70 @@ def test_a_service_stuck_in_its_shutdown_exits_within_its_grace_and_says_where(p
     stuck.wait(timeout=30)
     assert stuck.returncode == 130
     assert "still at: a close that never returns" in processes.output(stuck)
+
+
+def _fuzz_payloads(count: int) -> list[bytes]:
+    """``count`` distinct mutated and raw payloads of the fuzz suite's generators (derandomized)."""
+    from hypothesis import HealthCheck, Phase, given, settings
+    from hypothesis import strategies as st
+
+    import fuzz_payloads as fp
+
+    payloads: dict[bytes, None] = {}
+
+    @settings(max_examples=count + count // 2, derandomize=True, database=None, deadline=None,
+              phases=[Phase.generate], suppress_health_check=list(HealthCheck))
+    @given(st.one_of(fp.byte_mutated_cases(), fp.raw_cases(), fp.json_mutated_cases(), fp.envelope_mutated_cases()))
+    def collect(case):
+        if len(payloads) < count:
+            payloads[case.payload] = None
+
+    collect()
+    return list(payloads)
+
+
+def test_ten_thousand_fuzzed_payloads_on_a_live_run_leave_its_estimates_as_a_clean_run_has_them(tmp_path):
+    from fuzz_payloads import TWIN, topic_keys
+    from messages.config import RunConfig
+    from scripts import inprocess
+    from scripts.launch import launch
+
+    # 2,600 distinct payloads, each on four different keys of the twin: 10,400 injections.
+    payloads = _fuzz_payloads(2_600)
+    assert len(payloads) == 2_600
+    run_keys = topic_keys(TWIN)
+
+    def would_apply(key: str, payload: bytes) -> bool:  # a forgery of this very run: not garbage
+        try:
+            return decode_for_key(key, payload).run_id == "run"
+        except MessageError:
+            return False
+
+    plan = [(run_keys[(4 * i + j) % len(run_keys)], p) for i, p in enumerate(payloads) for j in range(4)]
+    plan = [(key, p) for key, p in plan if not would_apply(key, p)]
+    config = RunConfig(particles=300, steps=120, seed=13, twin=TWIN)
+    port = free_port()
+    outcome = {}
+    launcher = threading.Thread(target=lambda: outcome.update(result=launch(
+        config, log_path=tmp_path / "fuzzed.mcap", port=port, timeout=10.0, rate=30.0, notify=lambda text: None)))
+    launcher.start()
+    outsider = Outsider(port, TWIN)
+    sent = 0
+    try:
+        assert outsider.collect(lambda o: o.step >= 3, timeout=90), "the run did not start"
+        for key, payload in plan:
+            outsider.put(key, payload)
+            sent += 1
+            if sent % 200 == 0:
+                time.sleep(0.02)  # a few seconds of injection, across the run
+    finally:
+        outsider.close()
+        launcher.join(timeout=180)
+    result = outcome["result"]
+    assert sent >= 10_000
+    assert sorted(e.step for e in result.estimates) == list(range(1, 121))
+    assert not any(e.degraded for e in result.estimates)
+    reference = inprocess.run(config)
+    np.testing.assert_array_equal([e.mean for e in result.estimates], reference.means)  # number for number
+    assert result.exit_codes == {"recorder": 0, "system": 0, "information": 0, "entity": 0}
+    assert sum(result.rejected.values()) >= sent  # the recorder alone saw every one

@@ -43,7 +43,7 @@ from entity.models import StateSpaceModel
 from messages.arrays import check_particles, check_set
 from messages.streams import stream
 
-__all__ = ["ParticleFilter", "FilterStep", "Preprocessor", "Preprocessed", "FilterError"]
+__all__ = ["ParticleFilter", "FilterStep", "Preprocessor", "Preprocessed", "PreprocessReport", "FilterError"]
 
 #: z value of a two-sided 95% normal interval.
 Z95 = 1.959963984540054
@@ -51,6 +51,34 @@ Z95 = 1.959963984540054
 
 class FilterError(ValueError):
     """The filter cannot go on (for example every weight is zero at a step)."""
+
+
+@dataclass(frozen=True)
+class PreprocessReport:
+    """What one preprocessing did.
+
+    Attributes
+    ----------
+    threshold : float
+        W of Eq. 28.
+    n_large : int
+        M, particles with weight > W (kept unchanged).
+    n_processed : int
+        N - M, particles moved by Eq. 29-30.
+    n_mixed : int
+        Processed particles that took the first branch of Eq. 30 (u <= PS).
+    n_plain : int
+        Processed particles that took the second branch (u > PS).
+    ps : float
+        The degree factor used.
+    """
+
+    threshold: float
+    n_large: int
+    n_processed: int
+    n_mixed: int
+    n_plain: int
+    ps: float
 
 
 @dataclass(frozen=True)

@@ -51,6 +51,7 @@ import threading
 import traceback
 from pathlib import Path
 
+from messages.config import RunInputError
 from entity import models
 from entity.models import StateSpaceModel
 
@@ -67,7 +68,7 @@ _FORMS = "a built-in name, a name registered under dtpf.models, package.module:N
 _MODULE_NAME = re.compile(r"^[A-Za-z_]\w*(\.[A-Za-z_]\w*)*$")
 
 
-class ModelError(ValueError):
+class ModelError(RunInputError):
     """A model reference cannot be resolved, or the model it names is unusable (one-line message)."""
 
     def __init__(self, message: str):

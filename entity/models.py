@@ -19,95 +19,13 @@ initial state, the simulation draws x_2 .. x_T (section 4.1).
 from __future__ import annotations
 
 import math
-from abc import ABC, abstractmethod
 from dataclasses import dataclass
 
 import numpy as np
 
+from entity.base import StateSpaceModel
+
 __all__ = ["StateSpaceModel", "GrowthModel", "MODELS", "get"]
-
-
-class StateSpaceModel(ABC):
-    """The interface a scenario implements so that the filter can run it."""
-
-    #: Registry name of the model.
-    name: str
-    #: Dimension d of the state.
-    dim: int
-    #: Dimension m of one observation.
-    obs_dim: int
-
-    @property
-    def samples_observations(self) -> bool:
-        """Whether ``sample_observation`` can draw z_k (the system layer's simulating policies and
-        ``dtpf sensor`` need it): True when the model overrides it. A subclass may set it as a class
-        attribute instead."""
-        return type(self).sample_observation is not StateSpaceModel.sample_observation
-
-    @abstractmethod
-    def initial_particles(self, n: int, rng: np.random.Generator) -> np.ndarray:
-        """N particles of step 1, drawn from the prior p(x_1): (N, d)."""
-
-    @abstractmethod
-    def propagate(self, particles: np.ndarray, k: int, rng: np.random.Generator,
-                  noise: np.ndarray | None = None) -> np.ndarray:
-        """Draw x_k ~ p(x_k | x_(k-1)) for every particle: (N, d) -> (N, d).
-
-        ``noise``: what :meth:`propagation_noise` drew for this step, if it was
-        drawn ahead; the model then uses it (and may overwrite it) instead of
-        drawing. Only models whose ``propagation_noise`` returns an array get it.
-        """
-
-    def propagation_noise(self, n: int, k: int, rng: np.random.Generator) -> np.ndarray | None:
-        """The random numbers :meth:`propagate` draws first at step k, drawn on their own.
-
-        They depend on nothing but (n, k, rng), so the entity can draw them
-        while it waits for the information layer's answer of step k - 1.
-        ``propagate(particles, k, rng, noise=propagation_noise(n, k, rng))``
-        gives the same numbers as ``propagate(particles, k, rng)``. None (the
-        default): this model draws inside ``propagate`` only.
-        """
-        return None
-
-    @abstractmethod
-    def log_likelihood(self, particles: np.ndarray, observation: np.ndarray, k: int) -> np.ndarray:
-        """log p(z_k | x_k) for every particle: (N, d), (m,) -> (N,)."""
-
-    def sample_observation(self, states: np.ndarray, k: int, rng: np.random.Generator) -> np.ndarray:
-        """Draw z_k ~ p(z_k | x_k) for every state: (S, d) -> (S, m).
-
-        Optional: a twin of a real system filters observations from outside and
-        never draws them; only the simulating policies, ``simulate`` and
-        ``dtpf sensor`` need it.
-        """
-        raise NotImplementedError(f"model {getattr(self, 'name', type(self).__name__)!r} does not "
-                                  f"implement sample_observation")
-
-    def observation_moments(self, particles: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray] | None:
-        """Mean of z_k given each particle and the observation noise variance: (N, m), (m,).
-
-        Optional (default None). Where a model gives it, the filter reports the
-        normalised innovation of each observation, the check of a filter that
-        runs without truth.
-        """
-        return None
-
-    def simulate(self, steps: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-        """A true path and its observations for k = 1 .. steps: (T, d), (T, m).
-
-        The default draws x_1 from the prior, then x_k with ``propagate`` and
-        z_k with ``sample_observation``; models with a fixed x_1 override it.
-        """
-        if steps < 1:
-            raise ValueError(f"steps must be at least 1, got {steps}")
-        x = self.initial_particles(1, rng)
-        states, observations = [], []
-        for k in range(1, steps + 1):
-            if k > 1:
-                x = self.propagate(x, k, rng)
-            states.append(np.array(x[0], dtype=np.float64))
-            observations.append(np.array(self.sample_observation(x, k, rng)[0], dtype=np.float64))
-        return np.array(states), np.array(observations)
 
 
 @dataclass(frozen=True)

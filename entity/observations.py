@@ -89,6 +89,8 @@ from typing import Sequence
 import numpy as np
 from numpy.lib import format as npy_format
 
+from messages.config import RunInputError
+
 __all__ = ["ObservationError", "ObservationTable", "read_observations",
            "MAX_FILE_BYTES", "MAX_COLUMNS", "MAX_LINE_CHARS"]
 
@@ -116,7 +118,7 @@ _NPY_MAGIC = b"\x93NUMPY"
 _ZIP_MAGIC = b"PK"
 
 
-class ObservationError(ValueError):
+class ObservationError(RunInputError):
     """A file of observations cannot be used; the message is one line.
 
     Attributes

@@ -219,7 +219,7 @@ def _multinomial_ancestors(weights: np.ndarray, m: int, rng: np.random.Generator
     normalised partial sums of M + 1 standard exponentials ("uniform
     spacings"), which costs one exponential draw and one add per point
     instead of a log, a division and an exp; both are O(M). Measured at
-    M = 1e6 by scripts/bench_resampling.py: see the README.
+    M = 1e6 by scripts/bench/resampling.py: see the README.
     """
     return _spacings(weights, rng.standard_exponential(m + 1))
 

@@ -18,22 +18,18 @@ Run ``python -m entity.service --help`` for the options.
 from __future__ import annotations
 
 import argparse
-import base64
 import time
 
 import numpy as np
 import zenoh
 
 from entity import sources
-from entity.filter import ParticleFilter, Preprocessed
+from entity.filter import ParticleFilter, Preprocessed, PreprocessReport
 from entity.intake import ObservationIntake
-from entity.tracking import VideoTrackingModel, encode_jpeg
-from information.rules import PreprocessReport
 from messages.admission import RunShape
 from messages.bus import add_zenoh_arguments
 from messages.config import RunConfig, add_run_arguments
-from messages.models import (ARRAYS_CHECKED, CompressedImage, Estimate, Observation, ParticleSet, ParticleSetKind,
-                             ServiceState, Time)
+from messages.models import ARRAYS_CHECKED, Estimate, Observation, ParticleSet, ParticleSetKind, ServiceState
 from messages.service import ServiceShell, add_service_arguments, run_service
 
 __all__ = ["ZenohTwin", "main"]
@@ -136,10 +132,8 @@ def _publish_step(shell: ServiceShell, step, truth, observation, model, config: 
         ps=report.ps if report is not None else None,
         log_predictive=step.log_predictive if np.isfinite(step.log_predictive) else None,
         innovation=step.innovation if step.innovation is not None and np.isfinite(step.innovation) else None))
-    if isinstance(model, VideoTrackingModel):  # the frame, so the log plays as a video in Foxglove
-        shell.publish(CompressedImage(
-            **shell.header(step.step), timestamp=Time.now(), frame_id="camera", format="jpeg",
-            data=base64.b64encode(encode_jpeg(model.video.frame(step.step))).decode("ascii")))
+    for message in model.step_messages(shell.header(step.step)):  # e.g. the video scenario's frame
+        shell.publish(message)
 
 
 def _run_batch(shell: ServiceShell, pf: ParticleFilter, data, model, config: RunConfig,

@@ -24,6 +24,7 @@ from entity.model_check import load_checked
 from entity.model_ref import ModelError
 from entity.models import StateSpaceModel
 from entity.observations import ObservationTable, read_observations
+from messages import names
 from messages.streams import stream
 
 __all__ = ["RunData", "load_model", "observations_of", "sampling_need", "ModelError"]
@@ -45,11 +46,9 @@ class RunData:
 
 def sampling_need(config, *, sensor: bool = False) -> str | bool:
     """Why this run needs ``sample_observation`` (a text for the error), or False."""
-    from system import policy
-
     if sensor:
         return "dtpf sensor (it simulates observations)"
-    if config.preprocess and policy.POLICIES[config.policy].simulates:
+    if config.preprocess and config.policy in names.SIMULATING_POLICIES:
         return f"the system layer's policy {config.policy!r} (it simulates observations)"
     return False
 

@@ -54,7 +54,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from entity.models import StateSpaceModel
+from entity.base import StateSpaceModel
 from entity.video import Video, VideoScene, render
 
 __all__ = ["VideoTrackingModel", "disc_offsets", "hsv_bins", "encode_jpeg", "FRAME_SCENARIO_HINT"]
@@ -153,6 +153,16 @@ class VideoTrackingModel(StateSpaceModel):
     def radius1(self) -> float:
         """r_1, the radius of the circle around the target on frame 1 (scale 1)."""
         return float(self.video.truth[0, 2])
+
+    def step_messages(self, header: dict) -> list:
+        """The frame of the step as a ``foxglove.CompressedImage`` (base64 JPEG)."""
+        import base64
+
+        from messages.models import CompressedImage, Time
+
+        frame = encode_jpeg(self.video.frame(header["step"]))
+        return [CompressedImage(**header, timestamp=Time.now(), frame_id="camera", format="jpeg",
+                                data=base64.b64encode(frame).decode("ascii"))]
 
     def frame_number(self, observation) -> int:
         """The frame an observation names, or a ValueError naming the value and the frame range."""

@@ -44,6 +44,7 @@ import numba
 import numpy as np
 
 from information.select import kth_largest
+from entity.filter import PreprocessReport  # the filter's contract: what it receives
 from messages.arrays import check_probability, check_set
 
 __all__ = [
@@ -62,34 +63,6 @@ THRESHOLD_RULES = ("neff", "inverse-n")
 WEIGHT_RULES = ("inherit", "likelihood")
 
 LogLikelihood = Callable[[np.ndarray], np.ndarray]
-
-
-@dataclass(frozen=True)
-class PreprocessReport:
-    """What one preprocessing did.
-
-    Attributes
-    ----------
-    threshold : float
-        W of Eq. 28.
-    n_large : int
-        M, particles with weight > W (kept unchanged).
-    n_processed : int
-        N - M, particles moved by Eq. 29-30.
-    n_mixed : int
-        Processed particles that took the first branch of Eq. 30 (u <= PS).
-    n_plain : int
-        Processed particles that took the second branch (u > PS).
-    ps : float
-        The degree factor used.
-    """
-
-    threshold: float
-    n_large: int
-    n_processed: int
-    n_mixed: int
-    n_plain: int
-    ps: float
 
 
 @dataclass(frozen=True)

@@ -23,7 +23,11 @@ Particle sets travel in a binary envelope (JSON header + raw little-endian
 float64; layout in :mod:`messages.codec` and ``docs/encoding.md``), every other
 message as plain JSON that Foxglove can plot. Array validation shared with the
 algorithms lives in :mod:`messages.arrays`, per-step random streams in
-:mod:`messages.streams`.
+:mod:`messages.streams`, the names a configuration may use in
+:mod:`messages.names`.
+
+The wire contract is the ground floor: it imports no layer (entity,
+information, system) and no command; every other package may import it.
 """
 __all__ = [
     "Estimate", "Layer", "Message", "ParticleSet", "ParticleSetKind", "PSCommand", "ServiceState",

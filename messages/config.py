@@ -13,7 +13,14 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-__all__ = ["RunConfig", "ID_PATTERN", "add_run_arguments", "config_from_args"]
+from messages import names
+
+__all__ = ["RunConfig", "RunInputError", "ID_PATTERN", "add_run_arguments", "config_from_args"]
+
+
+class RunInputError(ValueError):
+    """What the user gave a run cannot be used: a model, an observation file. A service exits 2 with
+    the one-line message, no traceback (entity.model_ref.ModelError, entity.observations.ObservationError)."""
 
 #: Run and twin ids: safe inside a Zenoh key expression and a file name.
 ID_PATTERN = r"^[A-Za-z0-9_.-]+$"
@@ -47,7 +54,7 @@ class RunConfig(BaseModel):
                                                "resampling; False gives the plain traditional filter.")
     threshold: str | float = Field("neff", description="Threshold W of Eq. 28: 'neff' (the round(ESS)+1-th "
                                    "largest weight), 'inverse-n' (1/N) or a number.")
-    weight_rule: Literal["inherit", "likelihood"] = Field("inherit", description="Weights of processed "
+    weight_rule: Literal[names.WEIGHT_RULES] = Field("inherit", description="Weights of processed "
                                                           "particles: keep them, or re-evaluate the likelihood.")
     policy: str = Field("fixed", description="PS policy of the system layer.")
     ps: float = Field(0.81, ge=0.0, le=1.0, description="PS of the fixed policy, and the initial PS.")
@@ -60,10 +67,9 @@ class RunConfig(BaseModel):
     @field_validator("scenario")
     @classmethod
     def _known_scenario(cls, value: str) -> str:
-        from entity import model_ref
-        names = model_ref.registered_names()
-        if value not in names:
-            raise ValueError(f"unknown scenario {value!r}; expected one of {', '.join(names)} "
+        known = names.scenario_names()
+        if value not in known:
+            raise ValueError(f"unknown scenario {value!r}; expected one of {', '.join(known)} "
                              f"(or give your own model with --model)")
         return value
 
@@ -123,22 +129,21 @@ class RunConfig(BaseModel):
     @field_validator("resampler")
     @classmethod
     def _known_resampler(cls, value: str) -> str:
-        from entity import resampling
-        resampling.get(value)
+        if value not in names.RESAMPLERS:
+            raise ValueError(f"unknown resampler {value!r}; expected one of {', '.join(names.RESAMPLERS)}")
         return value
 
     @field_validator("policy")
     @classmethod
     def _known_policy(cls, value: str) -> str:
-        from system import policy
-        if value not in policy.POLICIES:
-            raise ValueError(f"unknown PS policy {value!r}; expected one of {', '.join(policy.POLICIES)}")
+        if value not in names.POLICIES:
+            raise ValueError(f"unknown PS policy {value!r}; expected one of {', '.join(names.POLICIES)}")
         return value
 
     @field_validator("threshold")
     @classmethod
     def _known_threshold(cls, value: str | float) -> str | float:
-        from information.rules import THRESHOLD_RULES
+        THRESHOLD_RULES = names.THRESHOLD_RULES
         if isinstance(value, str) and value not in THRESHOLD_RULES:
             try:
                 value = float(value)
@@ -156,9 +161,7 @@ class RunConfig(BaseModel):
         if self.model is not None:
             return self  # a user model is checked when it is loaded (entity.model_check)
         # A simulating policy draws observations from the model; a video scenario cannot.
-        from entity import models
-        from system import policy
-        if policy.POLICIES[self.policy].simulates and not models.get(self.scenario).samples_observations:
+        if self.policy in names.SIMULATING_POLICIES and self.scenario in names.CANNOT_SAMPLE:
             raise ValueError(f"policy {self.policy!r} simulates observations, which scenario "
                              f"{self.scenario!r} cannot draw (the video scenario does not support the "
                              f"simulating system-layer policies rule, predictive); use policy 'fixed'")
@@ -167,15 +170,9 @@ class RunConfig(BaseModel):
 
 def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of one run, shared by every command that starts a run."""
-    from entity import models, resampling
-    from information.rules import WEIGHT_RULES
-    from system import policy
-
-    from entity import model_ref
-
     defaults = RunConfig()
     group = parser.add_argument_group("scenario and filter")
-    group.add_argument("--scenario", default=defaults.scenario, choices=model_ref.registered_names(),
+    group.add_argument("--scenario", default=defaults.scenario, choices=names.scenario_names(),
                        help="state-space model by name: 'ungm' is Eq. 35 with 25 (the standard benchmark), "
                             "'ungm-printed' Eq. 35 as printed with 0.25, 'video' the tracking scenario; "
                             "installed packages add names through the entry-point group 'dtpf.models' "
@@ -193,7 +190,7 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--steps", "-T", type=int, default=None,
                        help=f"number of time points (default: {defaults.steps} for a simulation; every row "
                             f"of an observation file; live: until the sensor ends its stream)")
-    group.add_argument("--resampler", default=defaults.resampler, choices=sorted(resampling.RESAMPLERS),
+    group.add_argument("--resampler", default=defaults.resampler, choices=sorted(names.RESAMPLERS),
                        help="traditional resampling run after preprocessing (default: %(default)s)")
     group.add_argument("--resample-below", type=float, default=None, metavar="FRACTION",
                        help="resample only when ESS < FRACTION * N (default: every step, as the paper)")
@@ -205,9 +202,9 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
                        help="turn the DT preprocessing off: the plain traditional filter")
     group.add_argument("--threshold", default=defaults.threshold,
                        help="W of Eq. 28: 'neff', 'inverse-n' or a number (default: %(default)s)")
-    group.add_argument("--weight-rule", default=defaults.weight_rule, choices=WEIGHT_RULES,
+    group.add_argument("--weight-rule", default=defaults.weight_rule, choices=names.WEIGHT_RULES,
                        help="weights of processed particles (default: %(default)s)")
-    group.add_argument("--policy", default=defaults.policy, choices=sorted(policy.POLICIES),
+    group.add_argument("--policy", default=defaults.policy, choices=sorted(names.POLICIES),
                        help="PS policy of the system layer (default: %(default)s)")
     group.add_argument("--ps", type=float, default=defaults.ps,
                        help="PS of the fixed policy, initial PS of the others (default: %(default)s)")

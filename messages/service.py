@@ -33,7 +33,7 @@ from messages import keys
 from messages.admission import RunShape, kind_of
 from messages.bus import BusError, Inbox, Presence, Received, open_session, publisher
 from messages.codec import MessageError, decode_for_key, encode
-from messages.config import RunConfig
+from messages.config import RunConfig, RunInputError
 from messages.models import Layer, Message, NamedCount, ServiceState, Status
 
 __all__ = ["ServiceShell", "add_service_arguments", "run_service"]
@@ -377,7 +377,7 @@ class ServiceShell:
         self._next_rejection_log = now + REJECTION_LOG_INTERVAL
         # Every 10 s the free pages go back as well: the freed message buffers kept for reuse
         # (keep_large_blocks) otherwise fragment the heap, and the recorder grew 2.1 MB per
-        # 1,000 steps over a 20,000-step launch (scripts/soak_memory.py).
+        # 1,000 steps over a 20,000-step launch (scripts/bench/soak_memory.py).
         release_memory()
         new = rejected - self._rejected_logged
         if new:
@@ -463,12 +463,9 @@ def run_service(layer: str, main, parser: argparse.ArgumentParser, argv=None) ->
         parser.exit(2, f"{parser.prog}: error: {error}\n")
     if args.exit_with_parent:
         _watch_parent()
-    from entity.model_ref import ModelError
-    from entity.observations import ObservationError
-
     try:
         code = main(config, zconf, args)
-    except (ModelError, ObservationError) as error:  # the user's model or file: one line, no traceback
+    except RunInputError as error:  # the user's model or file: one line, no traceback
         parser.exit(2, f"{parser.prog}: error: {error}\n")
     except BusError as error:
         logging.getLogger(f"dtpf.{layer}").error("%s", error)

@@ -13,35 +13,12 @@ from pathlib import Path
 import numpy as np
 
 from entity import sources
+from scripts.console import ProgressBar, run_command
 from messages.config import add_run_arguments, config_from_args
 
 __all__ = ["main"]
 
 
-class Progress:
-    """A one-line progress bar on stderr, redrawn at most every 2 %."""
-
-    def __init__(self, stream=sys.stderr, width: int = 30):
-        self.stream = stream
-        self.width = width
-        self.shown = -1
-
-    def __call__(self, done: int, total: int | None) -> None:
-        if not total:  # a live run: no end known
-            if done - self.shown >= 10 or self.shown < 0:
-                self.shown = done
-                self.stream.write(f"\rstep {done}")
-                self.stream.flush()
-            return
-        percent = 100 * done // total
-        if percent // 2 == self.shown // 2 and done != total:
-            return
-        self.shown = percent
-        filled = self.width * done // total
-        self.stream.write(f"\r[{'#' * filled}{'.' * (self.width - filled)}] step {done}/{total}")
-        if done == total:
-            self.stream.write("\n")
-        self.stream.flush()
 
 
 def resolved_config(args: argparse.Namespace):
@@ -59,7 +36,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     from scripts.inprocess import run
 
     config = config_from_args(args)  # run() reads the file once; T is its rows unless --steps is smaller
-    result = run(config, progress=None if args.quiet else Progress())
+    result = run(config, progress=None if args.quiet else ProgressBar())
     ps = result.ps
     ps_text = "off" if not config.preprocess else f"{np.nanmin(ps):g} .. {np.nanmax(ps):g}"
     lines = [
@@ -103,7 +80,7 @@ def cmd_launch(args: argparse.Namespace) -> int:
     try:
         result = launch(config, log_path=args.log, port=args.port, timeout=args.timeout,
                         startup_timeout=args.startup_timeout, log_level=args.log_level, rate=args.rate,
-                        progress=None if args.quiet else Progress(),
+                        progress=None if args.quiet else ProgressBar(),
                         observation_timeout=args.observation_timeout,
                         restarts=0 if args.no_restart else args.restarts, keep_estimates=False,
                         notify=lambda text: print(f"\ndtpf launch: {text}", file=sys.stderr, flush=True))
@@ -170,7 +147,11 @@ def build_parser() -> argparse.ArgumentParser:
     group.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
     launch.set_defaults(handler=cmd_launch)
 
-    from scripts import inspect_log, play, plot_log, sensor, verify
+    from scripts import sensor
+    from scripts.logs import summary as inspect_log
+    from scripts.logs import play
+    from scripts.logs import plot as plot_log
+    from scripts.logs import verify
     inspect_log.register(commands)
     plot_log.register(commands)
     play.register(commands)
@@ -181,16 +162,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
-    try:
-        return args.handler(args)
-    except ValueError as error:
-        parser.exit(2, f"dtpf {args.command}: error: {error}\n")
-    except KeyboardInterrupt:
-        return 130
-    except BrokenPipeError:  # output piped into head and closed
-        sys.stderr.close()
-        return 0
+    return run_command(parser, parser.parse_args(argv))
 
 
 if __name__ == "__main__":

@@ -30,6 +30,7 @@ from messages.codec import MessageError, decode_for_key
 from messages.config import RunConfig, add_run_arguments, config_from_args
 from messages.models import Observation, Status
 from messages.service import ServiceShell
+from scripts.console import run_command
 
 __all__ = ["main", "register", "resume_point"]
 
@@ -137,6 +138,13 @@ def register(subparsers) -> None:
     parser.set_defaults(handler=cmd_sensor)
 
 
+def command_line(argv: list[str] | None = None) -> int:
+    """``python -m scripts.sensor``: the same as ``dtpf sensor``."""
+    parser = argparse.ArgumentParser(prog="python -m scripts.sensor")
+    commands = parser.add_subparsers(dest="command", required=True)
+    register(commands)
+    return run_command(parser, parser.parse_args(["sensor", *(sys.argv[1:] if argv is None else argv)]))
+
+
 if __name__ == "__main__":
-    from scripts.cli import main as cli_main
-    sys.exit(cli_main(["sensor", *sys.argv[1:]]))
+    sys.exit(command_line())

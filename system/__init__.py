@@ -6,4 +6,6 @@ history and the twin's one-step simulation), :mod:`system.policy` (the PS
 policy interface and its policies: fixed, rule, predictive),
 :mod:`system.layer` (the transport-free layer object) and
 :mod:`system.service` (its Zenoh shell). Measurements: docs/system-layer.md.
+It may import the floors below it: the wire contract, the entity and the
+information layer (its simulation runs their rules).
 """

@@ -1,4 +1,4 @@
-"""Reading, summarising and recovering MCAP logs, complete and damaged (messages.logfile, scripts.inspect_log).
+"""Reading, summarising and recovering MCAP logs, complete and damaged (messages.logfile, scripts.logs.summary).
 
 One real launch (four processes over Zenoh on loopback) makes the log the
 module's tests read; damaged logs are prefixes and corruptions of it, and
@@ -22,7 +22,7 @@ from mcap.stream_reader import StreamReader, breakup_chunk
 from messages.config import RunConfig
 from messages.logfile import MAGIC, LogError, LogMessage, read_log, write_log
 from messages.recording import AUTO_LIMIT, McapRecording, auto_compression
-from scripts import inspect_log
+from scripts.logs import summary as inspect_log
 from scripts.inprocess import run
 from scripts.launch import launch
 

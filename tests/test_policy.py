@@ -15,7 +15,7 @@ from messages.logfile import read_log, write_log
 from messages.models import Estimate, PSCommand
 from scripts.inprocess import build, run, simulate
 from scripts.launch import launch
-from scripts.verify import verify
+from scripts.logs.verify import verify
 from system import policy as ps_policy
 from system.layer import SystemLayer
 from system.predict import Forecast, Predictor, Snapshot
@@ -259,8 +259,8 @@ def test_verify_notices_an_altered_predicted_figure(adaptive_log, tmp_path):
 
 
 def test_the_evaluation_command_prints_every_variant_with_finite_figures(tmp_path, capsys):
-    """A reduced ``python -m scripts.evaluate_policies``: the table and the plot, not the verdict."""
-    from scripts import evaluate_policies
+    """A reduced ``python -m scripts.paper.evaluate_policies``: the table and the plot, not the verdict."""
+    from scripts.paper import evaluate_policies
 
     plot = tmp_path / "ps.png"
     assert evaluate_policies.main(["--seeds", "3", "--particles", "50", "--steps", "20", "--workers", "1",

@@ -13,8 +13,8 @@ from messages.codec import decode_for_key, encode
 from messages.config import RunConfig
 from messages.logfile import read_log, write_log
 from scripts.launch import launch
-from scripts.play import select
-from scripts.verify import verify
+from scripts.logs.play import select
+from scripts.logs.verify import verify
 from conftest import ROOT
 
 

@@ -24,7 +24,7 @@ from messages.codec import MessageError, decode_for_key, encode
 from messages.logfile import read_logs
 from messages.models import Estimate, ParticleSet, Status
 from messages.recording import McapRecording
-from scripts import inspect_log
+from scripts.logs import summary as inspect_log
 
 
 class Outsider:

@@ -21,7 +21,7 @@ from messages.config import RunConfig
 from messages.models import CompressedImage, Time
 from messages.schema import foxglove_problems
 from scripts import inprocess
-from scripts import tracking as report
+from scripts.paper import tracking as report
 
 MODEL = models.get("video")
 TRUTH = MODEL.true_states()

@@ -14,8 +14,8 @@ for each and deleted after. Medians.
 
 Run from the repository root::
 
-    python -m scripts.bench_recording                    # N = 1e3 .. 1e6
-    python -m scripts.bench_recording --sizes 1e5 --steps 50
+    python -m scripts.bench.recording                    # N = 1e3 .. 1e6
+    python -m scripts.bench.recording --sizes 1e5 --steps 50
 """
 from __future__ import annotations
 
@@ -32,7 +32,7 @@ import mcap
 
 from messages import crc
 from messages.recording import McapRecording
-from scripts.bench_pipeline import fmt_n, parse_size
+from scripts.bench.pipeline import fmt_n, parse_size
 
 KEYS = ("dtpf/bench/entity/particles", "dtpf/bench/information/preprocessed")
 
@@ -67,7 +67,7 @@ def time_writes(payload: bytes, steps: int, fast: bool, folder: Path) -> float:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m scripts.bench_recording", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m scripts.bench.recording", description=__doc__.split("\n\n")[0])
     parser.add_argument("--sizes", nargs="+", type=parse_size, default=[1_000, 10_000, 100_000, 1_000_000],
                         help="particle counts N (default: 1e3 1e4 1e5 1e6)")
     parser.add_argument("--steps", type=int, default=100, help="steps recorded per method and repetition "

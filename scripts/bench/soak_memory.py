@@ -22,8 +22,8 @@ complete.
 
 Run from the repository root::
 
-    python -m scripts.soak_memory                          # T = 20,000 at N = 1,000
-    python -m scripts.soak_memory --steps 3000 --sample-every 250
+    python -m scripts.bench.soak_memory                          # T = 20,000 at N = 1,000
+    python -m scripts.bench.soak_memory --steps 3000 --sample-every 250
 """
 from __future__ import annotations
 
@@ -228,7 +228,7 @@ def report(series: dict[str, RssSeries], args: argparse.Namespace, last_step: in
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(
-        prog="python -m scripts.soak_memory",
+        prog="python -m scripts.bench.soak_memory",
         description="Run one long dtpf launch and sample the resident memory (VmRSS) of the launcher and of its "
                     "recorder, system, information and entity processes as the run goes on; prints a table and "
                     f"PASS/FAIL against 'RSS at the end within {TOLERANCE:.0%} of RSS at step {REFERENCE_STEP:,}'.",

@@ -26,8 +26,8 @@ the target is missed, 130 after Ctrl-C otherwise.
 
 Run from the repository root::
 
-    python -m scripts.soak_launches                       # 200 launches, about 12 minutes on 2 cores
-    python -m scripts.soak_launches --launches 5
+    python -m scripts.bench.soak_launches                       # 200 launches, about 12 minutes on 2 cores
+    python -m scripts.bench.soak_launches --launches 5
 """
 from __future__ import annotations
 
@@ -214,7 +214,7 @@ def report(outcomes: list[LaunchOutcome], args: argparse.Namespace, elapsed: flo
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(
-        prog="python -m scripts.soak_launches",
+        prog="python -m scripts.bench.soak_launches",
         description="Run many short dtpf launches (scripts.launch.launch) one after another and count those "
                     "where a child had to be SIGKILLed, a child's exit code was not 0, the estimates received "
                     "were not --steps or the log was not readable; prints a table and the wall and shutdown "

@@ -15,7 +15,7 @@ file is read as far as it goes (:mod:`messages.logfile`); the commands say
 what is missing first, then report what is there.
 
 ``register(subparsers)`` adds the three commands to an argparse parser; the
-module also runs on its own: ``python -m scripts.inspect_log info run.mcap``.
+module also runs on its own: ``python -m scripts.logs.summary info run.mcap``.
 """
 from __future__ import annotations
 
@@ -607,7 +607,7 @@ def register(subparsers) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m scripts.inspect_log",
+    parser = argparse.ArgumentParser(prog="python -m scripts.logs.summary",
                                      description="Inspect and recover dtpf MCAP logs.")
     register(parser.add_subparsers(dest="command", metavar="COMMAND", required=True))
     args = parser.parse_args(argv)

@@ -37,9 +37,9 @@ medians of per-repetition ratios against the reference of the same repetition.
 
 Run from the repository root::
 
-    python -m scripts.bench_resampling                       # N = 1e3 .. 1e6, about 4 minutes
-    python -m scripts.bench_resampling --quick               # smoke run, a few seconds
-    python -m scripts.bench_resampling --sizes 1e5 --repeats 5
+    python -m scripts.bench.resampling                       # N = 1e3 .. 1e6, about 4 minutes
+    python -m scripts.bench.resampling --quick               # smoke run, a few seconds
+    python -m scripts.bench.resampling --sizes 1e5 --repeats 5
 
 particles and filterpy are optional (``pip install -e '.[bench]'``); their
 rows read "not installed" without them.
@@ -397,7 +397,7 @@ def repeats_for(n: int, table: dict[int, int], override: int | None) -> int:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(
-        prog="python -m scripts.bench_resampling",
+        prog="python -m scripts.bench.resampling",
         description="Resampling kernels (dtpf, particles, filterpy, DT preprocessing) and one full filter "
                     "step on the growth model (dtpf with and without the in-process twin, particles.SMC, a "
                     "numpy loop with filterpy), interleaved in shuffled order; prints Markdown tables of "
@@ -447,7 +447,7 @@ def main(argv=None) -> int:
                                   args.seed, order, truth, observations)
     total = time.perf_counter() - start
 
-    command = "python -m scripts.bench_resampling" + (" " + " ".join(sys.argv[1:]) if sys.argv[1:] else "")
+    command = "python -m scripts.bench.resampling" + (" " + " ".join(sys.argv[1:]) if sys.argv[1:] else "")
     malloc = " ".join(f"{k}={v}" for k, v in os.environ.items() if k.startswith("MALLOC_")) or "default malloc"
     print(f"`{command}`\n\n{os.cpu_count()} CPUs ({cpu_name()}), Python {platform.python_version()}, "
           f"numpy {np.__version__}, numba {numba.__version__}, particles {version('particles')}, "

@@ -2,16 +2,16 @@
 
 ::
 
-    python -m scripts.experiments                  # everything: CSV, PNG, docs/experiments.md
-    python -m scripts.experiments --quick          # a reduced run (minutes -> seconds), same outputs
-    python -m scripts.experiments --only table3    # one experiment again; the report is rebuilt
+    python -m scripts.paper.experiments                  # everything: CSV, PNG, docs/experiments.md
+    python -m scripts.paper.experiments --quick          # a reduced run (minutes -> seconds), same outputs
+    python -m scripts.paper.experiments --only table3    # one experiment again; the report is rebuilt
 
 Experiments (``--only`` names): ``table2`` (MSE of the five resampling
 methods, N in {10, 100, 500}, S in {1, 20, 100}), ``fig4`` (error over the
 first 50 time points, N = 5000), ``fig5`` (mean RMSE against the number of
 resamplings, N = 600), ``figs6-8`` (one DT run at N = 5000: state,
 observation, estimate, 95% interval, errors; plus coverage over many runs),
-``tracking`` (section 5, the video tracking application: ``scripts.tracking``,
+``tracking`` (section 5, the video tracking application: ``scripts.paper.tracking``,
 whose report goes beside this one), ``table3`` (run time per resampler at
 N = 5000, 7500, 10000).
 
@@ -44,33 +44,18 @@ import numpy as np
 
 from messages.config import RunConfig
 from scripts import inprocess
+from scripts.console import TaskProgress
+from scripts.paper.common import (COLOURS, DPI, DT_METHODS, METHOD_CONFIG, METHODS, PAPER_PS, STYLES,
+                                 TRADITIONAL, Z95, _figure, _fmt, _save, mean_ci, pm, significance, write_csv)
 
 __all__ = ["Plan", "FULL", "QUICK", "EXPERIMENTS", "run_one", "main"]
 
 SCENARIOS = ("ungm", "ungm-printed")
 SCENARIO_LABEL = {"ungm": "ungm (Eq. 35 with 25)", "ungm-printed": "ungm-printed (Eq. 35 as printed, 0.25)"}
-TRADITIONAL = ("stratified", "multinomial", "systematic", "residual")
-DT_METHODS = ("DT inherit", "DT likelihood")
-#: The paper's fixed degree factor (section 4.1); pinned, whatever the library's default policy becomes.
-PAPER_PS = 0.81
-METHODS = TRADITIONAL + DT_METHODS
-#: RunConfig fields of each method.
-METHOD_CONFIG = {
-    **{name: dict(preprocess=False, resampler=name) for name in TRADITIONAL},
-    "DT inherit": dict(preprocess=True, resampler="systematic", weight_rule="inherit", policy="fixed", ps=PAPER_PS),
-    "DT likelihood": dict(preprocess=True, resampler="systematic", weight_rule="likelihood", policy="fixed",
-                          ps=PAPER_PS),
-}
-COLOURS = {"stratified": "tab:blue", "multinomial": "tab:orange", "systematic": "tab:green",
-           "residual": "tab:purple", "DT inherit": "tab:red", "DT likelihood": "black", "DT rules only": "tab:pink"}
-STYLES = {"DT likelihood": "--", "DT rules only": ":"}
 #: Methods whose CI band is drawn where six bands would hide each other.
 BANDS = ("systematic", "DT inherit")
-Z95 = 1.959963984540054
 #: ESS is at least 1, so ``ESS < _NEVER * N`` never holds: no resampling at that step.
 _NEVER = 1e-300
-#: Figures: small PNGs (the report links them).
-DPI = 80
 
 
 @dataclass(frozen=True)
@@ -156,32 +141,11 @@ def _task(args):
     return key, run_one(**kwargs)
 
 
-class Progress:
-    """Progress of one experiment on stderr: a redrawn line on a terminal, a line per 10% otherwise."""
-
-    def __init__(self, name: str, total: int):
-        self.name, self.total, self.start = name, total, time.perf_counter()
-        self.tty = sys.stderr.isatty()
-        self.shown = -1
-
-    def __call__(self, done: int) -> None:
-        percent = 100 * done // max(self.total, 1)
-        step = 1 if self.tty else 10
-        if percent // step == self.shown // step and done != self.total:
-            return
-        self.shown = percent
-        elapsed = time.perf_counter() - self.start
-        eta = elapsed / done * (self.total - done) if done else float("nan")
-        line = f"{self.name}: {done}/{self.total} runs ({percent}%), {elapsed:.0f} s, about {eta:.0f} s left"
-        sys.stderr.write(("\r" + line + " " * 8) if self.tty else line + "\n")
-        if self.tty and done == self.total:
-            sys.stderr.write("\n")
-        sys.stderr.flush()
 
 
 def run_many(name: str, tasks: list[tuple], workers: int) -> dict:
     """Run ``(key, kwargs)`` tasks on ``workers`` processes; returns {key: result}."""
-    progress = Progress(name, len(tasks))
+    progress = TaskProgress(name, len(tasks))
     results = {}
     if workers <= 1:
         for i, task in enumerate(tasks, 1):
@@ -207,12 +171,6 @@ def warm_up() -> None:
 
 # --- statistics ------------------------------------------------------------------------------------
 
-def mean_ci(values) -> tuple[float, float]:
-    """Mean and the half-width of its 95% normal interval (NaN half-width for one value)."""
-    values = np.asarray(values, dtype=float)
-    if values.size < 2:
-        return float(values.mean()), float("nan")
-    return float(values.mean()), Z95 * float(values.std(ddof=1)) / math.sqrt(values.size)
 
 
 def change_ci(a, b) -> tuple[float, float]:
@@ -225,28 +183,12 @@ def change_ci(a, b) -> tuple[float, float]:
     return 100.0 * (ratio - 1.0), 100.0 * Z95 * float(spread)
 
 
-def significance(value: float, half: float) -> int:
-    """-1 if the interval lies below 0, +1 above, 0 if it holds 0 (or is unknown)."""
-    if not math.isfinite(half):
-        return 0
-    return -1 if value + half < 0 else (1 if value - half > 0 else 0)
 
 
 # --- files -----------------------------------------------------------------------------------------
 
-def _fmt(value) -> str:
-    if isinstance(value, float):
-        return f"{value:.6g}"
-    return str(value)
 
 
-def write_csv(path: Path, rows: list[dict]) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path, "w", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
-        writer.writeheader()
-        for row in rows:
-            writer.writerow({k: _fmt(v) for k, v in row.items()})
 
 
 def read_csv(path: Path) -> list[dict] | None:
@@ -297,28 +239,8 @@ def record_run(out: Path, plan: Plan, experiment: str, runs: int, total_runs: in
     write_csv(path, rows)
 
 
-def _figure(rows: int, cols: int, size: tuple[float, float]):
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    figure, axes = plt.subplots(rows, cols, figsize=size, squeeze=False)
-    return plt, figure, axes
 
 
-def _save(plt, figure, path: Path) -> None:
-    """Save as a small PNG: rendered at :data:`DPI`, then reduced to a 256-colour palette."""
-    import io
-    figure.tight_layout()
-    buffer = io.BytesIO()
-    figure.savefig(buffer, dpi=DPI, format="png")
-    plt.close(figure)
-    try:
-        from PIL import Image
-    except ImportError:  # pragma: no cover - Pillow comes with matplotlib
-        path.write_bytes(buffer.getvalue())
-        return
-    with Image.open(buffer) as image:
-        image.convert("RGB").quantize(256).save(path, optimize=True)
 
 
 # --- Table 2 ---------------------------------------------------------------------------------------
@@ -623,7 +545,7 @@ def table3(plan: Plan, out: Path, workers: int) -> int:
     raw = []
     cells = [(sc, n) for sc in SCENARIOS for n in plan.table3_particles]
     timed = METHODS + (RULES_ONLY,)
-    progress = Progress("table3", plan.table3_rounds * len(cells) * len(timed))
+    progress = TaskProgress("table3", plan.table3_rounds * len(cells) * len(timed))
     run_rules_only(SCENARIOS[0], 20, 3, 0)  # warm up
     done = 0
     for r in range(plan.table3_rounds):
@@ -683,8 +605,8 @@ def tracking_folder(out: Path) -> Path:
 
 
 def tracking(plan: Plan, out: Path, workers: int) -> tuple[int, int]:
-    """Section 5: the video tracking application (``scripts.tracking``, its own report beside this one)."""
-    from scripts import tracking as section5
+    """Section 5: the video tracking application (``scripts.paper.tracking``, its own report beside this one)."""
+    from scripts.paper import tracking as section5
 
     seeds = 4 if plan is QUICK else 500
     args = ["--out", str(tracking_folder(out)), "--seeds", str(seeds), "--workers", str(workers)]
@@ -699,10 +621,6 @@ EXPERIMENTS = {"table2": table2, "fig4": fig4, "fig5": fig5, "figs6-8": figs68, 
 
 # --- the report ------------------------------------------------------------------------------------
 
-def pm(value: float, half: float, digits: int = 3) -> str:
-    if not math.isfinite(half):
-        return f"{value:.{digits}g}"
-    return f"{value:.{digits}g} ± {half:.2g}"
 
 
 def pct(value: float, half: float) -> str:
@@ -1112,7 +1030,7 @@ def _tracking_section(out: Path, lines: list[str], closing: list[str]) -> None:
         "",
         f"**Ours.** A deterministic synthetic video with ground truth and a colour-histogram particle filter "
         f"(scenario `video`); the figures, the method and the verdict are in [its own report]({report}), "
-        f"written by the same command (`--only tracking`, or `python -m scripts.tracking`). Tracking error "
+        f"written by the same command (`--only tracking`, or `python -m scripts.paper.tracking`). Tracking error "
         f"over {rows[0]['runs']:.0f} seeds, N = 100, mean ± 95% CI; \"lost\": frames whose centre error "
         "exceeds the target's radius; differences paired by seed against the best traditional method "
         f"({rows[0]['best_traditional']}).",
@@ -1149,7 +1067,7 @@ def write_report(out: Path) -> Path:
         lines += ["**This is a QUICK run (`--quick`): a handful of Monte Carlo runs and small N. Its numbers are "
                   "a smoke test, not results.**", ""]
     lines += [
-        "Generated by `python -m scripts.experiments` (options: `--help`); every number below comes from the "
+        "Generated by `python -m scripts.paper.experiments` (options: `--help`); every number below comes from the "
         f"CSV files in `{_rel(out, out)}/`, written by that command. Re-run one experiment with "
         "`--only NAME` (table2, fig4, fig5, figs6-8, tracking, table3); the report is rebuilt from the files "
         "each time.",
@@ -1197,7 +1115,7 @@ def write_report(out: Path) -> Path:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
-        prog="python -m scripts.experiments",
+        prog="python -m scripts.paper.experiments",
         description="Reproduce the experiments of the paper's sections 4 and 5 (Table 2, Fig. 4, Fig. 5, "
                     "Figs. 6-8, Table 3; the tracking application, Figs. 9-11, with its own report beside "
                     "this one) and write CSV, PNG and a Markdown report.")

@@ -13,8 +13,8 @@ order; the table gives the median over repetitions of each run's p50 and p99.
 
 Run from the repository root::
 
-    python -m scripts.bench_live                        # N = 1e3, 1e4, 1e5; about 2 minutes
-    python -m scripts.bench_live --sizes 1e3 --steps 500 --repeats 3
+    python -m scripts.bench.live                        # N = 1e3, 1e4, 1e5; about 2 minutes
+    python -m scripts.bench.live --sizes 1e3 --steps 500 --repeats 3
 """
 from __future__ import annotations
 
@@ -37,7 +37,7 @@ from messages.bus import BusError, Inbox, free_port, open_session, publisher, ze
 from messages.codec import MessageError, decode_for_key, encode
 from messages.config import RunConfig
 from messages.models import Estimate, Observation, ServiceState, Status, Time
-from scripts.bench_pipeline import fmt_n
+from scripts.bench.pipeline import fmt_n
 
 #: Targets at N = 1e3 on 2 cores (issue 11): p50 and p99 latency in ms.
 TARGET_N, TARGET_P50_MS, TARGET_P99_MS = 1_000, 1.0, 3.0
@@ -108,7 +108,7 @@ def one_run(n: int, steps: int, warm_up: int, gap: float, seed: int, log_dir: Pa
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m scripts.bench_live", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m scripts.bench.live", description=__doc__.split("\n\n")[0])
     parser.add_argument("--sizes", nargs="+", default=["1e3", "1e4", "1e5"], help="particle counts N")
     parser.add_argument("--steps", type=int, default=300, help="observations per run (default: %(default)s)")
     parser.add_argument("--warm-up", type=int, default=20, help="first steps left out (default: %(default)s)")

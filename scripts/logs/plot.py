@@ -22,7 +22,7 @@ Reading and drawing are separate: :func:`read_log` turns an MCAP file into a
 :class:`RunLog`, :func:`plot_run` turns a RunLog into a matplotlib Figure, so
 the figure can be built from data made in memory::
 
-    from scripts.plot_log import read_log, plot_run, save
+    from scripts.logs.plot import read_log, plot_run, save
     run = read_log("runs/demo.mcap", steps_at=[10, 50])
     figure = plot_run(run, steps_at=[10, 50])
     save(figure, "demo.png", dpi=100)
@@ -743,7 +743,7 @@ def cmd_plot(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m scripts.plot_log LOG -o FILE.png`` (the same as ``dtpf plot``)."""
+    """``python -m scripts.logs.plot LOG -o FILE.png`` (the same as ``dtpf plot``)."""
     parser = argparse.ArgumentParser(prog="dtpf plot", description=DESCRIPTION)
     _add_arguments(parser)
     args = parser.parse_args(argv)

@@ -22,9 +22,9 @@ the per-repetition ratios of time per step.
 
 Run from the repository root::
 
-    python -m scripts.bench_pipeline                          # N = 1e3 .. 1e6, about 5 minutes
-    python -m scripts.bench_pipeline --sizes 1e5 --steps 200 --repeats 5
-    python -m scripts.bench_pipeline --recorder with         # (a) and (b) only
+    python -m scripts.bench.pipeline                          # N = 1e3 .. 1e6, about 5 minutes
+    python -m scripts.bench.pipeline --sizes 1e5 --steps 200 --repeats 5
+    python -m scripts.bench.pipeline --recorder with         # (a) and (b) only
 """
 from __future__ import annotations
 
@@ -169,7 +169,7 @@ def fmt_rate(seconds: float) -> str:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(
-        prog="python -m scripts.bench_pipeline",
+        prog="python -m scripts.bench.pipeline",
         description="Steady-state steps per second of the in-process pipeline (a) and of the three-process "
                     "lockstep pipeline over Zenoh started by dtpf launch (b), and their ratio; prints a "
                     "Markdown table and PASS/FAIL against the targets.",
@@ -238,7 +238,7 @@ def main(argv=None) -> int:
     total = time.perf_counter() - start
 
     tuning = {k: v for k, v in sorted(os.environ.items()) if k.startswith(TUNING_PREFIXES)}
-    command = "python -m scripts.bench_pipeline" + (" " + " ".join(sys.argv[1:]) if sys.argv[1:] else "")
+    command = "python -m scripts.bench.pipeline" + (" " + " ".join(sys.argv[1:]) if sys.argv[1:] else "")
     print(f"`{command}`: Python {platform.python_version()}, numpy {np.__version__}, {os.cpu_count()} CPUs, "
           f"all with one BLAS thread and large blocks kept (messages.service), environment "
           f"{' '.join(f'{k}={v}' for k, v in tuning.items()) if tuning else 'untuned'} "

@@ -16,8 +16,8 @@ table shows medians.
 
 Run from the repository root::
 
-    python -m scripts.bench_encoding                 # N = 1e3 .. 1e6
-    python -m scripts.bench_encoding --sizes 1000 10000 --scale 0.2
+    python -m scripts.bench.encoding                 # N = 1e3 .. 1e6
+    python -m scripts.bench.encoding --sizes 1000 10000 --scale 0.2
 """
 from __future__ import annotations
 

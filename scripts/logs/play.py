@@ -68,7 +68,7 @@ def play(session, messages: list, *, rate: float = 1.0, loop: bool = False, prog
 
 
 def cmd_play(args: argparse.Namespace) -> int:
-    from scripts.cli import Progress
+    from scripts.console import ProgressBar
 
     try:
         log = read_log(args.log)
@@ -90,7 +90,7 @@ def cmd_play(args: argparse.Namespace) -> int:
         with open_session(zenoh_config_from_args(args)) as session:
             time.sleep(args.wait)  # let subscribers discover this session
             published = play(session, messages, rate=args.rate, loop=args.loop,
-                             progress=None if args.quiet else Progress())
+                             progress=None if args.quiet else ProgressBar())
     except BusError as error:
         print(f"dtpf play: error: {error}", file=sys.stderr)
         return 2

@@ -1,0 +1,41 @@
+"""The names a run configuration may use: part of the wire contract.
+
+A :class:`~messages.config.RunConfig` travels in every Status message and
+every log, so the names it may hold are part of the contract, here, where
+the contract's readers can check them without loading a layer. Each layer
+implements the names of its own room and a test holds the two equal
+(``tests/test_layout.py``): the entity its resamplers and built-in
+scenarios, the information layer its threshold and weight rules, the system
+layer its policies.
+"""
+from __future__ import annotations
+
+import importlib.metadata
+
+__all__ = ["SCENARIOS", "MODEL_ENTRY_POINTS", "CANNOT_SAMPLE", "RESAMPLERS", "THRESHOLD_RULES", "WEIGHT_RULES",
+           "POLICIES", "SIMULATING_POLICIES", "scenario_names"]
+
+#: Built-in scenarios (entity.models): Eq. 35 with 25, Eq. 35 as printed (0.25), the tracking video.
+SCENARIOS = ("ungm", "ungm-printed", "video")
+#: The entry-point group where an installed package registers scenario names of its own.
+MODEL_ENTRY_POINTS = "dtpf.models"
+#: Built-in scenarios whose model cannot draw observations (no simulating policy with them).
+CANNOT_SAMPLE = frozenset({"video"})
+#: Traditional resampling schemes (entity.resampling).
+RESAMPLERS = ("multinomial", "residual", "stratified", "systematic")
+#: Named rules for the threshold W of Eq. 28 (information.rules); a number is allowed too.
+THRESHOLD_RULES = ("neff", "inverse-n")
+#: Weights of processed particles (information.rules).
+WEIGHT_RULES = ("inherit", "likelihood")
+#: PS policies of the system layer (system.policy), and those that simulate observations.
+POLICIES = ("fixed", "predictive", "rule")
+SIMULATING_POLICIES = frozenset({"predictive", "rule"})
+
+
+def scenario_names() -> list[str]:
+    """The names ``--scenario`` takes: the built-in ones and the entry points of :data:`MODEL_ENTRY_POINTS`."""
+    try:
+        points = {point.name for point in importlib.metadata.entry_points(group=MODEL_ENTRY_POINTS)}
+    except Exception:  # a broken installed distribution must not stop dtpf
+        points = set()
+    return sorted(set(SCENARIOS) | points)

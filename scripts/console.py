@@ -1,0 +1,75 @@
+"""What every command shares on the terminal: progress on stderr, one way to end.
+
+:class:`ProgressBar` follows the steps of one run (``dtpf run``, ``launch``,
+``play``); :class:`TaskProgress` the runs of an experiment (the paper's
+reports). Imported by the commands, the log tools and the reports alike.
+"""
+from __future__ import annotations
+
+import sys
+import time
+
+__all__ = ["ProgressBar", "TaskProgress", "run_command"]
+
+
+def run_command(parser, args) -> int:
+    """Call the handler a subcommand set (``args.handler``): a ValueError is one line and exit 2,
+    Ctrl-C exit 130, output piped into ``head`` and closed a quiet exit 0."""
+    try:
+        return args.handler(args)
+    except ValueError as error:
+        parser.exit(2, f"dtpf {args.command}: error: {error}\n")
+    except KeyboardInterrupt:
+        return 130
+    except BrokenPipeError:
+        sys.stderr.close()
+        return 0
+
+
+class ProgressBar:
+    """A one-line progress bar on stderr, redrawn at most every 2 %."""
+
+    def __init__(self, stream=sys.stderr, width: int = 30):
+        self.stream = stream
+        self.width = width
+        self.shown = -1
+
+    def __call__(self, done: int, total: int | None) -> None:
+        if not total:  # a live run: no end known
+            if done - self.shown >= 10 or self.shown < 0:
+                self.shown = done
+                self.stream.write(f"\rstep {done}")
+                self.stream.flush()
+            return
+        percent = 100 * done // total
+        if percent // 2 == self.shown // 2 and done != total:
+            return
+        self.shown = percent
+        filled = self.width * done // total
+        self.stream.write(f"\r[{'#' * filled}{'.' * (self.width - filled)}] step {done}/{total}")
+        if done == total:
+            self.stream.write("\n")
+        self.stream.flush()
+
+
+class TaskProgress:
+    """Progress of one experiment on stderr: a redrawn line on a terminal, a line per 10% otherwise."""
+
+    def __init__(self, name: str, total: int):
+        self.name, self.total, self.start = name, total, time.perf_counter()
+        self.tty = sys.stderr.isatty()
+        self.shown = -1
+
+    def __call__(self, done: int) -> None:
+        percent = 100 * done // max(self.total, 1)
+        step = 1 if self.tty else 10
+        if percent // step == self.shown // step and done != self.total:
+            return
+        self.shown = percent
+        elapsed = time.perf_counter() - self.start
+        eta = elapsed / done * (self.total - done) if done else float("nan")
+        line = f"{self.name}: {done}/{self.total} runs ({percent}%), {elapsed:.0f} s, about {eta:.0f} s left"
+        sys.stderr.write(("\r" + line + " " * 8) if self.tty else line + "\n")
+        if self.tty and done == self.total:
+            sys.stderr.write("\n")
+        sys.stderr.flush()

@@ -33,6 +33,7 @@ from messages.bus import BusError, Inbox, Presence, free_port, open_session, zen
 from messages.codec import MessageError, decode_for_key
 from messages.config import RunConfig
 from messages.models import Estimate, Layer, ServiceState, Status
+from messages.service import release_memory
 
 __all__ = ["launch", "LaunchResult", "LaunchError", "EstimateTally", "Restart", "segment_path"]
 
@@ -414,6 +415,7 @@ def launch(config: RunConfig, *, log_path: Path | None = None, port: int | None 
         # A live run waits for its sensor as long as it takes; a file or simulation has T steps.
         deadline = float("inf") if config.live else (
             time.monotonic() + startup_timeout + per_step * (config.steps or _rows(config)) + 60.0)
+        next_trim = time.monotonic() + 10.0
         while True:
             # Every turn looks at the children and the deadline, whatever arrives (a flood cannot hold it).
             item = watch.get(timeout=0.1)
@@ -433,6 +435,9 @@ def launch(config: RunConfig, *, log_path: Path | None = None, port: int | None 
                     revive(layer)
             if time.monotonic() > deadline:
                 raise LaunchError("the run did not finish in time")
+            if time.monotonic() > next_trim:  # what a flood on the launcher's keys left is given back
+                release_memory()
+                next_trim = time.monotonic() + 10.0
         entity_code = children["entity"].returncode
         if entity_code != 0:
             result.failure = f"the entity service ended the run: {_describe_code(entity_code)}"

@@ -27,6 +27,8 @@ class StateSpaceModel(ABC):
     dim: int
     #: Dimension m of one observation.
     obs_dim: int
+    #: The most steps a simulation of the model can have (None: any number; the video has its frames).
+    max_steps: int | None = None
 
     @property
     def samples_observations(self) -> bool:

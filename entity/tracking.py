@@ -250,6 +250,11 @@ class VideoTrackingModel(StateSpaceModel):
     def sample_observation(self, states, k, rng):
         raise NotImplementedError(FRAME_SCENARIO_HINT)
 
+    @property
+    def max_steps(self) -> int:
+        """A simulation of the video has as many steps as it has frames."""
+        return self.scene.frames
+
     def simulate(self, steps, rng):
         frames = self.scene.frames
         if not 1 <= steps <= frames:

@@ -135,7 +135,9 @@ def encode(message: Message) -> bytes:
     if isinstance(message, ParticleSet):
         return _encode_envelope(message)
     if isinstance(message, Message):
-        return message.model_dump_json().encode("utf-8")
+        # Absent, not null: the schemas (Foxglove's subset, messages.schema) give an optional field its
+        # plain type and leave it out of "required", so a null would fail them.
+        return message.model_dump_json(exclude_none=True).encode("utf-8")
     raise TypeError(f"encode() takes a dtpf message, got {type(message).__name__}")
 
 
@@ -146,7 +148,7 @@ def _little_endian(array: np.ndarray) -> np.ndarray:
 def _encode_envelope(message: ParticleSet) -> bytes:
     particles, weights = message.particles, message.weights
     # The fields go through the same pydantic serializer as JSON messages.
-    fields = message.model_dump_json(exclude=set(_ENVELOPE_ARRAYS)).encode("utf-8")
+    fields = message.model_dump_json(exclude=set(_ENVELOPE_ARRAYS), exclude_none=True).encode("utf-8")
     arrays = json.dumps([
         {"name": "particles", "dtype": _DTYPE, "shape": list(particles.shape), "offset": 0},
         {"name": "weights", "dtype": _DTYPE, "shape": list(weights.shape), "offset": particles.nbytes},
@@ -268,11 +270,20 @@ def _class_of_json(data: bytes) -> type[Message]:
         raise MessageError(f"payload is neither a {ENVELOPE_ENCODING} (magic {MAGIC!r}) nor JSON: {exc}") from None
     if not isinstance(obj, dict):
         raise MessageError(f"JSON payload must be an object, got {type(obj).__name__}")
-    for cls in MESSAGE_CLASSES.values():
-        if cls is not ParticleSet and set(cls.model_fields) == set(obj):
-            return cls
-    raise MessageError(f"JSON object with keys {sorted(obj)} matches no message class; pass expected= "
-                       f"or use decode_for_key", step=_peek_step(obj))
+    keys = set(obj)
+    matches = [cls for cls in MESSAGE_CLASSES.values() if cls is not ParticleSet
+               and _required(cls) <= keys <= set(cls.model_fields)]
+    if len(matches) == 1:
+        return matches[0]
+    which = "matches no message class" if not matches else \
+        f"matches {', '.join(cls.__name__ for cls in matches)}"
+    raise MessageError(f"JSON object with keys {sorted(obj)[:20]} {which}; pass expected= or use decode_for_key",
+                       step=_peek_step(obj))
+
+
+def _required(cls: type[Message]) -> set[str]:
+    """The fields a JSON message of ``cls`` must carry (the others may be left out)."""
+    return {name for name, field in cls.model_fields.items() if field.is_required()}
 
 
 def _decode_envelope(view: memoryview) -> ParticleSet:

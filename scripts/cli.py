@@ -29,13 +29,27 @@ def resolved_config(args: argparse.Namespace):
     config = config_from_args(args)
     if config.observation_file is not None and config.steps is None:
         config = config.model_copy(update={"steps": read_observations(config.observation_file).steps})
-    return config
+    return fit_simulation(config, args)
+
+
+def fit_simulation(config, args: argparse.Namespace):
+    """A simulated run of a model with a most number of steps (the video's 50 frames) takes that many
+    when --steps is not given; more than that is a clear error here, before any process starts."""
+    if not config.simulated:
+        return config
+    most = getattr(sources.load_model(config, check=False), "max_steps", None)
+    if most is None or config.steps <= most:
+        return config
+    if args.steps is None:
+        return config.model_copy(update={"steps": most})
+    raise ValueError(f"--steps: the {config.model_ref} scenario can simulate at most {most} steps, got {config.steps}")
 
 
 def cmd_run(args: argparse.Namespace) -> int:
     from scripts.inprocess import run
 
-    config = config_from_args(args)  # run() reads the file once; T is its rows unless --steps is smaller
+    # run() reads the file once; T is its rows unless --steps is smaller
+    config = fit_simulation(config_from_args(args), args)
     result = run(config, progress=None if args.quiet else ProgressBar())
     ps = result.ps
     ps_text = "off" if not config.preprocess else f"{np.nanmin(ps):g} .. {np.nanmax(ps):g}"

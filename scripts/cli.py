@@ -112,12 +112,23 @@ def _interrupt(signum, frame):
     raise KeyboardInterrupt
 
 
+def _version() -> str:
+    """The installed distribution's version (``unknown`` from a source tree that was never installed)."""
+    import importlib.metadata
+
+    try:
+        return importlib.metadata.version("dtpf")
+    except importlib.metadata.PackageNotFoundError:
+        return "unknown (not installed)"
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="dtpf",
         description="Digital-twin particle filter: a particle filter (entity layer) whose small-weight "
                     "particles are moved towards large-weight ones before resampling (information layer, "
                     "Eq. 28-30) with a degree PS set by degradation prediction (system layer).")
+    parser.add_argument("--version", action="version", version=f"dtpf {_version()}")
     commands = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     run = commands.add_parser("run", help="run the three layers in one process and print a summary",
                               description="Run the three layers in one process (no transport) on a "

@@ -36,10 +36,11 @@ def select(log: Log, patterns: list[str] | None) -> list:
 
 
 def play(session, messages: list, *, rate: float = 1.0, loop: bool = False, progress=None,
-         stop=lambda: False) -> int:
+         stop=lambda: False, unheard=None) -> int:
     """Publish ``messages`` with their recorded spacing divided by ``rate`` (0: no waiting).
 
-    Returns the number of messages published.
+    Returns the number of messages published. ``unheard`` (a dict), if given,
+    counts by topic the messages published while no subscriber matched.
     """
     if rate < 0:
         raise ValueError(f"rate must be >= 0, got {rate}")
@@ -59,6 +60,8 @@ def play(session, messages: list, *, rate: float = 1.0, loop: bool = False, prog
             pub = publishers.get(message.topic)
             if pub is None:
                 pub = publishers[message.topic] = publisher(session, message.topic)
+            if unheard is not None and not pub.matching_status.matching:
+                unheard[message.topic] = unheard.get(message.topic, 0) + 1
             pub.put(message.data)
             published += 1
             if progress is not None:
@@ -86,11 +89,15 @@ def cmd_play(args: argparse.Namespace) -> int:
     print(f"playing {len(messages)} messages on {len(topics)} topics, {span:.2f} s of log"
           f"{f' at {args.rate:g}x' if args.rate else ' as fast as possible'}{', looping' if args.loop else ''}",
           file=sys.stderr)
+    if not args.connect and not args.listen and not args.zenoh_config:
+        print("dtpf play: warning: no --connect: multicast scouting is off, so no one can reach this session; "
+              "give the endpoint of the twin's router, e.g. --connect tcp/127.0.0.1:7447", file=sys.stderr)
+    unheard: dict[str, int] = {}
     try:
         with open_session(zenoh_config_from_args(args)) as session:
             time.sleep(args.wait)  # let subscribers discover this session
             published = play(session, messages, rate=args.rate, loop=args.loop,
-                             progress=None if args.quiet else ProgressBar())
+                             progress=None if args.quiet else ProgressBar(), unheard=unheard)
     except BusError as error:
         print(f"dtpf play: error: {error}", file=sys.stderr)
         return 2
@@ -98,6 +105,11 @@ def cmd_play(args: argparse.Namespace) -> int:
         print("\ninterrupted", file=sys.stderr)
         return 130
     print(f"published {published} messages", file=sys.stderr)
+    if unheard:
+        total = sum(unheard.values())
+        print(f"dtpf play: warning: {total} of them had no subscriber when they were published "
+              f"({'all' if total == published else 'some'} on {', '.join(sorted(unheard)[:5])}"
+              f"{', ...' if len(unheard) > 5 else ''})", file=sys.stderr)
     return 0
 
 

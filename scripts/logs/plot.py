@@ -248,8 +248,15 @@ def read_log(path, *, twin: str | None = None, steps_at: Sequence[int] | None = 
     except OSError as error:
         raise PlotError(f"cannot read {path}: {error}") from None
     except Exception as error:  # mcap, struct, lz4, zstd: whatever a damaged file makes them raise
-        raise PlotError(f"cannot read {path} as a complete MCAP log ({type(error).__name__}: {error}); "
-                        "was the recording cut short?") from None
+        from messages.logfile import LogError, read_log as read_damaged
+
+        try:
+            problem = read_damaged(path).problem
+        except LogError as second:
+            problem = str(second)
+        raise PlotError(f"cannot plot {path}: {problem or f'{type(error).__name__}: {error}'}; "
+                        f"`dtpf recover {path} -o fixed.mcap` writes what it holds as a complete log to plot"
+                        ) from None
     run.skipped = skipped["count"]
     if skipped["count"]:
         print(f"dtpf plot: warning: skipped {skipped['count']} message(s) that did not decode, "

@@ -64,7 +64,9 @@ class ZenohTwin:
         deadline = time.monotonic() + self.timeout
         if self.while_waiting is not None:
             self.while_waiting()
-        while not shell.stopping:
+        # A stop does not cut the wait: the step in flight finishes with its answer (the launcher stops
+        # the entity before the information layer), bounded by the timeout and the layer's liveliness.
+        while True:
             remaining = deadline - time.monotonic()
             if remaining <= 0:
                 break

@@ -400,7 +400,7 @@ def launch(config: RunConfig, *, log_path: Path | None = None, port: int | None 
         result.restarts.append(event)
         notify(event.describe())
 
-    presence = None
+    presence = watch = None
     try:
         # Only what the summary needs: the particle sets are not copied into this process.
         watch = Inbox(router, keys.key(config.twin, "entity", "estimate"), keys.any_layer_pattern(config.twin, "status"),
@@ -448,6 +448,16 @@ def launch(config: RunConfig, *, log_path: Path | None = None, port: int | None 
     except KeyboardInterrupt:
         result.interrupted = True
     finally:
+        # The entity first, so its last step still has its answer; what it published is taken before the
+        # layers and the recorder stop, so the summary and the log tell the same run.
+        try:
+            if result.interrupted:
+                _stop(children, ("entity",), result)
+                if watch is not None:
+                    _drain(watch, result, progress, layer_of_pid, quiet=0.3)
+                _stop(children, ("information", "system"), result)
+        except KeyboardInterrupt:  # a second Ctrl-C: no more waiting for the drain
+            pass
         for bridge in bridges:
             bridge.close()
         _stop(children, tuple(reversed(LAYERS)), result)

@@ -183,6 +183,11 @@ def test_sigint_to_the_launcher_stops_every_child_and_leaves_a_readable_log(proc
     steps = [m["step"] for m in decoded["dtpf/t-int/entity/estimate"]]
     assert 5 < len(steps) < 1000 and sorted(steps) == list(range(1, len(steps) + 1))
     assert "steps" in processes.output(launcher) and "(interrupted)" in processes.output(launcher)
+    # The printed summary and the log tell the same run: the last step had its answer, none degraded.
+    output = processes.output(launcher)
+    assert f"steps           {len(steps)} of 1000 (interrupted)" in output, output
+    degraded = sum(m["degraded"] for m in decoded["dtpf/t-int/entity/estimate"])
+    assert degraded == 0 and "degraded steps  0" in output, output
 
 
 def test_launch_says_when_its_port_is_in_use(tmp_path):

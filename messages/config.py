@@ -9,6 +9,8 @@ bad resampler or model name fails at startup, not at step 500::
 from __future__ import annotations
 
 import argparse
+import json
+from pathlib import Path
 from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
@@ -171,12 +173,16 @@ class RunConfig(BaseModel):
 def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of one run, shared by every command that starts a run."""
     defaults = RunConfig()
+    # Every run flag defaults to None, "not given", so that a --config file can set what no flag does.
+    parser.add_argument("--config", type=Path, default=None, metavar="FILE",
+                        help="run configuration file (TOML, the RunConfig fields, e.g. particles = 5000); "
+                             "flags given override it")
     group = parser.add_argument_group("scenario and filter")
-    group.add_argument("--scenario", default=defaults.scenario, choices=names.scenario_names(),
+    group.add_argument("--scenario", default=None, choices=names.scenario_names(),
                        help="state-space model by name: 'ungm' is Eq. 35 with 25 (the standard benchmark), "
                             "'ungm-printed' Eq. 35 as printed with 0.25, 'video' the tracking scenario; "
                             "installed packages add names through the entry-point group 'dtpf.models' "
-                            "(default: %(default)s)")
+                            f"(default: {defaults.scenario})")
     group.add_argument("--model", default=None, metavar="REF",
                        help="your own model instead of a scenario: 'package.module:NAME' or "
                             "'path/to/file.py:NAME', a StateSpaceModel instance, subclass or zero-argument "
@@ -185,43 +191,84 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
                        help="observations to filter instead of a simulation: a file (.csv with a header, "
                             ".npy or .npz; one row per step; truth columns optional), or 'live' to take them "
                             "from a sensor on dtpf/<twin>/sensor/observation ('live:KEY' for another key)")
-    group.add_argument("--particles", "-n", type=int, default=defaults.particles,
-                       help="number of particles N (default: %(default)s)")
+    group.add_argument("--particles", "-n", type=int, default=None,
+                       help=f"number of particles N (default: {defaults.particles})")
     group.add_argument("--steps", "-T", type=int, default=None,
                        help=f"number of time points (default: {defaults.steps} for a simulation; every row "
                             f"of an observation file; live: until the sensor ends its stream)")
-    group.add_argument("--resampler", default=defaults.resampler, choices=sorted(names.RESAMPLERS),
-                       help="traditional resampling run after preprocessing (default: %(default)s)")
+    group.add_argument("--resampler", default=None, choices=sorted(names.RESAMPLERS),
+                       help=f"traditional resampling run after preprocessing (default: {defaults.resampler})")
     group.add_argument("--resample-below", type=float, default=None, metavar="FRACTION",
                        help="resample only when ESS < FRACTION * N (default: every step, as the paper)")
-    group.add_argument("--seed", type=int, default=defaults.seed, help="root seed (default: %(default)s)")
-    group.add_argument("--twin", default=defaults.twin, help="twin id (default: %(default)s)")
-    group.add_argument("--run-id", default=defaults.run_id, help="run id (default: %(default)s)")
+    group.add_argument("--seed", type=int, default=None, help=f"root seed (default: {defaults.seed})")
+    group.add_argument("--twin", default=None, help=f"twin id (default: {defaults.twin})")
+    group.add_argument("--run-id", default=None, help=f"run id (default: {defaults.run_id})")
     group = parser.add_argument_group("digital twin")
-    group.add_argument("--no-preprocess", dest="preprocess", action="store_false",
+    group.add_argument("--no-preprocess", dest="preprocess", action="store_false", default=None,
                        help="turn the DT preprocessing off: the plain traditional filter")
-    group.add_argument("--threshold", default=defaults.threshold,
-                       help="W of Eq. 28: 'neff', 'inverse-n' or a number (default: %(default)s)")
-    group.add_argument("--weight-rule", default=defaults.weight_rule, choices=names.WEIGHT_RULES,
-                       help="weights of processed particles (default: %(default)s)")
-    group.add_argument("--policy", default=defaults.policy, choices=sorted(names.POLICIES),
-                       help="PS policy of the system layer (default: %(default)s)")
-    group.add_argument("--ps", type=float, default=defaults.ps,
-                       help="PS of the fixed policy, initial PS of the others (default: %(default)s)")
-    group.add_argument("--ps-rate", type=float, default=defaults.ps_rate, metavar="CHANGE",
-                       help="largest change of PS per step of the adaptive policies (default: %(default)s)")
+    group.add_argument("--threshold", default=None,
+                       help=f"W of Eq. 28: 'neff', 'inverse-n' or a number (default: {defaults.threshold})")
+    group.add_argument("--weight-rule", default=None, choices=names.WEIGHT_RULES,
+                       help=f"weights of processed particles (default: {defaults.weight_rule})")
+    group.add_argument("--policy", default=None, choices=sorted(names.POLICIES),
+                       help=f"PS policy of the system layer (default: {defaults.policy})")
+    group.add_argument("--ps", type=float, default=None,
+                       help=f"PS of the fixed policy, initial PS of the others (default: {defaults.ps})")
+    group.add_argument("--ps-rate", type=float, default=None, metavar="CHANGE",
+                       help=f"largest change of PS per step of the adaptive policies (default: {defaults.ps_rate})")
+
+
+#: The RunConfig fields the run flags set (argparse dest = field name).
+_FLAG_FIELDS = ("scenario", "model", "observations", "particles", "steps", "resampler", "resample_below",
+                "preprocess", "threshold", "weight_rule", "policy", "ps", "ps_rate", "seed", "twin", "run_id")
+
+
+def read_config_file(path) -> dict:
+    """The RunConfig fields of a TOML file; ValueError names a missing file, bad TOML or an unknown key."""
+    import tomllib
+
+    try:
+        with open(path, "rb") as file:
+            values = tomllib.load(file)
+    except OSError as error:
+        raise ValueError(f"--config: cannot read {path}: {error.strerror or error}") from None
+    except tomllib.TOMLDecodeError as error:
+        raise ValueError(f"--config: {path} is not valid TOML: {error}") from None
+    unknown = sorted(set(values) - set(RunConfig.model_fields))
+    if unknown:
+        raise ValueError(f"--config: {path} has keys that are not run settings: {', '.join(unknown)} "
+                         f"(known: {', '.join(RunConfig.model_fields)})")
+    return values
+
+
+def write_config_file(config: dict, path) -> None:
+    """``config`` (RunConfig fields) as a TOML file that ``--config`` reads back; None values are left out."""
+    lines = ["# dtpf run configuration: dtpf launch --config FILE (flags given override it)"]
+    for name in RunConfig.model_fields:
+        value = config.get(name)
+        if value is None:
+            continue
+        if isinstance(value, bool):
+            text = "true" if value else "false"
+        elif isinstance(value, (int, float)):
+            text = repr(value)
+        else:
+            text = json.dumps(str(value))  # a TOML basic string
+        lines.append(f"{name} = {text}")
+    Path(path).write_text("\n".join(lines) + "\n")
 
 
 def config_from_args(args: argparse.Namespace) -> RunConfig:
-    """The RunConfig of parsed arguments; raises ValueError naming a bad option."""
+    """The RunConfig of parsed arguments: the defaults, then the --config file, then the flags given;
+    raises ValueError naming a bad option."""
+    values = read_config_file(args.config) if getattr(args, "config", None) else {}
+    values.update({name: getattr(args, name) for name in _FLAG_FIELDS if getattr(args, name, None) is not None})
+    if "steps" not in values and values.get("observations") is None:
+        values["steps"] = RunConfig.model_fields["steps"].default
+    elif "steps" not in values:
+        values["steps"] = None  # an observation file's rows, or a live stream's end
     try:
-        steps = args.steps if args.steps is not None else (
-            RunConfig.model_fields["steps"].default if args.observations is None else None)
-        return RunConfig(scenario=args.scenario, model=args.model, observations=args.observations,
-                         particles=args.particles, steps=steps,
-                         resampler=args.resampler, resample_below=args.resample_below,
-                         preprocess=args.preprocess, threshold=args.threshold, weight_rule=args.weight_rule,
-                         policy=args.policy, ps=args.ps, ps_rate=args.ps_rate, seed=args.seed, twin=args.twin, run_id=args.run_id)
+        return RunConfig(**values)
     except ValidationError as error:
         problems = "; ".join((f"--{'-'.join(str(p) for p in e['loc'])}: " if e["loc"] else "") + e["msg"]
                              for e in error.errors())

@@ -173,12 +173,10 @@ def build_parser() -> argparse.ArgumentParser:
     launch.set_defaults(handler=cmd_launch)
 
     from scripts import sensor
-    from scripts.logs import summary as inspect_log
-    from scripts.logs import play
-    from scripts.logs import plot as plot_log
-    from scripts.logs import verify
-    inspect_log.register(commands)
-    plot_log.register(commands)
+    from scripts.logs import play, plot, select, summary, verify
+    summary.register(commands)
+    select.register(commands)
+    plot.register(commands)
     play.register(commands)
     verify.register(commands)
     sensor.register(commands)

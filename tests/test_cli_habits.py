@@ -47,3 +47,61 @@ def test_plot_on_a_cut_log_says_what_is_missing_and_points_to_recover(small_log,
     assert done.returncode != 0
     assert "Traceback" not in done.stderr
     assert "log cut short" in done.stderr and f"dtpf recover {cut} -o fixed.mcap" in done.stderr
+
+
+def test_cat_json_gives_every_chosen_message_with_particle_arrays(small_log):
+    import json
+
+    done = dtpf("cat", str(small_log), "--topics", "entity/particles", "entity/estimate", "--steps", "3:5", "--json")
+    assert done.returncode == 0, done.stderr
+    lines = [json.loads(line) for line in done.stdout.splitlines()]
+    assert sorted((line["topic"].rsplit("/", 1)[1], line["message"]["step"]) for line in lines) == \
+        sorted((topic, step) for topic in ("particles", "estimate") for step in (3, 4, 5))
+    sets = [line["message"] for line in lines if line["topic"].endswith("/particles")]
+    assert all(len(s["particles"]) == 100 and len(s["weights"]) == 100 for s in sets)
+    assert abs(sum(sets[0]["weights"]) - 1.0) < 1e-9
+
+
+def test_info_json_holds_the_same_counts(small_log):
+    import json
+
+    info = json.loads(dtpf("info", "--json", str(small_log)).stdout)
+    assert info["complete"] is True
+    estimates = next(t for t in info["topics"] if t["topic"].endswith("/entity/estimate"))
+    assert estimates["count"] == 10 and estimates["first_step"] == 1 and estimates["last_step"] == 10
+
+
+def test_filter_writes_a_smaller_log_that_verify_passes_on_its_steps(small_log, tmp_path):
+    part = tmp_path / "part.mcap"
+    done = dtpf("filter", str(small_log), "-o", str(part), "--steps", "2:6")
+    assert done.returncode == 0, done.stderr
+    verified = dtpf("verify", str(part))
+    assert verified.returncode == 0, verified.stdout
+    assert "OK: 5 steps reproduced exactly" in verified.stdout
+    summary = dtpf("summary", str(part)).stdout
+    assert "steps         5 of 10 (2-6)" in summary
+    assert dtpf("filter", str(part), "-o", str(part)).returncode == 2
+
+
+def test_play_from_a_step_starts_at_its_first_message(small_log):
+    done = dtpf("play", str(small_log), "--start-step", "9", "--rate", "0", "--wait", "0", "-q")
+    assert done.returncode == 0, done.stderr
+    played = int(done.stderr.split("playing ")[1].split()[0])
+    everything = int(dtpf("play", str(small_log), "--rate", "0", "--wait", "0", "-q").stderr.split("playing ")[1].split()[0])
+    assert 0 < played < everything / 3
+
+
+def test_a_recorded_configuration_runs_again_from_its_file_and_flags_override_it(small_log, tmp_path):
+    toml = tmp_path / "run.toml"
+    done = dtpf("summary", str(small_log), "--config-out", str(toml))
+    assert done.returncode == 0, done.stderr
+    assert "particles = 100" in toml.read_text() and 'twin = "t-habits"' in toml.read_text()
+    recorded = dtpf("summary", str(small_log)).stdout.split("RMSE")[1].split()[0]
+    again = dtpf("run", "--config", str(toml), "-q")
+    assert again.returncode == 0, again.stderr
+    assert f"RMSE            {recorded}" in again.stdout  # the same run, number for number
+    smaller = dtpf("run", "--config", str(toml), "--particles", "50", "-q")
+    assert "N = 50" in smaller.stdout
+    (tmp_path / "bad.toml").write_text("particles = 100\nparticle = 5\n")
+    bad = dtpf("run", "--config", str(tmp_path / "bad.toml"))
+    assert bad.returncode == 2 and "keys that are not run settings: particle" in bad.stderr

@@ -70,6 +70,19 @@ def play(session, messages: list, *, rate: float = 1.0, loop: bool = False, prog
             return published
 
 
+def _first_of_step(messages: list, step: int) -> int:
+    """Index of the first message whose step is at least ``step`` (len(messages) if none is)."""
+    from messages.codec import MessageError, decode_for_key
+
+    for i, item in enumerate(messages):
+        try:
+            if decode_for_key(item.topic, item.data).step >= step:
+                return i
+        except MessageError:
+            continue
+    return len(messages)
+
+
 def cmd_play(args: argparse.Namespace) -> int:
     from scripts.console import ProgressBar
 
@@ -81,6 +94,8 @@ def cmd_play(args: argparse.Namespace) -> int:
     if log.problem:
         print(f"note: {log.problem}", file=sys.stderr)
     messages = select(log, args.topics)
+    if args.start_step:  # from the first message of that step on, in the log's time order
+        messages = messages[_first_of_step(messages, args.start_step):]
     if not messages:
         print(f"dtpf play: error: no message in {args.log} matches {args.topics}", file=sys.stderr)
         return 2
@@ -124,6 +139,8 @@ def register(subparsers) -> None:
     parser.add_argument("--topics", "-t", nargs="+", default=None, metavar="PATTERN",
                         help="only these topics: globs on the key expression or suffixes such as "
                              "entity/particles (default: every topic)")
+    parser.add_argument("--start-step", type=int, default=0, metavar="K",
+                        help="start at the first message of step K (default: the beginning)")
     parser.add_argument("--loop", action="store_true", help="start again at the end, until Ctrl-C")
     parser.add_argument("--wait", type=float, default=1.0, metavar="SECONDS",
                         help="pause after connecting, before the first message (default: %(default)s)")

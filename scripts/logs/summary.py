@@ -488,8 +488,19 @@ def cmd_info(args: argparse.Namespace) -> int:
     log = _read(args, "info")
     if log is None:
         return 1
-    print(format_info(log_info(log)))
+    info = log_info(log)
+    print(json.dumps(info_json(info), indent=2) if args.json else format_info(info))
     return 0
+
+
+def info_json(info: LogInfo) -> dict:
+    """:class:`LogInfo` as plain JSON values (``dtpf info --json``, like ``mcap info --json``)."""
+    from dataclasses import asdict
+
+    out = asdict(info)
+    out["path"] = str(info.path)
+    out["duration_s"] = info.duration_s
+    return out
 
 
 def cmd_summary(args: argparse.Namespace) -> int:
@@ -497,7 +508,19 @@ def cmd_summary(args: argparse.Namespace) -> int:
     log = _read(args, "summary")
     if log is None:
         return 1
-    print(format_summary(summarise(log)))
+    summary = summarise(log)
+    print(format_summary(summary))
+    if args.config_out is not None:
+        from messages.config import write_config_file
+
+        configs = [t for t in summary.twins if t.config is not None]
+        if len(configs) != 1:
+            print(f"dtpf summary: error: --config-out needs one twin with a recorded configuration, the log has "
+                  f"{len(configs)}", file=sys.stderr)
+            return 1
+        write_config_file(configs[0].config, args.config_out)
+        print(f"wrote the run configuration to {args.config_out} (dtpf launch --config {args.config_out} "
+              f"runs it again)", file=sys.stderr)
     return 0
 
 
@@ -580,6 +603,7 @@ def register(subparsers) -> None:
                     "step, the run and twin ids in the messages, and the schemas. A damaged file is read as far "
                     "as it goes. Exit code 0 when the file could be read, 1 when it is not an MCAP log.")
     info.add_argument("log", type=Path, metavar="LOG", help="MCAP file written by dtpf")
+    info.add_argument("--json", action="store_true", help="print the same as one JSON object")
     info.set_defaults(handler=cmd_info)
 
     summary = subparsers.add_parser(
@@ -592,6 +616,8 @@ def register(subparsers) -> None:
     summary.add_argument("log", type=Path, nargs="+", metavar="LOG",
                          help="MCAP file written by dtpf; several: the segments of one run, in order (dtpf "
                               "launch names them when its recorder was restarted)")
+    summary.add_argument("--config-out", type=Path, default=None, metavar="FILE",
+                         help="also write the run's configuration as TOML, for 'dtpf launch --config FILE'")
     summary.set_defaults(handler=cmd_summary)
 
     recover = subparsers.add_parser(

@@ -382,12 +382,20 @@ def _encoding_of(cls: type[Message]) -> str:
     raise TypeError(f"not a dtpf message class: {cls!r}")
 
 
+def envelope_layout() -> dict:
+    """The byte layout of the particle-set envelope, as its schema records it."""
+    return {"magic": MAGIC.decode("ascii"), "version": VERSION, "byte_order": "little",
+            "prefix": "magic[4] version:uint8 reserved[3]=0 header_length:uint32",
+            "prefix_size": _PREFIX.size, "alignment": _ALIGN, "dtype": _DTYPE, "arrays": list(_ENVELOPE_ARRAYS)}
+
+
 def schema_for(cls: type[Message]) -> SchemaRecord:
     """MCAP schema record of a message class.
 
     JSON messages: the Foxglove-ready JSON Schema of the model. ParticleSet:
     the JSON Schema of the envelope header, with the byte layout in its
-    ``description`` and, machine-readable, in ``x-dtpf-envelope``.
+    ``description`` and, machine-readable, as JSON text in ``$comment``
+    (:func:`envelope_layout`).
     """
     encoding = message_encoding(cls)
     if encoding == JSON_ENCODING:
@@ -396,12 +404,9 @@ def schema_for(cls: type[Message]) -> SchemaRecord:
         schema = json_schema(EnvelopeHeader)
         schema["title"] = SCHEMA_PREFIX + cls.__name__
         schema["description"] = ENVELOPE_LAYOUT
-        schema["x-dtpf-envelope"] = {
-            "magic": MAGIC.decode("ascii"), "version": VERSION, "byte_order": "little",
-            "prefix": "magic[4] version:uint8 reserved[3]=0 header_length:uint32",
-            "prefix_size": _PREFIX.size, "alignment": _ALIGN, "dtype": _DTYPE,
-            "arrays": list(_ENVELOPE_ARRAYS),
-        }
+        # The layout as JSON text in $comment, JSON Schema's own annotation: strict validators (ajv in strict
+        # mode refused the former "x-dtpf-envelope" keyword) compile the schema, and Foxglove reads no $defs.
+        schema["$comment"] = json.dumps(envelope_layout(), separators=(",", ":"))
     data = json.dumps(schema, separators=(",", ":"), sort_keys=False).encode("utf-8")
     return SchemaRecord(schema_name(cls), SCHEMA_ENCODING, data)
 

@@ -609,7 +609,7 @@ def test_schema_for_mcap(cls):
     assert forbidden_constructs(schema) == []
     if cls is ParticleSet:
         assert message_encoding(cls) == ENVELOPE_ENCODING
-        assert schema["x-dtpf-envelope"]["magic"] == "DTPF"
+        assert json.loads(schema["$comment"])["magic"] == "DTPF"
         assert "little-endian float64" in schema["description"]
         assert set(schema["properties"]) == {"message", "fields", "arrays"}
     else:
@@ -653,7 +653,7 @@ def test_mcap_file_decodes_with_only_mcap_json_and_numpy():
     seen = {}
     for schema, channel, raw in reader.iter_messages():
         if channel.message_encoding == "dtpf-envelope":
-            assert json.loads(schema.data)["x-dtpf-envelope"]["version"] == raw.data[4] == 1
+            assert json.loads(json.loads(schema.data)["$comment"])["version"] == raw.data[4] == 1
             p = raw.data
             assert p[:4] == b"DTPF"
             h = int.from_bytes(p[8:12], "little")

@@ -66,3 +66,50 @@ def test_a_video_launch_without_steps_runs_the_videos_frames_and_too_many_steps_
                            "100"], cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr
     assert "T = 50" in done.stdout
+
+
+#: The keywords of JSON Schema 2020-12 (core, applicator, validation, meta-data, format, content).
+KEYWORDS = {
+    "$schema", "$id", "$ref", "$anchor", "$dynamicRef", "$dynamicAnchor", "$vocabulary", "$comment", "$defs",
+    "allOf", "anyOf", "oneOf", "not", "if", "then", "else", "dependentSchemas", "prefixItems", "items", "contains",
+    "properties", "patternProperties", "additionalProperties", "propertyNames", "unevaluatedItems",
+    "unevaluatedProperties", "type", "enum", "const", "multipleOf", "maximum", "exclusiveMaximum", "minimum",
+    "exclusiveMinimum", "maxLength", "minLength", "pattern", "maxItems", "minItems", "uniqueItems", "maxContains",
+    "minContains", "maxProperties", "minProperties", "required", "dependentRequired", "title", "description",
+    "default", "deprecated", "readOnly", "writeOnly", "examples", "format", "contentEncoding", "contentMediaType",
+    "contentSchema",
+}
+_SCHEMA_MAPS = {"properties", "patternProperties", "$defs", "dependentSchemas"}
+_SCHEMA_VALUES = {"items", "additionalProperties", "not", "if", "then", "else", "contains", "propertyNames",
+                  "unevaluatedItems", "unevaluatedProperties", "contentSchema"}
+_SCHEMA_LISTS = {"allOf", "anyOf", "oneOf", "prefixItems"}
+
+
+def unknown_keywords(schema, path="#") -> list[str]:
+    """Keywords a strict validator (ajv in strict mode) would refuse, with their paths."""
+    if not isinstance(schema, dict):
+        return []
+    found = [f"{path}/{key}" for key in schema if key not in KEYWORDS]
+    for key, value in schema.items():
+        if key in _SCHEMA_MAPS and isinstance(value, dict):
+            found += [item for name, sub in value.items() for item in unknown_keywords(sub, f"{path}/{key}/{name}")]
+        elif key in _SCHEMA_VALUES:
+            found += unknown_keywords(value, f"{path}/{key}")
+        elif key in _SCHEMA_LISTS and isinstance(value, list):
+            found += [item for i, sub in enumerate(value) for item in unknown_keywords(sub, f"{path}/{key}/{i}")]
+    return found
+
+
+def test_every_embedded_schema_uses_only_json_schema_keywords():
+    # ajv in strict mode refuses a schema with a keyword it does not know (it refused "x-dtpf-envelope");
+    # checked here keyword by keyword, so the test needs no JavaScript.
+    from messages.codec import envelope_layout, schema_for
+    from messages.models import MESSAGE_CLASSES, ParticleSet
+
+    for cls in MESSAGE_CLASSES.values():
+        schema = json.loads(schema_for(cls).data)
+        assert unknown_keywords(schema) == [], cls.__name__
+        jsonschema.Draft202012Validator.check_schema(schema)
+    layout = json.loads(json.loads(schema_for(ParticleSet).data)["$comment"])
+    assert layout == envelope_layout() and layout["magic"] == "DTPF"
+    assert unknown_keywords({"type": "object", "x-dtpf-envelope": {}}) == ["#/x-dtpf-envelope"]

@@ -33,7 +33,7 @@ def read_with_mcap_only(path):
             if channel.message_encoding == "json":
                 decoded[channel.topic].append(json.loads(message.data))
             else:
-                layout = json.loads(schema.data)["x-dtpf-envelope"]
+                layout = json.loads(json.loads(schema.data)["$comment"])
                 data = message.data
                 assert data[:4] == layout["magic"].encode()
                 size = int.from_bytes(data[8:12], "little")

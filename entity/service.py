@@ -18,18 +18,21 @@ Run ``python -m entity.service --help`` for the options.
 from __future__ import annotations
 
 import argparse
+import base64
 import time
 
 import numpy as np
 import zenoh
 
 from entity import sources
+from entity.cloud import FIELDS, POINT_STRIDE, cloud_points
 from entity.filter import ParticleFilter, Preprocessed, PreprocessReport
 from entity.intake import ObservationIntake
 from messages.admission import RunShape
 from messages.bus import add_zenoh_arguments
 from messages.config import RunConfig, add_run_arguments
-from messages.models import ARRAYS_CHECKED, Estimate, Observation, ParticleSet, ParticleSetKind, ServiceState
+from messages.models import (ARRAYS_CHECKED, Estimate, Observation, PackedElementField, ParticleSet, ParticleSetKind,
+                             PointCloud, ServiceState, Time)
 from messages.service import ServiceShell, add_service_arguments, run_service
 
 __all__ = ["ZenohTwin", "main"]
@@ -118,11 +121,11 @@ def main(config: RunConfig, zenoh_config: zenoh.Config, args: argparse.Namespace
         pf.warm_up()
         shell.running()
         if live is not None:
-            return _run_live(shell, pf, live, config)
+            return _run_live(shell, pf, live, config, args.cloud_points)
         return _run_batch(shell, pf, data, model, config, args)
 
 
-def _publish_step(shell: ServiceShell, step, truth, observation, model, config: RunConfig) -> None:
+def _publish_step(shell: ServiceShell, step, truth, observation, model, config: RunConfig, cloud: int = 0) -> None:
     """The estimate of one filter step (and, in the video scenario, its frame)."""
     report = step.report
     shell.publish(Estimate(
@@ -136,6 +139,12 @@ def _publish_step(shell: ServiceShell, step, truth, observation, model, config: 
         innovation=step.innovation if step.innovation is not None and np.isfinite(step.innovation) else None))
     for message in model.step_messages(shell.header(step.step)):  # e.g. the video scenario's frame
         shell.publish(message)
+    if cloud:  # the particle set as Foxglove draws it (entity/cloud.py says which particles)
+        points = cloud_points(step.particles, step.weights, cloud)
+        shell.publish(PointCloud(
+            **shell.header(step.step), timestamp=Time.now(), frame_id="state", point_stride=POINT_STRIDE,
+            fields=[PackedElementField(name=name, offset=offset, type=8) for name, offset in FIELDS],
+            data=base64.b64encode(points.tobytes()).decode("ascii")))
 
 
 def _run_batch(shell: ServiceShell, pf: ParticleFilter, data, model, config: RunConfig,
@@ -146,7 +155,7 @@ def _run_batch(shell: ServiceShell, pf: ParticleFilter, data, model, config: Run
     for step in pf:
         k = step.step
         _publish_step(shell, step, None if data.truth is None else data.truth[k - 1],
-                      data.observations[k - 1], model, config)
+                      data.observations[k - 1], model, config, args.cloud_points)
         if shell.stopping:
             shell.log.info("stopped after step %d of %d", k, pf.steps)
             return 130
@@ -206,7 +215,8 @@ class LiveObservations:
         return None
 
 
-def _run_live(shell: ServiceShell, pf: ParticleFilter, live: LiveObservations, config: RunConfig) -> int:
+def _run_live(shell: ServiceShell, pf: ParticleFilter, live: LiveObservations, config: RunConfig,
+              cloud: int = 0) -> int:
     """One filter step per accepted observation, until the stream ends, ``--steps`` or a stop."""
     shell.log.info("waiting for observations on %s", live.key)
     while config.steps is None or pf.k < config.steps:
@@ -218,7 +228,7 @@ def _run_live(shell: ServiceShell, pf: ParticleFilter, live: LiveObservations, c
             shell.log.info("the sensor ended its stream after %d observations", pf.k)
             break
         step = pf.update(observation.values)
-        _publish_step(shell, step, observation.truth, observation.values, pf.model, config)
+        _publish_step(shell, step, observation.truth, observation.values, pf.model, config, cloud)
     shell.log.info("finished %d steps", pf.k)
     return 0
 
@@ -234,6 +244,9 @@ def build_parser() -> argparse.ArgumentParser:
                         help="run at most this many steps per second, like a sensor delivering "
                              "observations in real time (default: as fast as possible; live observations "
                              "set their own pace)")
+    parser.add_argument("--cloud-points", type=int, default=1000, metavar="K",
+                        help="publish each step's particle set as a foxglove.PointCloud on dtpf/<twin>/entity/cloud, "
+                             "at most K particles (every ceil(N/K)-th; 0: none) (default: %(default)s)")
     parser.add_argument("--observation-timeout", type=float, default=5.0, metavar="SECONDS",
                         help="live observations: after this long without one, say so in the status and "
                              "the log and keep waiting; the filter never invents a step (default: %(default)s)")

@@ -24,6 +24,7 @@ from messages.models import (
     Observation,
     ParticleSet,
     ParticleSetKind,
+    PointCloud,
     PSCommand,
     Rejected,
     Status,
@@ -60,6 +61,7 @@ TOPICS: dict[tuple[Layer, str], Topic] = {
         Topic(Layer.SYSTEM, "ps", PSCommand),
         Topic(Layer.ENTITY, "estimate", Estimate),
         Topic(Layer.ENTITY, "frame", CompressedImage),  # the video scenario's frames
+        Topic(Layer.ENTITY, "cloud", PointCloud),  # the particle set as Foxglove draws it
         Topic(Layer.SENSOR, "observation", Observation),  # the physical system's measurements
         Topic(Layer.RECORDER, "rejected", Rejected),  # a sample of what the recorder did not record
         *(Topic(layer, "status", Status) for layer in Layer),

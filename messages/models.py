@@ -543,6 +543,71 @@ class CompressedImage(Message):
     format: Literal["jpeg", "png"] = Field(description="Image format: 'jpeg' or 'png'.")
 
 
+class Vector3(BaseModel):
+    """A point or direction in 3-D (Foxglove's ``foxglove.Vector3``)."""
+
+    model_config = _CONFIG
+
+    x: float = Field(0.0, description="x")
+    y: float = Field(0.0, description="y")
+    z: float = Field(0.0, description="z")
+
+
+class Quaternion(BaseModel):
+    """A rotation (Foxglove's ``foxglove.Quaternion``); the identity by default."""
+
+    model_config = _CONFIG
+
+    x: float = Field(0.0, description="x")
+    y: float = Field(0.0, description="y")
+    z: float = Field(0.0, description="z")
+    w: float = Field(1.0, description="w")
+
+
+class Pose(BaseModel):
+    """Position and orientation (Foxglove's ``foxglove.Pose``)."""
+
+    model_config = _CONFIG
+
+    position: Vector3 = Field(default_factory=Vector3, description="Position.")
+    orientation: Quaternion = Field(default_factory=Quaternion, description="Orientation.")
+
+
+class PackedElementField(BaseModel):
+    """One field of a packed point (Foxglove's ``foxglove.PackedElementField``)."""
+
+    model_config = _CONFIG
+
+    name: str = Field(max_length=64, description="Name of the field (x, y, z, weight).")
+    offset: Count = Field(description="Byte offset of the field within a point.")
+    type: int = Field(ge=0, le=8, description="Numeric type (Foxglove's NumericType): 8 is FLOAT64.")
+
+
+#: Most points a cloud message may carry.
+MAX_CLOUD_POINTS = 1_000_000
+
+
+class PointCloud(Message):
+    """The particle set of a step as Foxglove's ``foxglove.PointCloud``: entity -> recorder, viewers.
+
+    ``timestamp``, ``frame_id``, ``pose``, ``point_stride``, ``fields`` and
+    ``data`` are Foxglove's fields (the MCAP schema is named
+    ``foxglove.PointCloud``, so Foxglove's 3D panel shows the particles); the
+    dtpf header comes with them. ``data`` is the packed float64 points,
+    standard base64.
+    """
+
+    producer: ClassVar[Layer] = Layer.ENTITY
+
+    timestamp: Time = Field(description="Time of the step's particle set.")
+    frame_id: str = Field(max_length=64, description="Coordinate frame of the points (the state space).")
+    pose: Pose = Field(default_factory=Pose, description="Origin of the points: the identity.")
+    point_stride: int = Field(ge=1, le=4096, description="Bytes from one point to the next.")
+    fields: list[PackedElementField] = Field(max_length=16, description="Fields of each point.")
+    data: Annotated[str, AfterValidator(_base64)] = Field(
+        json_schema_extra={"contentEncoding": "base64"}, description="The packed points, base64.")
+
+
 #: Longest observation vector a message may carry.
 MAX_OBSERVATION_VALUES = 4096
 
@@ -594,5 +659,5 @@ class Rejected(Message):
 #: Every message class, by name.
 MESSAGE_CLASSES: dict[str, type[Message]] = {
     cls.__name__: cls for cls in (ParticleSet, WeightState, PSCommand, Estimate, Status, CompressedImage,
-                                  Observation, Rejected)
+                                  Observation, Rejected, PointCloud)
 }

@@ -97,7 +97,8 @@ def cmd_launch(args: argparse.Namespace) -> int:
                         progress=None if args.quiet else ProgressBar(),
                         observation_timeout=args.observation_timeout,
                         restarts=0 if args.no_restart else args.restarts, keep_estimates=False,
-                        notify=lambda text: print(f"\ndtpf launch: {text}", file=sys.stderr, flush=True))
+                        notify=lambda text: print(f"\ndtpf launch: {text}", file=sys.stderr, flush=True),
+                        cloud_points=args.cloud_points)
     except LaunchError as error:
         print(f"dtpf launch: error: {error}", file=sys.stderr)
         return 1
@@ -163,6 +164,10 @@ def build_parser() -> argparse.ArgumentParser:
                             "status and keeps waiting (default: %(default)s)")
     group.add_argument("--log-level", default="WARNING", choices=["DEBUG", "INFO", "WARNING", "ERROR"],
                        help="logging level of the services on stderr (default: %(default)s)")
+    group.add_argument("--cloud-points", type=int, default=1000, metavar="K",
+                       help="each step's particle set also goes out (and into the log) as a foxglove.PointCloud "
+                            "on dtpf/<twin>/entity/cloud, at most K particles: every ceil(N/K)-th (0: none) "
+                            "(default: %(default)s)")
     group.add_argument("--restarts", type=int, default=3, metavar="COUNT",
                        help="start a dead information, system or recorder service again at most this many "
                             "times each; the entity runs on meanwhile with plain resampling (its estimates say "

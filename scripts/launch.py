@@ -299,7 +299,7 @@ def default_log_path(config: RunConfig) -> Path:
 
 def service_command(layer: str, config: RunConfig, endpoint: str, *, timeout: float, log_path: Path,
                     log_level: str, rate: float | None = None,
-                    observation_timeout: float | None = None) -> list[str]:
+                    observation_timeout: float | None = None, cloud_points: int | None = None) -> list[str]:
     """The command line of one child service."""
     command = [sys.executable, "-m", MODULES[layer],
                "--scenario", config.scenario, "--particles", str(config.particles),
@@ -327,6 +327,8 @@ def service_command(layer: str, config: RunConfig, endpoint: str, *, timeout: fl
             command += ["--rate", repr(rate)]
         if observation_timeout is not None:
             command += ["--observation-timeout", repr(observation_timeout)]
+        if cloud_points is not None:
+            command += ["--cloud-points", str(cloud_points)]
     if layer == "recorder":
         command += ["--output", str(log_path)]
     return command
@@ -336,7 +338,7 @@ def launch(config: RunConfig, *, log_path: Path | None = None, port: int | None 
            timeout: float = 2.0, startup_timeout: float = 20.0, log_level: str = "WARNING",
            rate: float | None = None, progress=None, child_output=None,
            observation_timeout: float | None = None, restarts: int = DEFAULT_RESTARTS,
-           keep_estimates: bool = True, notify=None) -> LaunchResult:
+           keep_estimates: bool = True, notify=None, cloud_points: int | None = None) -> LaunchResult:
     """Run ``config`` as four processes around an embedded Zenoh router.
 
     ``rate`` caps the entity's steps per second (None: as fast as it can).
@@ -350,7 +352,8 @@ def launch(config: RunConfig, *, log_path: Path | None = None, port: int | None 
     ``keep_estimates``: keep every Estimate in the result (False: only the
     summary's figures, constant memory on long runs).
     ``notify(text)`` is told at once when a layer dies or is started again
-    (default: a line on stderr).
+    (default: a line on stderr). ``cloud_points``: the entity's ``--cloud-points``
+    (None: its default).
     Raises LaunchError when the router cannot listen, a service fails to start
     or refuses its configuration; the entity's failure ends the run with
     :attr:`LaunchResult.failure` set.
@@ -374,7 +377,7 @@ def launch(config: RunConfig, *, log_path: Path | None = None, port: int | None 
     def start_child(layer: str, output: Path) -> None:
         children[layer] = subprocess.Popen(
             service_command(layer, config, endpoint, timeout=timeout, log_path=output, log_level=log_level,
-                            rate=rate, observation_timeout=observation_timeout),
+                            rate=rate, observation_timeout=observation_timeout, cloud_points=cloud_points),
             stderr=child_output, start_new_session=True)
         layer_of_pid[children[layer].pid] = layer
 

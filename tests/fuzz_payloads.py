@@ -320,6 +320,19 @@ def rejecteds(draw):
         size=draw(counts), sample=base64.b64encode(draw(st.binary(max_size=MAX_REJECTED_SAMPLE))).decode("ascii"))
 
 
+def _cloud_fields(names) -> list:
+    return [models.PackedElementField(name=name, offset=8 * i, type=8) for i, name in enumerate(names)]
+
+
+@st.composite
+def point_clouds(draw):
+    points = draw(st.integers(0, 8))
+    return models.PointCloud(
+        **draw(headers()), layer=Layer.ENTITY, timestamp=draw(stamps), frame_id=draw(short_texts)[:64],
+        point_stride=32, fields=_cloud_fields(["x", "y", "z", "weight"]),
+        data=base64.b64encode(draw(st.binary(min_size=32 * points, max_size=32 * points))).decode("ascii"))
+
+
 @st.composite
 def compressed_images(draw) -> CompressedImage:
     return CompressedImage(
@@ -344,6 +357,8 @@ MESSAGE_STRATEGIES = {
 }
 if Rejected is not None:
     MESSAGE_STRATEGIES[Rejected] = rejecteds()
+if hasattr(models, "PointCloud"):
+    MESSAGE_STRATEGIES[models.PointCloud] = point_clouds()
 valid_messages = st.one_of(*MESSAGE_STRATEGIES.values())
 
 
@@ -466,6 +481,13 @@ def _seeded_rejected(v: Seeded):
                     sample=base64.b64encode(v.rng.randbytes(v.count(0, MAX_REJECTED_SAMPLE))).decode())
 
 
+def _seeded_point_cloud(v: Seeded):
+    return models.PointCloud(**v.header(), layer=Layer.ENTITY, timestamp=Time(sec=v.count(), nsec=v.count(0, 10**9 - 1)),
+                             frame_id=v.text(0, 20), point_stride=v.rng.randint(1, 64),
+                             fields=_cloud_fields(v.rng.sample(["x", "y", "z", "weight", "w2"], v.rng.randint(0, 5))),
+                             data=base64.b64encode(v.rng.randbytes(v.rng.randint(0, 256))).decode())
+
+
 def _seeded_compressed_image(v: Seeded) -> CompressedImage:
     return CompressedImage(**v.header(), layer=Layer.ENTITY, timestamp=Time(sec=v.count(), nsec=v.count(0, 10**9 - 1)),
                            frame_id=v.text(), data=base64.b64encode(v.rng.randbytes(v.rng.randint(0, 48))).decode(),
@@ -485,6 +507,8 @@ SEEDED_BUILDERS = {
 }
 if Rejected is not None:
     SEEDED_BUILDERS[Rejected] = _seeded_rejected
+if hasattr(models, "PointCloud"):
+    SEEDED_BUILDERS[models.PointCloud] = _seeded_point_cloud
 
 
 def seeded_message(cls: type[Message], seed: int) -> Message:

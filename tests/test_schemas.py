@@ -113,3 +113,46 @@ def test_every_embedded_schema_uses_only_json_schema_keywords():
     layout = json.loads(json.loads(schema_for(ParticleSet).data)["$comment"])
     assert layout == envelope_layout() and layout["magic"] == "DTPF"
     assert unknown_keywords({"type": "object", "x-dtpf-envelope": {}}) == ["#/x-dtpf-envelope"]
+
+
+def test_each_step_has_a_point_cloud_of_its_particle_set(launched_log):
+    import base64
+
+    import numpy as np
+
+    from messages.codec import decode_for_key
+    from messages.models import ParticleSet, PointCloud
+
+    mode, log = launched_log
+    clouds, sets = {}, {}
+    for item in log.messages:
+        if item.topic.endswith("/entity/cloud"):
+            clouds[decode_for_key(item.topic, item.data).step] = decode_for_key(item.topic, item.data)
+        elif item.topic.endswith("/entity/particles"):
+            sets[decode_for_key(item.topic, item.data).step] = decode_for_key(item.topic, item.data)
+    assert sorted(clouds) == list(range(1, 16))
+    cloud = clouds[7]
+    assert isinstance(cloud, PointCloud) and [f.name for f in cloud.fields] == ["x", "y", "z", "weight"]
+    points = np.frombuffer(base64.b64decode(cloud.data), dtype="<f8").reshape(-1, 4)
+    if sets:  # with preprocessing the propagated set is logged: the cloud is that set (N = 200 <= 1000)
+        particles, weights = sets[7].particles, sets[7].weights
+        np.testing.assert_array_equal(points[:, 0], particles[:, 0])
+        np.testing.assert_array_equal(points[:, 3], weights)
+        np.testing.assert_allclose(points[:, 1], weights * 200)
+    assert points.shape == (200, 4)
+
+
+def test_a_cloud_of_a_large_set_is_every_stride_th_particle():
+    import numpy as np
+
+    from entity.cloud import cloud_points
+
+    rng = np.random.default_rng(0)
+    particles = rng.standard_normal((10_001, 2))
+    weights = rng.random(10_001)
+    weights /= weights.sum()
+    points = cloud_points(particles, weights, 1000)
+    assert points.shape == (910, 4)  # stride ceil(10001 / 1000) = 11
+    np.testing.assert_array_equal(points[:, :2], particles[::11])
+    np.testing.assert_array_equal(points[:, 3], weights[::11])
+    assert (points[:, 2] == 0).all()

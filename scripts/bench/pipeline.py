@@ -130,13 +130,15 @@ def without_recorder():
         launch_module.LAYERS, launch_module.service_command = layers, command
 
 
-def run_launched(config: RunConfig, *, recorder: bool, timeout: float, folder: Path) -> tuple[float, float, int]:
+def run_launched(config: RunConfig, *, recorder: bool, timeout: float, folder: Path,
+                 cloud_points: int | None = None) -> tuple[float, float, int]:
     """(seconds per step over the timed window, wall seconds of the whole launch, degraded steps)."""
     log_path = folder / f"bench-{config.particles}-{time.monotonic_ns()}.mcap"
     context = contextlib.nullcontext() if recorder else without_recorder()
     start = time.perf_counter()
     with context:
-        result = launch_module.launch(config, log_path=log_path, timeout=timeout, child_output=None)
+        result = launch_module.launch(config, log_path=log_path, timeout=timeout, child_output=None,
+                                      cloud_points=cloud_points, notify=lambda text: None)
     wall = time.perf_counter() - start
     with contextlib.suppress(FileNotFoundError):
         log_path.unlink()
@@ -188,6 +190,9 @@ def main(argv=None) -> int:
     parser.add_argument("--timeout", type=float, default=10.0, metavar="SECONDS",
                         help="lockstep timeout of the services; large, so no step degrades (default: %(default)s)")
     parser.add_argument("--seed", type=int, default=0, help="seed of every run and of the order (default: %(default)s)")
+    parser.add_argument("--cloud-points", type=int, default=None, metavar="K",
+                        help="the entity's foxglove.PointCloud of each step: at most K particles, 0 none "
+                             "(default: the entity's default, 1000)")
     args = parser.parse_args(argv)
     if args.steps is None:
         steps = [default_steps(n) for n in args.sizes]
@@ -231,6 +236,7 @@ def main(argv=None) -> int:
                         per_step[n, "a"].append(run_inprocess(config))
                     else:
                         seconds, wall, bad = run_launched(config, recorder=mode == "b", timeout=args.timeout,
+                                                          cloud_points=args.cloud_points,
                                                           folder=Path(folder))
                         per_step[n, mode].append(seconds)
                         walls[n, mode].append(wall)

@@ -115,7 +115,7 @@ def test_info_counts_every_topic_of_a_complete_launch(intact):
     assert info.run_ids == ["logtest"] and info.twin_ids == ["t-log"]
     assert {s.name: s.current for s in info.schemas} == {
         "dtpf.ParticleSet": "same", "dtpf.WeightState": "same", "dtpf.PSCommand": "same",
-        "dtpf.Estimate": "same", "dtpf.Status": "same"}
+        "dtpf.Estimate": "same", "dtpf.Status": "same", "foxglove.PointCloud": "same"}
     assert info.start_ns <= info.end_ns and info.undecodable == 0
     # The statistics record of the file agrees with what was read.
     assert intact.statistics.message_count == len(intact.messages)

@@ -489,7 +489,7 @@ def cmd_info(args: argparse.Namespace) -> int:
     if log is None:
         return 1
     info = log_info(log)
-    print(json.dumps(info_json(info), indent=2) if args.json else format_info(info))
+    print(json.dumps(info_json(info), indent=2) if getattr(args, "json", False) else format_info(info))
     return 0
 
 
@@ -510,7 +510,7 @@ def cmd_summary(args: argparse.Namespace) -> int:
         return 1
     summary = summarise(log)
     print(format_summary(summary))
-    if args.config_out is not None:
+    if getattr(args, "config_out", None) is not None:
         from messages.config import write_config_file
 
         configs = [t for t in summary.twins if t.config is not None]

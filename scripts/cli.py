@@ -98,7 +98,7 @@ def cmd_launch(args: argparse.Namespace) -> int:
                         observation_timeout=args.observation_timeout,
                         restarts=0 if args.no_restart else args.restarts, keep_estimates=False,
                         notify=lambda text: print(f"\ndtpf launch: {text}", file=sys.stderr, flush=True),
-                        cloud_points=args.cloud_points)
+                        cloud_points=args.cloud_points, foxglove=args.foxglove)
     except LaunchError as error:
         print(f"dtpf launch: error: {error}", file=sys.stderr)
         return 1
@@ -107,6 +107,11 @@ def cmd_launch(args: argparse.Namespace) -> int:
         print(f"dtpf launch: error: {result.failure}", file=sys.stderr)
         return 1
     return 130 if result.interrupted else 0
+
+
+def _address(text: str):
+    from scripts.foxglove_bridge import parse_address
+    return parse_address(text)
 
 
 def _interrupt(signum, frame):
@@ -164,6 +169,9 @@ def build_parser() -> argparse.ArgumentParser:
                             "status and keeps waiting (default: %(default)s)")
     group.add_argument("--log-level", default="WARNING", choices=["DEBUG", "INFO", "WARNING", "ERROR"],
                        help="logging level of the services on stderr (default: %(default)s)")
+    group.add_argument("--foxglove", type=_address, default=None, metavar="[HOST:]PORT",
+                       help="also serve the run live to Foxglove over its WebSocket protocol (foxglove-sdk), e.g. "
+                            "8765; in Foxglove: Open connection, ws://127.0.0.1:8765")
     group.add_argument("--cloud-points", type=int, default=1000, metavar="K",
                        help="each step's particle set also goes out (and into the log) as a foxglove.PointCloud "
                             "on dtpf/<twin>/entity/cloud, at most K particles: every ceil(N/K)-th (0: none) "
@@ -177,7 +185,7 @@ def build_parser() -> argparse.ArgumentParser:
     group.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
     launch.set_defaults(handler=cmd_launch)
 
-    from scripts import sensor
+    from scripts import foxglove_bridge, sensor
     from scripts.logs import play, plot, select, summary, verify
     summary.register(commands)
     select.register(commands)
@@ -185,6 +193,7 @@ def build_parser() -> argparse.ArgumentParser:
     play.register(commands)
     verify.register(commands)
     sensor.register(commands)
+    foxglove_bridge.register(commands)
     return parser
 
 

@@ -338,7 +338,8 @@ def launch(config: RunConfig, *, log_path: Path | None = None, port: int | None 
            timeout: float = 2.0, startup_timeout: float = 20.0, log_level: str = "WARNING",
            rate: float | None = None, progress=None, child_output=None,
            observation_timeout: float | None = None, restarts: int = DEFAULT_RESTARTS,
-           keep_estimates: bool = True, notify=None, cloud_points: int | None = None) -> LaunchResult:
+           keep_estimates: bool = True, notify=None, cloud_points: int | None = None,
+           foxglove: tuple[str, int] | None = None) -> LaunchResult:
     """Run ``config`` as four processes around an embedded Zenoh router.
 
     ``rate`` caps the entity's steps per second (None: as fast as it can).
@@ -353,7 +354,8 @@ def launch(config: RunConfig, *, log_path: Path | None = None, port: int | None 
     summary's figures, constant memory on long runs).
     ``notify(text)`` is told at once when a layer dies or is started again
     (default: a line on stderr). ``cloud_points``: the entity's ``--cloud-points``
-    (None: its default).
+    (None: its default). ``foxglove``: (host, port) to serve the run live to
+    Foxglove from the launcher (:mod:`scripts.foxglove_bridge`).
     Raises LaunchError when the router cannot listen, a service fails to start
     or refuses its configuration; the entity's failure ends the run with
     :attr:`LaunchResult.failure` set.
@@ -403,8 +405,15 @@ def launch(config: RunConfig, *, log_path: Path | None = None, port: int | None 
         result.restarts.append(event)
         notify(event.describe())
 
-    presence = watch = None
+    presence = watch = bridge_to_foxglove = None
     try:
+        if foxglove is not None:
+            from scripts.foxglove_bridge import FoxgloveBridge
+            try:
+                bridge_to_foxglove = FoxgloveBridge(router, config.twin, *foxglove)
+            except Exception as error:  # foxglove-sdk: a port in use, mostly
+                raise LaunchError(f"cannot serve Foxglove on {foxglove[0]}:{foxglove[1]}: {error}") from None
+            notify(f"serving the run to Foxglove on ws://{foxglove[0]}:{bridge_to_foxglove.port}")
         # Only what the summary needs: the particle sets are not copied into this process.
         watch = Inbox(router, keys.key(config.twin, "entity", "estimate"), keys.any_layer_pattern(config.twin, "status"),
                       max_payload=1 << 20, max_items=10_000)
@@ -464,6 +473,8 @@ def launch(config: RunConfig, *, log_path: Path | None = None, port: int | None 
         for bridge in bridges:
             bridge.close()
         _stop(children, tuple(reversed(LAYERS)), result)
+        if bridge_to_foxglove is not None:
+            bridge_to_foxglove.close()
         result.elapsed = time.monotonic() - start
         if presence is not None:
             presence.close()

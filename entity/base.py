@@ -102,8 +102,10 @@ class StateSpaceModel(ABC):
             observations.append(np.array(self.sample_observation(x, k, rng)[0], dtype=np.float64))
         return np.array(states), np.array(observations)
 
-    def step_messages(self, header: dict) -> list:
+    def step_messages(self, header: dict, particles=None, weights=None, mean=None) -> list:
         """What else the entity publishes at a step besides its estimate: messages of
-        :mod:`messages.models` built with ``header`` (run_id, twin_id, step). None by default; the
-        video scenario returns the step's frame, so a log plays as a video in Foxglove."""
+        :mod:`messages.models` built with ``header`` (run_id, twin_id, step), from the step's
+        ``particles`` and ``weights`` (before resampling) and its estimated ``mean``. None by default;
+        the video scenario returns the step's frame and the particles drawn over it, so a log plays
+        as a video in Foxglove."""
         return []

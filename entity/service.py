@@ -137,7 +137,7 @@ def _publish_step(shell: ServiceShell, step, truth, observation, model, config: 
         ps=report.ps if report is not None else None,
         log_predictive=step.log_predictive if np.isfinite(step.log_predictive) else None,
         innovation=step.innovation if step.innovation is not None and np.isfinite(step.innovation) else None))
-    for message in model.step_messages(shell.header(step.step)):  # e.g. the video scenario's frame
+    for message in model.step_messages(shell.header(step.step), step.particles, step.weights, step.mean):
         shell.publish(message)
     if cloud:  # the particle set as Foxglove draws it (entity/cloud.py says which particles)
         points = cloud_points(step.particles, step.weights, cloud)

@@ -154,15 +154,36 @@ class VideoTrackingModel(StateSpaceModel):
         """r_1, the radius of the circle around the target on frame 1 (scale 1)."""
         return float(self.video.truth[0, 2])
 
-    def step_messages(self, header: dict) -> list:
-        """The frame of the step as a ``foxglove.CompressedImage`` (base64 JPEG)."""
+    #: Most particles drawn over a frame (every ceil(N / this)-th, as the point cloud chooses).
+    annotated_particles: int = 300
+
+    def step_messages(self, header: dict, particles=None, weights=None, mean=None) -> list:
+        """The frame of the step as a ``foxglove.CompressedImage`` (base64 JPEG) and, given the step's
+        particles, a ``foxglove.ImageAnnotations`` at the same time: the particles' positions as points,
+        the estimate's circle (its position and scale times r_1)."""
         import base64
 
-        from messages.models import CompressedImage, Time
+        from messages.models import (CircleAnnotation, Color, CompressedImage, ImageAnnotations, Point2,
+                                     PointsAnnotation, Time)
 
+        stamp = Time.now()
         frame = encode_jpeg(self.video.frame(header["step"]))
-        return [CompressedImage(**header, timestamp=Time.now(), frame_id="camera", format="jpeg",
-                                data=base64.b64encode(frame).decode("ascii"))]
+        out = [CompressedImage(**header, timestamp=stamp, frame_id="camera", format="jpeg",
+                               data=base64.b64encode(frame).decode("ascii"))]
+        if particles is None or mean is None:
+            return out
+        stride = max(1, math.ceil(len(particles) / self.annotated_particles))
+        drawn = np.asarray(particles)[::stride, :2]
+        finite = np.isfinite(drawn).all(axis=1)
+        yellow, red, clear = Color(r=1, g=0.85, b=0, a=0.8), Color(r=1, g=0.1, b=0.1, a=1), Color(r=0, g=0, b=0, a=0)
+        points = PointsAnnotation(timestamp=stamp, type=1, points=[Point2(x=float(x), y=float(y)) for x, y in drawn[finite]],
+                                  outline_color=yellow, fill_color=yellow, thickness=2.0)
+        scale = float(mean[4]) if np.isfinite(mean[4]) and mean[4] > 0 else 1.0
+        circles = [CircleAnnotation(timestamp=stamp, position=Point2(x=float(mean[0]), y=float(mean[1])),
+                                    diameter=2.0 * scale * self.radius1, thickness=2.0, fill_color=clear,
+                                    outline_color=red)] if np.isfinite(mean[:2]).all() else []
+        out.append(ImageAnnotations(**header, circles=circles, points=[points]))
+        return out
 
     def frame_number(self, observation) -> int:
         """The frame an observation names, or a ValueError naming the value and the frame range."""

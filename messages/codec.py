@@ -74,7 +74,8 @@ _ENVELOPE_ARRAYS = ("particles", "weights")
 _ENVELOPE_CLASSES: dict[str, type[Message]] = {SCHEMA_PREFIX + "ParticleSet": ParticleSet}
 _MAX_INPUT_REPR = 60
 #: Schemas named after a well-known type rather than ``dtpf.<class>``, so that Foxglove's panels pick them up.
-FOREIGN_SCHEMA_NAMES = {"CompressedImage": "foxglove.CompressedImage", "PointCloud": "foxglove.PointCloud"}
+FOREIGN_SCHEMA_NAMES = {"CompressedImage": "foxglove.CompressedImage", "PointCloud": "foxglove.PointCloud",
+                        "ImageAnnotations": "foxglove.ImageAnnotations"}
 
 
 class MessageError(ValueError):

@@ -19,6 +19,7 @@ from typing import NamedTuple
 from messages.models import (
     CompressedImage,
     Estimate,
+    ImageAnnotations,
     Layer,
     Message,
     Observation,
@@ -62,6 +63,7 @@ TOPICS: dict[tuple[Layer, str], Topic] = {
         Topic(Layer.ENTITY, "estimate", Estimate),
         Topic(Layer.ENTITY, "frame", CompressedImage),  # the video scenario's frames
         Topic(Layer.ENTITY, "cloud", PointCloud),  # the particle set as Foxglove draws it
+        Topic(Layer.ENTITY, "annotations", ImageAnnotations),  # the video scenario's particles over its frame
         Topic(Layer.SENSOR, "observation", Observation),  # the physical system's measurements
         Topic(Layer.RECORDER, "rejected", Rejected),  # a sample of what the recorder did not record
         *(Topic(layer, "status", Status) for layer in Layer),

@@ -608,6 +608,73 @@ class PointCloud(Message):
         json_schema_extra={"contentEncoding": "base64"}, description="The packed points, base64.")
 
 
+class Point2(BaseModel):
+    """A point in an image, in pixels (Foxglove's ``foxglove.Point2``)."""
+
+    model_config = _CONFIG
+
+    x: float = Field(description="x, pixels from the left.")
+    y: float = Field(description="y, pixels from the top.")
+
+
+class Color(BaseModel):
+    """An RGBA colour, each part in [0, 1] (Foxglove's ``foxglove.Color``)."""
+
+    model_config = _CONFIG
+
+    r: float = Field(ge=0.0, le=1.0, description="red")
+    g: float = Field(ge=0.0, le=1.0, description="green")
+    b: float = Field(ge=0.0, le=1.0, description="blue")
+    a: float = Field(ge=0.0, le=1.0, description="alpha")
+
+
+class CircleAnnotation(BaseModel):
+    """A circle over an image (Foxglove's ``foxglove.CircleAnnotation``)."""
+
+    model_config = _CONFIG
+
+    timestamp: Time = Field(description="Time of the image it belongs to.")
+    position: Point2 = Field(description="Centre.")
+    diameter: float = Field(ge=0.0, description="Diameter in pixels.")
+    thickness: float = Field(ge=0.0, description="Line thickness in pixels.")
+    fill_color: Color = Field(description="Fill colour.")
+    outline_color: Color = Field(description="Outline colour.")
+
+
+class PointsAnnotation(BaseModel):
+    """Points or lines over an image (Foxglove's ``foxglove.PointsAnnotation``)."""
+
+    model_config = _CONFIG
+
+    timestamp: Time = Field(description="Time of the image it belongs to.")
+    type: int = Field(ge=0, le=4, description="0 unknown, 1 points, 2 line loop, 3 line strip, 4 line list.")
+    points: list[Point2] = Field(max_length=100_000, description="The points.")
+    outline_color: Color = Field(description="Colour of the points or lines.")
+    outline_colors: list[Color] = Field(default_factory=list, max_length=100_000,
+                                        description="One colour per point (empty: outline_color for all).")
+    fill_color: Color = Field(description="Fill colour.")
+    thickness: float = Field(ge=0.0, description="Point size or line thickness in pixels.")
+
+
+#: Most annotations of one kind a message may carry.
+MAX_ANNOTATIONS = 1000
+
+
+class ImageAnnotations(Message):
+    """What to draw over a video frame (Foxglove's ``foxglove.ImageAnnotations``): entity -> viewers.
+
+    The video scenario draws each step's particles (their positions) and the
+    estimate (its circle) over the frame of the same step and time.
+    """
+
+    producer: ClassVar[Layer] = Layer.ENTITY
+
+    circles: list[CircleAnnotation] = Field(default_factory=list, max_length=MAX_ANNOTATIONS,
+                                            description="Circles.")
+    points: list[PointsAnnotation] = Field(default_factory=list, max_length=MAX_ANNOTATIONS,
+                                           description="Point sets and lines.")
+
+
 #: Longest observation vector a message may carry.
 MAX_OBSERVATION_VALUES = 4096
 
@@ -659,5 +726,5 @@ class Rejected(Message):
 #: Every message class, by name.
 MESSAGE_CLASSES: dict[str, type[Message]] = {
     cls.__name__: cls for cls in (ParticleSet, WeightState, PSCommand, Estimate, Status, CompressedImage,
-                                  Observation, Rejected, PointCloud)
+                                  Observation, Rejected, PointCloud, ImageAnnotations)
 }

@@ -333,6 +333,21 @@ def point_clouds(draw):
         data=base64.b64encode(draw(st.binary(min_size=32 * points, max_size=32 * points))).decode("ascii"))
 
 
+def _annotations(stamp, xs, colour) -> list:
+    point = [models.Point2(x=x, y=-x) for x in xs]
+    return dict(circles=[models.CircleAnnotation(timestamp=stamp, position=point[0], diameter=3.0, thickness=1.0,
+                                                 fill_color=colour, outline_color=colour)] if point else [],
+                points=[models.PointsAnnotation(timestamp=stamp, type=1, points=point, outline_color=colour,
+                                                fill_color=colour, thickness=2.0)])
+
+
+@st.composite
+def image_annotations(draw):
+    colour = models.Color(r=draw(st.floats(0, 1)), g=0.5, b=0.0, a=1.0)
+    return models.ImageAnnotations(**draw(headers()), layer=Layer.ENTITY,
+                                   **_annotations(draw(stamps), draw(st.lists(finite_floats, max_size=5)), colour))
+
+
 @st.composite
 def compressed_images(draw) -> CompressedImage:
     return CompressedImage(
@@ -359,6 +374,8 @@ if Rejected is not None:
     MESSAGE_STRATEGIES[Rejected] = rejecteds()
 if hasattr(models, "PointCloud"):
     MESSAGE_STRATEGIES[models.PointCloud] = point_clouds()
+if hasattr(models, "ImageAnnotations"):
+    MESSAGE_STRATEGIES[models.ImageAnnotations] = image_annotations()
 valid_messages = st.one_of(*MESSAGE_STRATEGIES.values())
 
 
@@ -488,6 +505,12 @@ def _seeded_point_cloud(v: Seeded):
                              data=base64.b64encode(v.rng.randbytes(v.rng.randint(0, 256))).decode())
 
 
+def _seeded_image_annotations(v: Seeded):
+    colour = models.Color(r=v.unit(), g=v.unit(), b=v.unit(), a=v.unit())
+    return models.ImageAnnotations(**v.header(), layer=Layer.ENTITY,
+                                   **_annotations(Time(sec=v.count(), nsec=v.count(0, 10**9 - 1)), v.floats(0, 5), colour))
+
+
 def _seeded_compressed_image(v: Seeded) -> CompressedImage:
     return CompressedImage(**v.header(), layer=Layer.ENTITY, timestamp=Time(sec=v.count(), nsec=v.count(0, 10**9 - 1)),
                            frame_id=v.text(), data=base64.b64encode(v.rng.randbytes(v.rng.randint(0, 48))).decode(),
@@ -509,6 +532,8 @@ if Rejected is not None:
     SEEDED_BUILDERS[Rejected] = _seeded_rejected
 if hasattr(models, "PointCloud"):
     SEEDED_BUILDERS[models.PointCloud] = _seeded_point_cloud
+if hasattr(models, "ImageAnnotations"):
+    SEEDED_BUILDERS[models.ImageAnnotations] = _seeded_image_annotations
 
 
 def seeded_message(cls: type[Message], seed: int) -> Message:

@@ -37,7 +37,8 @@ from messages import (
     schema_for,
 )
 from messages.codec import ENVELOPE_ENCODING, EnvelopeHeader
-from messages.models import MESSAGE_CLASSES, CompressedImage, Observation, ParticleSetHeader, PointCloud, Rejected
+from messages.models import (MESSAGE_CLASSES, CompressedImage, ImageAnnotations, Observation, ParticleSetHeader,
+                             PointCloud, Rejected)
 from messages.schema import foxglove_problems
 
 HEADER = dict(run_id="run-1", twin_id="ungm-1", step=7, stamp=Time(sec=1_700_000_000, nsec=123_456_789))
@@ -472,7 +473,8 @@ def test_topic_table():
     assert table[("sensor", "status")] == (Status, None)
     assert table[("recorder", "rejected")] == (Rejected, None)
     assert table[("entity", "cloud")] == (PointCloud, None)
-    assert len(table) == 14
+    assert table[("entity", "annotations")] == (ImageAnnotations, None)
+    assert len(table) == 15
 
 
 @pytest.mark.parametrize("make, key", [
@@ -604,7 +606,8 @@ def test_json_schema_refuses_what_foxglove_cannot_read():
 @pytest.mark.parametrize("cls", list(MESSAGE_CLASSES.values()), ids=lambda c: c.__name__)
 def test_schema_for_mcap(cls):
     record = schema_for(cls)
-    expected_name = {CompressedImage: "foxglove.CompressedImage", PointCloud: "foxglove.PointCloud"}.get(
+    expected_name = {CompressedImage: "foxglove.CompressedImage", PointCloud: "foxglove.PointCloud",
+                     ImageAnnotations: "foxglove.ImageAnnotations"}.get(
         cls, f"dtpf.{cls.__name__}")
     assert record.name == expected_name and record.encoding == "jsonschema"
     schema = json.loads(record.data)

@@ -160,3 +160,24 @@ def test_a_cloud_of_a_large_set_is_every_stride_th_particle():
     np.testing.assert_array_equal(points[:, :2], particles[::11])
     np.testing.assert_array_equal(points[:, 3], weights[::11])
     assert (points[:, 2] == 0).all()
+
+
+def test_a_video_log_draws_each_steps_particles_and_estimate_over_its_frame(launched_log):
+    from messages.codec import decode_for_key
+
+    mode, log = launched_log
+    frames, annotations, estimates = {}, {}, {}
+    for item in log.messages:
+        name = item.topic.rsplit("/", 1)[1]
+        if name in ("frame", "annotations", "estimate"):
+            message = decode_for_key(item.topic, item.data)
+            {"frame": frames, "annotations": annotations, "estimate": estimates}[name][message.step] = message
+    if mode != "video":  # only the video scenario has frames to draw on
+        assert annotations == {} and frames == {}
+        return
+    assert sorted(annotations) == sorted(frames) == list(range(1, 16))
+    for step, drawn in annotations.items():
+        (points,) = drawn.points
+        assert 0 < len(points.points) <= 200 and points.timestamp == frames[step].timestamp
+        (circle,) = drawn.circles
+        assert (circle.position.x, circle.position.y) == tuple(estimates[step].mean[:2])

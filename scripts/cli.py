@@ -185,7 +185,7 @@ def build_parser() -> argparse.ArgumentParser:
     group.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
     launch.set_defaults(handler=cmd_launch)
 
-    from scripts import foxglove_bridge, sensor
+    from scripts import foxglove_bridge, foxglove_layout, sensor
     from scripts.logs import play, plot, select, summary, verify
     summary.register(commands)
     select.register(commands)
@@ -194,6 +194,7 @@ def build_parser() -> argparse.ArgumentParser:
     verify.register(commands)
     sensor.register(commands)
     foxglove_bridge.register(commands)
+    foxglove_layout.register(commands)
     return parser
 
 

@@ -105,3 +105,41 @@ def test_a_recorded_configuration_runs_again_from_its_file_and_flags_override_it
     (tmp_path / "bad.toml").write_text("particles = 100\nparticle = 5\n")
     bad = dtpf("run", "--config", str(tmp_path / "bad.toml"))
     assert bad.returncode == 2 and "keys that are not run settings: particle" in bad.stderr
+
+
+def test_layout_names_the_twins_topics_in_its_panels(tmp_path):
+    import json
+
+    out = tmp_path / "layout.json"
+    done = dtpf("layout", "--twin", "t-lay", "-o", str(out))
+    assert done.returncode == 0, done.stderr
+    text = out.read_text()
+    layout = json.loads(text)
+    assert layout["content"]["type"] == "split"
+    panels = []
+
+    def walk(node):
+        if node.get("type") == "panel":
+            panels.append(node["panelType"])
+        for item in node.get("items", []):
+            walk(item["content"])
+
+    walk(layout["content"])
+    assert sorted(panels) == ["Image", "Plot", "Plot", "ThreeDee"]
+    strings = set()
+
+    def strings_of(node):
+        if isinstance(node, dict):
+            for key, value in node.items():
+                strings.add(key)
+                strings_of(value)
+        elif isinstance(node, list):
+            for value in node:
+                strings_of(value)
+        elif isinstance(node, str):
+            strings.add(node)
+
+    strings_of(layout)
+    for topic in ('"dtpf/t-lay/entity/estimate".mean[0]', "dtpf/t-lay/entity/cloud", "dtpf/t-lay/entity/frame",
+                  "dtpf/t-lay/entity/annotations"):
+        assert topic in strings, topic

@@ -500,7 +500,8 @@ def _rows(config: RunConfig) -> int:
 
 def _take(result: LaunchResult, item, progress, layer_of_pid: dict[int, str]) -> None:
     """Fold one received message into the result: estimates of this run in step order, and
-    statuses of the launcher's own children (a status of any other process is ignored)."""
+    statuses of the launcher's own children (one that claims a child's layer from another
+    process is counted as ignored; a sensor's is none of the launcher's business)."""
     try:
         message = decode_for_key(item.key, item.payload)
     except MessageError:
@@ -511,6 +512,8 @@ def _take(result: LaunchResult, item, progress, layer_of_pid: dict[int, str]) ->
         if result.tally.add(message) and progress is not None:
             progress(message.step, result.config.steps)
     elif isinstance(message, Status):
+        if message.layer.value not in LAYERS:
+            return  # a sensor, a viewer: not a process of the launcher, and not its business
         if layer_of_pid.get(message.pid) != message.layer.value:
             result.ignored_statuses += 1
             return

@@ -328,3 +328,23 @@ def test_ten_thousand_fuzzed_payloads_on_a_live_run_leave_its_estimates_as_a_cle
     np.testing.assert_array_equal([e.mean for e in result.estimates], reference.means)  # number for number
     assert result.exit_codes == {"recorder": 0, "system": 0, "information": 0, "entity": 0}
     assert sum(result.rejected.values()) >= sent  # the recorder alone saw every one
+
+
+def test_the_launcher_counts_a_forged_layer_status_but_not_a_sensors():
+    from messages.bus import Received
+    from messages.config import RunConfig
+    from scripts.launch import LaunchResult, _take
+
+    result = LaunchResult(RunConfig(twin="t-take"), log_path="x.mcap")
+    children = {4242: "entity"}
+
+    def status(layer: str, pid: int) -> Received:
+        message = Status(run_id="run", twin_id="t-take", step=0, layer=layer, state="running", pid=pid,
+                         received=0, rejected=0)
+        return Received(f"dtpf/t-take/{layer}/status", encode(message))
+
+    _take(result, status("sensor", 77), None, children)      # a sensor is not the launcher's child: no count
+    _take(result, status("entity", 77), None, children)      # an entity that is not the launcher's: forged
+    _take(result, status("entity", 4242), None, children)    # the launcher's own entity
+    assert result.ignored_statuses == 1
+    assert list(result.statuses_by_pid) == [4242]

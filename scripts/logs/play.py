@@ -19,17 +19,21 @@ from messages.logfile import Log, LogError, read_log
 __all__ = ["play", "select", "register"]
 
 
+def topic_matcher(patterns):
+    """A predicate on topics: a glob on the whole topic (``dtpf/*/entity/*``) or a suffix of it
+    (``entity/particles``) matches; no patterns match everything."""
+    if not patterns:
+        return lambda topic: True
+    return lambda topic: any(fnmatch.fnmatchcase(topic, p) or topic.endswith("/" + p.lstrip("/")) for p in patterns)
+
+
 def select(log: Log, patterns: list[str] | None) -> list:
     """The log's messages whose topic matches one of ``patterns`` (all if none), in log-time order.
 
     A pattern is a glob on the whole topic (``dtpf/*/entity/*``) or a suffix
     of it (``entity/particles``).
     """
-    def wanted(topic: str) -> bool:
-        if not patterns:
-            return True
-        return any(fnmatch.fnmatchcase(topic, p) or topic.endswith("/" + p.lstrip("/")) for p in patterns)
-
+    wanted = topic_matcher(patterns)
     chosen = [m for m in log.messages if wanted(m.topic)]
     chosen.sort(key=lambda m: m.log_time)  # stable: file order among equal times
     return chosen

@@ -14,7 +14,6 @@ end may be left out.
 from __future__ import annotations
 
 import argparse
-import fnmatch
 import json
 import sys
 from pathlib import Path
@@ -22,7 +21,9 @@ from pathlib import Path
 import numpy as np
 
 from messages.codec import MessageError
-from messages.logfile import Log, LogError, read_logs, write_log
+from messages.logfile import Log, write_log
+from scripts.logs.play import topic_matcher
+from scripts.logs.summary import read_for_command
 from messages.models import Message, ParticleSet
 
 __all__ = ["StepRange", "choose", "as_json", "register"]
@@ -45,12 +46,6 @@ class StepRange:
         return self.first <= step and (self.last is None or step <= self.last)
 
 
-def _topic_wanted(patterns):
-    if not patterns:
-        return None
-    return lambda topic: any(fnmatch.fnmatchcase(topic, p) or topic.endswith("/" + p.lstrip("/")) for p in patterns)
-
-
 def choose(log: Log, *, topics=None, steps: StepRange | None = None, twin: str | None = None,
            keep_run_level: bool = True):
     """The (record, message) pairs of ``log`` on ``topics``, at ``steps``, of ``twin``, in file order.
@@ -58,7 +53,7 @@ def choose(log: Log, *, topics=None, steps: StepRange | None = None, twin: str |
     A message that does not decode is left out; run-level messages (step 0) are kept whatever
     ``steps`` says when ``keep_run_level``.
     """
-    for item, message in log.decoded(_topic_wanted(topics)):
+    for item, message in log.decoded(topic_matcher(topics) if topics else None):
         if isinstance(message, MessageError):
             continue
         if twin is not None and message.twin_id != twin:
@@ -79,12 +74,8 @@ def as_json(message: Message) -> dict:
 
 
 def _read(args, command: str) -> Log | None:
-    try:
-        log = read_logs(args.log)
-    except LogError as error:
-        print(f"dtpf {command}: error: {error}", file=sys.stderr)
-        return None
-    if log.problem:
+    log = read_for_command(args, command)
+    if log is not None and log.problem:
         print(f"note: {log.problem}", file=sys.stderr)
     return log
 

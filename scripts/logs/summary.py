@@ -475,7 +475,8 @@ def format_summary(summary: LogSummary) -> str:
 
 # --- commands ---
 
-def _read(args: argparse.Namespace, command: str) -> Log | None:
+def read_for_command(args: argparse.Namespace, command: str) -> Log | None:
+    """The log (or segments) of ``args.log``; None after one error line naming the file."""
     try:
         return read_logs(args.log) if isinstance(args.log, list) else read_log(args.log)
     except LogError as error:
@@ -485,7 +486,7 @@ def _read(args: argparse.Namespace, command: str) -> Log | None:
 
 def cmd_info(args: argparse.Namespace) -> int:
     """``dtpf info LOG``: 0 when the file could be read (even damaged), 1 when it is no MCAP log."""
-    log = _read(args, "info")
+    log = read_for_command(args, "info")
     if log is None:
         return 1
     info = log_info(log)
@@ -505,7 +506,7 @@ def info_json(info: LogInfo) -> dict:
 
 def cmd_summary(args: argparse.Namespace) -> int:
     """``dtpf summary LOG``: 0 when the file could be read (even damaged), 1 when it is no MCAP log."""
-    log = _read(args, "summary")
+    log = read_for_command(args, "summary")
     if log is None:
         return 1
     summary = summarise(log)
@@ -539,7 +540,7 @@ def cmd_recover(args: argparse.Namespace) -> int:
         print(f"dtpf recover: error: {out} is the log being recovered; choose another output file",
               file=sys.stderr)
         return 2
-    log = _read(args, "recover")
+    log = read_for_command(args, "recover")
     if log is None:
         return 1
     if not log.messages:

@@ -69,12 +69,30 @@ def add_zenoh_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--cfg", action="append", default=[], metavar="KEY:JSON",
                        help="set one Zenoh configuration key, e.g. "
                             "'transport/shared_memory/enabled:false' (repeatable)")
+    group.add_argument("--secure", metavar="DIR",
+                       help="a folder made by 'dtpf secure init' (DIR, DIR/tls or DIR/usrpwd): connect with "
+                            "the role's certificate or password, through a router that enforces its access "
+                            "control; --connect then gives the router's tls/ (or tcp/) endpoint")
+    group.add_argument("--role", metavar="NAME",
+                       help="the role of the secure folder to act as (default: this process's layer; "
+                            "entity, information, system, recorder, sensor or viewer)")
 
 
 def zenoh_config(*, mode: str | None = None, connect: list[str] = (), listen: list[str] = (),
-                 config_file: str | None = None, cfg: list[str] = ()) -> zenoh.Config:
-    """A Zenoh configuration from dtpf's flags; BusError names a bad file, key or value."""
-    if config_file:
+                 config_file: str | None = None, cfg: list[str] = (), secure=None,
+                 role: str | None = None) -> zenoh.Config:
+    """A Zenoh configuration from dtpf's flags; BusError names a bad file, key or value.
+
+    ``secure`` (a :class:`messages.secure.SecureDir` or its path) starts from
+    the configuration of ``role`` in that folder ("router" for the router's):
+    its certificates or password and, for the router, its access control; the
+    endpoints given here replace the file's and must use the folder's protocol.
+    """
+    if secure is not None:
+        if config_file:
+            raise BusError("--secure and --zenoh-config both give a configuration: use one")
+        config, mode = _secure_config(secure, role, mode, [*connect, *listen])
+    elif config_file:
         try:
             config = zenoh.Config.from_file(config_file)
         except Exception as error:  # zenoh raises ZError or OSError
@@ -94,7 +112,7 @@ def zenoh_config(*, mode: str | None = None, connect: list[str] = (), listen: li
     }
     if connect:
         settings["connect/endpoints"] = list(connect)
-    if mode != "client":
+    if mode != "client" and (listen or secure is None):  # a secure router listens where its file says
         settings["listen/endpoints"] = list(listen) or ["tcp/127.0.0.1:0"]
     for item in cfg:
         key, sep, value = item.partition(":")
@@ -112,10 +130,32 @@ def zenoh_config(*, mode: str | None = None, connect: list[str] = (), listen: li
     return config
 
 
-def zenoh_config_from_args(args: argparse.Namespace) -> zenoh.Config:
-    """:func:`zenoh_config` from the flags of :func:`add_zenoh_arguments`."""
+def _secure_config(secure, role: str | None, mode: str | None, endpoints: list[str]) -> tuple[zenoh.Config, str]:
+    """The Zenoh configuration of ``role`` in a secure folder, and the mode it runs in."""
+    from messages.secure import SecureError, open_secure_dir, role_config
+
+    try:
+        folder = secure if hasattr(secure, "kind") else open_secure_dir(secure)
+        if role is None:
+            raise SecureError("--secure needs --role NAME (one of " + ", ".join(folder.roles) + ")")
+        for endpoint in endpoints:
+            folder.check_endpoint(endpoint)
+        text = role_config(folder, role)
+    except SecureError as error:
+        raise BusError(str(error)) from None
+    try:
+        config = zenoh.Config.from_json5(text)
+    except Exception as error:
+        raise BusError(f"Zenoh refuses {folder.file_of(role)}: {error}") from None
+    return config, mode or ("router" if role == "router" else "client")
+
+
+def zenoh_config_from_args(args: argparse.Namespace, role: str | None = None) -> zenoh.Config:
+    """:func:`zenoh_config` from the flags of :func:`add_zenoh_arguments`; ``role``: the default
+    role of ``--secure`` (the process's layer)."""
     return zenoh_config(mode=args.mode, connect=args.connect, listen=args.listen,
-                        config_file=args.zenoh_config, cfg=args.cfg)
+                        config_file=args.zenoh_config, cfg=args.cfg, secure=getattr(args, "secure", None),
+                        role=getattr(args, "role", None) or role)
 
 
 def open_session(config: zenoh.Config) -> zenoh.Session:

@@ -458,7 +458,7 @@ def run_service(layer: str, main, parser: argparse.ArgumentParser, argv=None) ->
                         format=f"%(asctime)s {layer:<11} %(levelname)s %(message)s")
     try:
         config = config_from_args(args)
-        zconf = zenoh_config_from_args(args)
+        zconf = zenoh_config_from_args(args, role=layer)
     except (ValueError, BusError) as error:
         parser.exit(2, f"{parser.prog}: error: {error}\n")
     if args.exit_with_parent:

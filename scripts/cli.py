@@ -86,8 +86,17 @@ def cmd_launch(args: argparse.Namespace) -> int:
     sources.load_model(config)  # a wrong model or file: one line here, before any process starts
     signal.signal(signal.SIGTERM, _interrupt)
     source = f", observations from {config.observations}" if config.observations else ""
+    how = "embedded Zenoh on 127.0.0.1"
+    if args.secure:
+        from messages.secure import SecureError, open_secure_dir
+        try:
+            how += " secured by " + ("mutual TLS" if open_secure_dir(args.secure).kind == "tls"
+                                     else "user/password") + " and access control"
+        except SecureError as error:
+            print(f"dtpf launch: error: {error}", file=sys.stderr)
+            return 2
     print(f"dtpf: launching recorder, system, information and entity for twin {config.twin} "
-          f"(embedded Zenoh on 127.0.0.1{source})", file=sys.stderr)
+          f"({how}{source})", file=sys.stderr)
     if config.live:
         print(f"dtpf: the entity filters what arrives on {config.observation_key()} (start a sensor, e.g. "
               f"'dtpf sensor --twin {config.twin}'); Ctrl-C ends the run", file=sys.stderr)
@@ -98,7 +107,7 @@ def cmd_launch(args: argparse.Namespace) -> int:
                         observation_timeout=args.observation_timeout,
                         restarts=0 if args.no_restart else args.restarts, keep_estimates=False,
                         notify=lambda text: print(f"\ndtpf launch: {text}", file=sys.stderr, flush=True),
-                        cloud_points=args.cloud_points, foxglove=args.foxglove)
+                        cloud_points=args.cloud_points, foxglove=args.foxglove, secure=args.secure)
     except LaunchError as error:
         print(f"dtpf launch: error: {error}", file=sys.stderr)
         return 1
@@ -150,7 +159,9 @@ def build_parser() -> argparse.ArgumentParser:
         description="Start the recorder, system, information and entity services as separate processes, "
                     "connected through a Zenoh router embedded in this process on a free loopback port, run "
                     "the scenario in lockstep, record every message to MCAP and print a summary. Ctrl-C stops "
-                    "every service and leaves a readable log.")
+                    "every service and leaves a readable log. Without --secure the router listens on loopback "
+                    "only, unauthenticated: any process of this machine can read and publish on it; with "
+                    "--secure DIR only the twin's own layers can steer it (docs/security.md).")
     add_run_arguments(launch)
     group = launch.add_argument_group("launch")
     group.add_argument("--log", "-o", type=Path, default=None, metavar="PATH",
@@ -176,6 +187,11 @@ def build_parser() -> argparse.ArgumentParser:
                        help="each step's particle set also goes out (and into the log) as a foxglove.PointCloud "
                             "on dtpf/<twin>/entity/cloud, at most K particles: every ceil(N/K)-th (0: none) "
                             "(default: %(default)s)")
+    group.add_argument("--secure", metavar="DIR", default=None,
+                       help="a folder made by 'dtpf secure init' (DIR, DIR/tls or DIR/usrpwd): the router "
+                            "listens on tls/ (or tcp/ with passwords) and enforces its access control, each "
+                            "service connects with its role's certificate or password (default: plain tcp/ on "
+                            "loopback, no authentication)")
     group.add_argument("--restarts", type=int, default=3, metavar="COUNT",
                        help="start a dead information, system or recorder service again at most this many "
                             "times each; the entity runs on meanwhile with plain resampling (its estimates say "
@@ -185,7 +201,7 @@ def build_parser() -> argparse.ArgumentParser:
     group.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
     launch.set_defaults(handler=cmd_launch)
 
-    from scripts import foxglove_bridge, foxglove_layout, sensor
+    from scripts import foxglove_bridge, foxglove_layout, secure, sensor
     from scripts.logs import play, plot, select, summary, verify
     summary.register(commands)
     select.register(commands)
@@ -195,6 +211,7 @@ def build_parser() -> argparse.ArgumentParser:
     sensor.register(commands)
     foxglove_bridge.register(commands)
     foxglove_layout.register(commands)
+    secure.register(commands)
     return parser
 
 

@@ -103,7 +103,7 @@ def cmd_bridge(args: argparse.Namespace) -> int:
     for signum in (signal.SIGINT, signal.SIGTERM):
         signal.signal(signum, lambda *_: stop.set())
     try:
-        session = open_session(zenoh_config_from_args(args))
+        session = open_session(zenoh_config_from_args(args, role="viewer"))
     except BusError as error:
         print(f"dtpf bridge: error: {error}", file=sys.stderr)
         return 2

@@ -299,8 +299,9 @@ def default_log_path(config: RunConfig) -> Path:
 
 def service_command(layer: str, config: RunConfig, endpoint: str, *, timeout: float, log_path: Path,
                     log_level: str, rate: float | None = None,
-                    observation_timeout: float | None = None, cloud_points: int | None = None) -> list[str]:
-    """The command line of one child service."""
+                    observation_timeout: float | None = None, cloud_points: int | None = None,
+                    secure: Path | None = None) -> list[str]:
+    """The command line of one child service (``secure``: the secure folder; its role is the layer)."""
     command = [sys.executable, "-m", MODULES[layer],
                "--scenario", config.scenario, "--particles", str(config.particles),
                "--resampler", config.resampler, "--threshold", str(config.threshold),
@@ -309,6 +310,8 @@ def service_command(layer: str, config: RunConfig, endpoint: str, *, timeout: fl
                "--seed", str(config.seed), "--twin", config.twin, "--run-id", config.run_id,
                "--timeout", repr(timeout), "--log-level", log_level, "--connect", endpoint,
                "--exit-with-parent"]
+    if secure is not None:
+        command += ["--secure", str(secure), "--role", layer]
     if config.steps is not None:
         command += ["--steps", str(config.steps)]
     if config.model is not None:
@@ -339,7 +342,7 @@ def launch(config: RunConfig, *, log_path: Path | None = None, port: int | None 
            rate: float | None = None, progress=None, child_output=None,
            observation_timeout: float | None = None, restarts: int = DEFAULT_RESTARTS,
            keep_estimates: bool = True, notify=None, cloud_points: int | None = None,
-           foxglove: tuple[str, int] | None = None) -> LaunchResult:
+           foxglove: tuple[str, int] | None = None, secure=None) -> LaunchResult:
     """Run ``config`` as four processes around an embedded Zenoh router.
 
     ``rate`` caps the entity's steps per second (None: as fast as it can).
@@ -355,17 +358,27 @@ def launch(config: RunConfig, *, log_path: Path | None = None, port: int | None 
     ``notify(text)`` is told at once when a layer dies or is started again
     (default: a line on stderr). ``cloud_points``: the entity's ``--cloud-points``
     (None: its default). ``foxglove``: (host, port) to serve the run live to
-    Foxglove from the launcher (:mod:`scripts.foxglove_bridge`).
+    Foxglove from the launcher (:mod:`scripts.foxglove_bridge`). ``secure``: a
+    folder of ``dtpf secure init`` (:mod:`messages.secure`); the router then
+    listens on its protocol (``tls/`` or ``tcp/`` with passwords) and enforces
+    its access control, and each service connects as the role of its layer.
     Raises LaunchError when the router cannot listen, a service fails to start
     or refuses its configuration; the entity's failure ends the run with
     :attr:`LaunchResult.failure` set.
     """
     log_path = Path(log_path) if log_path else default_log_path(config)
     port = port or free_port()
-    endpoint = f"tcp/127.0.0.1:{port}"
+    if secure is not None:
+        from messages.secure import SecureError, open_secure_dir
+        try:
+            secure = open_secure_dir(secure)
+        except SecureError as error:
+            raise LaunchError(str(error)) from None
+    endpoint = secure.endpoint("127.0.0.1", port) if secure is not None else f"tcp/127.0.0.1:{port}"
     notify = notify or (lambda text: print(f"dtpf launch: {text}", file=sys.stderr, flush=True))
     try:
-        router = open_session(zenoh_config(mode="router", listen=[endpoint]))
+        router = open_session(zenoh_config(mode="router", listen=[endpoint], secure=secure,
+                                           role="router" if secure is not None else None))
     except BusError as error:
         raise LaunchError(f"embedded Zenoh router cannot start on {endpoint}: {error}") from None
     result = LaunchResult(config, log_path, tally=EstimateTally(config.steps, keep=keep_estimates))
@@ -379,7 +392,8 @@ def launch(config: RunConfig, *, log_path: Path | None = None, port: int | None 
     def start_child(layer: str, output: Path) -> None:
         children[layer] = subprocess.Popen(
             service_command(layer, config, endpoint, timeout=timeout, log_path=output, log_level=log_level,
-                            rate=rate, observation_timeout=observation_timeout, cloud_points=cloud_points),
+                            rate=rate, observation_timeout=observation_timeout, cloud_points=cloud_points,
+                            secure=secure.path if secure is not None else None),
             stderr=child_output, start_new_session=True)
         layer_of_pid[children[layer].pid] = layer
 

@@ -99,7 +99,7 @@ def cmd_sensor(args: argparse.Namespace) -> int:
         raise ValueError("a sensor publishes observations: give it a scenario, --model or an --observations "
                          "file, not 'live'")
     try:
-        return main(config, zenoh_config_from_args(args), args)
+        return main(config, zenoh_config_from_args(args, role="sensor"), args)
     except BusError as error:
         print(f"dtpf sensor: error: {error}", file=sys.stderr)
         return 2

@@ -108,7 +108,7 @@ def cmd_play(args: argparse.Namespace) -> int:
     print(f"playing {len(messages)} messages on {len(topics)} topics, {span:.2f} s of log"
           f"{f' at {args.rate:g}x' if args.rate else ' as fast as possible'}{', looping' if args.loop else ''}",
           file=sys.stderr)
-    if not args.connect and not args.listen and not args.zenoh_config:
+    if not args.connect and not args.listen and not args.zenoh_config and not args.secure:
         print("dtpf play: warning: no --connect: multicast scouting is off, so no one can reach this session; "
               "give the endpoint of the twin's router, e.g. --connect tcp/127.0.0.1:7447", file=sys.stderr)
     unheard: dict[str, int] = {}

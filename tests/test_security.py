@@ -1,0 +1,252 @@
+"""Issue 15: only a twin's own layers can steer it (mutual TLS or user/password, and access control).
+
+Real launches on free loopback ports. An attacker session watches the run and,
+for every particle set the entity publishes, forges the answers a layer would
+give: a preprocessed set with every particle at 100 and a PS command of 0.
+Against a plain launch the forgeries land (the control test: the attack can
+change the numbers); against a secured launch the router's access control drops
+them, and the run's numbers are those of the in-process run, number for number.
+"""
+from __future__ import annotations
+
+import json
+import stat
+import threading
+import time
+
+import numpy as np
+import pytest
+import zenoh
+
+from messages.bus import BusError, Inbox, free_port, open_session, zenoh_config
+from messages.codec import MessageError, decode_for_key, encode
+from messages.config import RunConfig
+from messages.models import Estimate, ParticleSet, ParticleSetKind, PSCommand
+from messages.secure import ROLES, SecureError, open_secure_dir, role_config
+from scripts import inprocess, secure
+from scripts.launch import LaunchError, launch
+
+pytest.importorskip("cryptography")
+
+N, STEPS = 200, 40
+
+
+@pytest.fixture(scope="module")
+def folder(tmp_path_factory):
+    root = tmp_path_factory.mktemp("secure")
+    secure.init(root / "deploy")
+    return root / "deploy"
+
+
+class Attacker:
+    """A session on the twin's router that forges a layer's answer to every particle set it sees."""
+
+    def __init__(self, twin: str, **config):
+        self.twin = twin
+        self.session = open_session(zenoh_config(mode="client", **config))
+        self.inbox = Inbox(self.session, f"dtpf/{twin}/entity/particles", f"dtpf/{twin}/entity/estimate")
+        self.forged = 0
+        self.estimates = 0
+        self.publishers = {key: self.session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK)
+                           for key in (f"dtpf/{twin}/information/preprocessed", f"dtpf/{twin}/system/ps",
+                                       f"dtpf/{twin}/system/status")}
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            item = self.inbox.get(timeout=0.05)
+            if item is None:
+                continue
+            try:
+                message = decode_for_key(item.key, item.payload)
+            except MessageError:
+                continue
+            if isinstance(message, Estimate):
+                self.estimates += 1
+                continue
+            header = dict(run_id=message.run_id, twin_id=message.twin_id, step=message.step)
+            forged_set = ParticleSet(**header, layer="information", kind=ParticleSetKind.PREPROCESSED,
+                                     particles=np.full_like(message.particles, 100.0), weights=message.weights,
+                                     observation=message.observation, ps=0.0, threshold=0.5)
+            forged_ps = PSCommand(**header, layer="system", ps=0.0, applies_from_step=message.step,
+                                  policy="fixed", reason="forged")
+            self.publishers[f"dtpf/{self.twin}/information/preprocessed"].put(encode(forged_set))
+            self.publishers[f"dtpf/{self.twin}/system/ps"].put(encode(forged_ps))
+            self.forged += 1
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=5)
+        self.inbox.close()
+        self.session.close()
+
+
+def attacked_launch(tmp_path, twin: str, attacker_config, *, secure_dir=None):
+    """A launch of (N, STEPS) with an attacker connected as soon as the router listens."""
+    config = RunConfig(particles=N, steps=STEPS, seed=5, twin=twin)
+    port = free_port()
+    outcome: dict = {}
+
+    def run():
+        try:
+            outcome["result"] = launch(config, log_path=tmp_path / f"{twin}.mcap", port=port, timeout=5.0,
+                                       rate=40.0, notify=lambda text: None, secure=secure_dir)
+        except Exception as error:  # the test reads it
+            outcome["error"] = error
+
+    launcher = threading.Thread(target=run)
+    launcher.start()
+    attacker = None
+    try:
+        deadline = time.monotonic() + 30
+        while attacker is None:  # the launcher's router is not listening at once
+            try:
+                attacker = Attacker(twin, **attacker_config(port))
+            except BusError:
+                if time.monotonic() > deadline or not launcher.is_alive():
+                    raise
+                time.sleep(0.1)
+        launcher.join(timeout=120)
+    finally:
+        if attacker is not None:
+            attacker.close()
+        launcher.join(timeout=60)
+    assert "error" not in outcome, outcome.get("error")
+    return config, outcome["result"], attacker
+
+
+def means(result) -> list[float]:
+    return [float(np.asarray(e.mean).ravel()[0]) for e in sorted(result.estimates, key=lambda e: e.step)]
+
+
+def test_a_forging_session_steers_a_plain_launch(tmp_path):
+    """The control: without security the same attack changes the run (so the tests below can fail)."""
+    config, result, attacker = attacked_launch(
+        tmp_path, "t-plain", lambda port: dict(connect=[f"tcp/127.0.0.1:{port}"]))
+    assert attacker.forged >= STEPS // 2
+    reference = inprocess.run(config)
+    attacked, clean = np.array(means(result)), np.ravel(reference.means)
+    assert attacked.shape == clean.shape
+    assert np.sum(attacked != clean) >= STEPS // 4  # the forged sets and PS landed on many steps
+
+
+@pytest.mark.parametrize("kind", ["tls", "usrpwd"])
+def test_a_viewer_reads_a_secured_launch_but_its_forgeries_are_dropped(tmp_path, folder, kind):
+    deployment = open_secure_dir(folder / kind)
+    config, result, attacker = attacked_launch(
+        tmp_path, f"t-viewer-{kind}",
+        lambda port: dict(secure=deployment, role="viewer", connect=[deployment.endpoint("127.0.0.1", port)]),
+        secure_dir=deployment.path)
+    assert attacker.estimates >= STEPS - 1  # it can watch the run
+    assert attacker.forged >= STEPS - 1     # and it tried at every step
+    reference = inprocess.run(config)
+    np.testing.assert_array_equal(means(result), np.ravel(reference.means))  # number for number: nothing it sent arrived
+    assert not any(e.degraded for e in result.estimates)
+    assert result.rejected == {"entity": 0, "information": 0, "recorder": 0, "system": 0}
+
+
+@pytest.mark.parametrize("kind", ["tls", "usrpwd"])
+def test_a_secured_router_lets_in_no_session_without_credentials(folder, kind):
+    deployment = open_secure_dir(folder / kind)
+    port = free_port()
+    router = open_session(zenoh_config(secure=deployment, role="router",
+                                       listen=[deployment.endpoint("127.0.0.1", port)]))
+    try:
+        with pytest.raises(BusError, match="Unable to connect"):  # plain tcp/, no certificate or password
+            open_session(zenoh_config(mode="client", connect=[f"tcp/127.0.0.1:{port}"]))
+        if kind == "tls":
+            with pytest.raises(BusError, match="Unable to connect"):  # TLS that checks the router, but no client certificate
+                open_session(zenoh_config(mode="client", connect=[f"tls/127.0.0.1:{port}"], cfg=[
+                    f"transport/link/tls/root_ca_certificate:{json.dumps(str(deployment.path / 'ca.pem'))}"]))
+        else:
+            text = role_config(deployment, "viewer").replace('"password": "', '"password": "x')
+            with pytest.raises(BusError, match="Unable to connect"):  # a wrong password
+                open_session(zenoh.Config.from_json5(text))
+    finally:
+        router.close()
+
+
+@pytest.mark.parametrize("kind", ["tls", "usrpwd"])
+def test_each_role_puts_only_on_its_own_layers_keys(folder, kind):
+    """The entity's puts on system/** and information/** never reach anyone; its own keys do."""
+    deployment = open_secure_dir(folder / kind)
+    port = free_port()
+    endpoint = deployment.endpoint("127.0.0.1", port)
+    router = open_session(zenoh_config(secure=deployment, role="router", listen=[endpoint]))
+    sessions = []
+    try:
+        def client(role):
+            sessions.append(open_session(zenoh_config(secure=deployment, role=role, connect=[endpoint])))
+            return sessions[-1]
+
+        viewer_inbox = Inbox(client("viewer"), "dtpf/**")
+        senders = {role: client(role) for role in ("entity", "information", "system", "sensor")}
+        time.sleep(0.5)  # the subscriber's declaration reaches every session
+        tried = []
+        for role, session in senders.items():
+            for layer in ("entity", "information", "system", "sensor", "recorder"):
+                key = f"dtpf/t-acl/{layer}/probe"
+                session.put(key, role.encode())
+                tried.append((role, key))
+        heard = set()
+        deadline = time.monotonic() + 3.0
+        while time.monotonic() < deadline and len(heard) < len(senders):
+            item = viewer_inbox.get(timeout=0.1)
+            if item is not None:
+                heard.add((item.payload.decode(), item.key))
+        time.sleep(0.5)
+        while (item := viewer_inbox.get(timeout=0)) is not None:
+            heard.add((item.payload.decode(), item.key))
+        assert heard == {(role, f"dtpf/t-acl/{role}/probe") for role in senders}
+        assert len(tried) == 20
+    finally:
+        for session in sessions:
+            session.close()
+        router.close()
+
+
+def test_a_secured_launch_gives_the_plain_numbers_and_a_log_that_verifies(tmp_path, folder):
+    from messages.logfile import read_log
+    from scripts.logs.verify import verify
+
+    config = RunConfig(particles=N, steps=STEPS, seed=9, twin="t-secured")
+    result = launch(config, log_path=tmp_path / "secured.mcap", timeout=5.0, notify=lambda text: None,
+                    secure=folder)
+    np.testing.assert_array_equal(means(result), np.ravel(inprocess.run(config).means))
+    assert result.exit_codes == {"recorder": 0, "system": 0, "information": 0, "entity": 0}
+    verification = verify(read_log(tmp_path / "secured.mcap"))
+    assert verification.ok and verification.checked == list(range(1, STEPS + 1))
+
+
+def test_secure_init_writes_owner_only_files_and_refuses_a_full_folder(tmp_path, folder):
+    modes = {path.relative_to(folder): stat.S_IMODE(path.stat().st_mode) for path in folder.rglob("*")}
+    assert {mode for path, mode in modes.items() if (folder / path).is_file()} == {0o600}
+    assert {mode for path, mode in modes.items() if (folder / path).is_dir()} == {0o700}
+    for kind in ("tls", "usrpwd"):
+        deployment = open_secure_dir(folder / kind)
+        assert deployment.roles == ROLES and deployment.kind == kind
+    with pytest.raises(FileExistsError, match="not empty"):
+        secure.init(folder)
+    # The router's certificate names loopback; each role's names the role (the ACL's subject).
+    from cryptography import x509
+    router_cert = x509.load_pem_x509_certificate((folder / "tls" / "certs" / "router.pem").read_bytes())
+    names = router_cert.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
+    assert "127.0.0.1" in {str(ip) for ip in names.get_values_for_type(x509.IPAddress)}
+    for role in ROLES:
+        cert = x509.load_pem_x509_certificate((folder / "tls" / "certs" / f"{role}.pem").read_bytes())
+        assert cert.subject.get_attributes_for_oid(x509.NameOID.COMMON_NAME)[0].value == role
+
+
+def test_a_secure_folder_that_does_not_fit_is_a_clear_error(tmp_path, folder):
+    with pytest.raises(SecureError, match="not a secure folder"):
+        open_secure_dir(tmp_path)
+    with pytest.raises(BusError, match="does not fit the secure folder"):
+        zenoh_config(secure=folder / "tls", role="entity", connect=["tcp/127.0.0.1:7447"])
+    with pytest.raises(BusError, match="no role 'intruder'"):
+        zenoh_config(secure=folder / "tls", role="intruder")
+    with pytest.raises(BusError, match="needs --role"):
+        zenoh_config(secure=folder / "tls")
+    with pytest.raises(LaunchError, match="not a secure folder"):
+        launch(RunConfig(steps=2), log_path=tmp_path / "x.mcap", secure=tmp_path)

@@ -201,7 +201,7 @@ def build_parser() -> argparse.ArgumentParser:
     group.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
     launch.set_defaults(handler=cmd_launch)
 
-    from scripts import foxglove_bridge, foxglove_layout, secure, sensor
+    from scripts import foxglove_bridge, foxglove_layout, router, secure, sensor
     from scripts.logs import play, plot, select, summary, verify
     summary.register(commands)
     select.register(commands)
@@ -212,6 +212,7 @@ def build_parser() -> argparse.ArgumentParser:
     foxglove_bridge.register(commands)
     foxglove_layout.register(commands)
     secure.register(commands)
+    router.register(commands)
     return parser
 
 

@@ -31,7 +31,7 @@ from pathlib import Path
 
 from messages.secure import MANIFEST, PUTTING_ROLES, READING_ROLES, ROLES
 
-__all__ = ["access_control", "init", "register", "main", "DEFAULT_PORT"]
+__all__ = ["access_control", "init", "export", "register", "main", "DEFAULT_PORT"]
 
 #: The router's endpoint written into the files (``dtpf launch --secure`` picks a free port instead).
 DEFAULT_PORT = 7447
@@ -64,18 +64,20 @@ def access_control(kind: str, twins: str = "*") -> dict:
          "messages": ["put", "liveliness_token"],
          "key_exprs": [_twin_keys(twins, "entity/status"), _twin_keys(twins, "*/alive")]},
     ]
+    # A publisher learns of the subscribers of the twin, so that its puts are sent at all: a client sends
+    # only what a subscriber it knows of matches, and a recorder's dtpf/<twin>/** is not inside
+    # dtpf/<twin>/entity/** (the access control compares declarations by inclusion).
+    rules.append({"id": "hears-subscribers", "permission": "allow", "flows": ["egress"],
+                  "messages": ["declare_subscriber"], "key_exprs": [_twin_keys(twins, "")]})
     for role in PUTTING_ROLES:
         rules.append({"id": f"{role}-puts", "permission": "allow", "flows": ["ingress"],
                       "messages": ["put", "liveliness_token"], "key_exprs": [_twin_keys(twins, f"{role}/**")]})
-        # A publisher learns of the subscribers on its keys, so that its puts are sent at all.
-        rules.append({"id": f"{role}-hears-subscribers", "permission": "allow", "flows": ["egress"],
-                      "messages": ["declare_subscriber"], "key_exprs": [_twin_keys(twins, f"{role}/**")]})
     field = "cert_common_names" if kind == "tls" else "usernames"
     subjects = [{"id": role, field: [role]} for role in ROLES]
     policies = [{"id": "readers", "rules": ["read", "delivered"], "subjects": list(READING_ROLES)},
                 {"id": "sensor-reads", "rules": ["read-entity-status", "watch-liveliness", "delivered-entity-status"],
                  "subjects": ["sensor"]}]
-    policies += [{"id": f"{role}-writes", "rules": [f"{role}-puts", f"{role}-hears-subscribers"],
+    policies += [{"id": f"{role}-writes", "rules": [f"{role}-puts", "hears-subscribers"],
                   "subjects": [role]} for role in PUTTING_ROLES]
     return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects,
             "policies": policies}
@@ -229,6 +231,46 @@ def init(folder, *, hosts: tuple[str, ...] = DEFAULT_HOSTS, port: int = DEFAULT_
     return written
 
 
+def export(folder, roles, target) -> list[Path]:
+    """Copy what ``roles`` of the secure folder need on their machine into ``target``, and nothing else:
+    the manifest, the authority's certificate, each role's configuration and, for TLS, its certificate and
+    key (never another role's key, never the authority's). ``roles`` may include "router"."""
+    from messages.secure import open_secure_dir, role_config
+
+    source = open_secure_dir(folder)
+    target = Path(target)
+    if target.exists() and any(target.iterdir()):
+        raise FileExistsError(f"{target} is not empty")
+    for role in roles:
+        role_config(source, role)  # every role exists and its files are there, before anything is written
+    written: list[Path] = []
+    for role in roles:
+        names = [f"{role}.json5"]
+        if source.kind == "tls":
+            names += ["ca.pem", f"certs/{role}.pem", f"keys/{role}.key"]
+        elif role == "router":
+            names += ["passwords.txt"]
+        for name in names:
+            _write(target / name, (source.path / name).read_bytes())
+            written.append(target / name)
+    manifest = json.loads((source.path / MANIFEST).read_text(encoding="utf-8"))
+    manifest["roles"] = [role for role in roles if role != "router"]
+    _write(target / MANIFEST, _json(manifest))
+    written.append(target / MANIFEST)
+    os.chmod(target, 0o700)
+    return sorted(set(written))
+
+
+def cmd_export(args: argparse.Namespace) -> int:
+    try:
+        written = export(args.dir, args.role, args.target)
+    except (FileExistsError, ValueError, OSError) as error:
+        print(f"dtpf secure export: error: {error}", file=sys.stderr)
+        return 2
+    print(f"wrote {len(written)} files into {args.target} (owner-only) for {', '.join(args.role)}")
+    return 0
+
+
 def main(args: argparse.Namespace) -> int:
     try:
         written = init(args.dir, hosts=tuple(args.host or DEFAULT_HOSTS), port=args.port, twins=args.twin,
@@ -270,3 +312,13 @@ def register(subparsers) -> None:
     make.add_argument("--days", type=int, default=365, help="how long the role certificates are valid (default 365)")
     make.add_argument("--force", action="store_true", help="write into a folder that is not empty")
     make.set_defaults(handler=main)
+    out = actions.add_parser(
+        "export", help="copy what some roles need on their machine, and nothing else",
+        description="Copy into TARGET what the given roles need (the manifest, ca.pem, each role's configuration, "
+                    "certificate and key; the router's password list for 'router' with usrpwd), never another "
+                    "role's key nor the authority's. Copy TARGET to that machine and pass --secure TARGET.")
+    out.add_argument("dir", metavar="DIR", help="the secure folder (DIR/tls or DIR/usrpwd)")
+    out.add_argument("target", metavar="TARGET", help="the folder to write (must be empty or new)")
+    out.add_argument("--role", action="append", required=True, metavar="NAME",
+                     help="a role to export (repeatable): " + ", ".join(("router", *ROLES)))
+    out.set_defaults(handler=cmd_export)

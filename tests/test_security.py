@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import stat
+from collections import Counter
 import threading
 import time
 
@@ -18,7 +19,7 @@ import numpy as np
 import pytest
 import zenoh
 
-from messages.bus import BusError, Inbox, free_port, open_session, zenoh_config
+from messages.bus import BusError, Inbox, free_port, open_session, publisher, zenoh_config
 from messages.codec import MessageError, decode_for_key, encode
 from messages.config import RunConfig
 from messages.models import Estimate, ParticleSet, ParticleSetKind, PSCommand
@@ -184,23 +185,27 @@ def test_each_role_puts_only_on_its_own_layers_keys(folder, kind):
         viewer_inbox = Inbox(client("viewer"), "dtpf/**")
         senders = {role: client(role) for role in ("entity", "information", "system", "sensor")}
         time.sleep(0.5)  # the subscriber's declaration reaches every session
-        tried = []
-        for role, session in senders.items():
-            for layer in ("entity", "information", "system", "sensor", "recorder"):
-                key = f"dtpf/t-acl/{layer}/probe"
-                session.put(key, role.encode())
-                tried.append((role, key))
-        heard = set()
+        layers = ("entity", "information", "system", "sensor", "recorder")
+        publishers = {(role, layer): publisher(session, f"dtpf/t-acl/{layer}/probe")
+                      for role, session in senders.items() for layer in layers}  # as the services publish
+        time.sleep(0.3)
+        tried = 0
+        for _ in range(3):  # not only the first put of a publisher: every one (the recorder's case)
+            for (role, layer), probe in publishers.items():
+                probe.put(role.encode())
+                tried += 1
+            time.sleep(0.2)
+        heard = Counter()
         deadline = time.monotonic() + 3.0
-        while time.monotonic() < deadline and len(heard) < len(senders):
+        while time.monotonic() < deadline and sum(heard.values()) < 3 * len(senders):
             item = viewer_inbox.get(timeout=0.1)
             if item is not None:
-                heard.add((item.payload.decode(), item.key))
+                heard[item.payload.decode(), item.key] += 1
         time.sleep(0.5)
         while (item := viewer_inbox.get(timeout=0)) is not None:
-            heard.add((item.payload.decode(), item.key))
-        assert heard == {(role, f"dtpf/t-acl/{role}/probe") for role in senders}
-        assert len(tried) == 20
+            heard[item.payload.decode(), item.key] += 1
+        assert heard == {(role, f"dtpf/t-acl/{role}/probe"): 3 for role in senders}
+        assert tried == 60
     finally:
         for session in sessions:
             session.close()
@@ -216,8 +221,15 @@ def test_a_secured_launch_gives_the_plain_numbers_and_a_log_that_verifies(tmp_pa
                     secure=folder)
     np.testing.assert_array_equal(means(result), np.ravel(inprocess.run(config).means))
     assert result.exit_codes == {"recorder": 0, "system": 0, "information": 0, "entity": 0}
-    verification = verify(read_log(tmp_path / "secured.mcap"))
+    log = read_log(tmp_path / "secured.mcap")
+    verification = verify(log)
     assert verification.ok and verification.checked == list(range(1, STEPS + 1))
+    # Every message a plain launch records is recorded: a publisher whose only subscriber is the recorder
+    # (dtpf/<twin>/**) still sends (the access control lets it hear of that subscriber).
+    plain = read_log(tmp_path / "plain.mcap") if launch(config, log_path=tmp_path / "plain.mcap", timeout=5.0,
+                                                        notify=lambda text: None) else None
+    assert Counter(m.topic for m in log.messages) == Counter(m.topic for m in plain.messages)
+    assert Counter(m.topic for m in log.messages)["dtpf/t-secured/entity/cloud"] == STEPS
 
 
 def test_secure_init_writes_owner_only_files_and_refuses_a_full_folder(tmp_path, folder):

@@ -10,6 +10,11 @@
 (c) no recorder  the same without the MCAP recorder: the split alone, like
                 (a), which writes no log either (``--recorder with`` or
                 ``without`` runs only (b) or only (c)).
+(s) secured      (b) with ``launch(secure=...)``: the router listens on
+                ``tls/`` with mutual TLS and enforces the access control of
+                ``dtpf secure init`` (made in a temporary folder); (u) the same
+                with user/password over tcp/ (``--secure`` picks which; the
+                ratio (s)/(b) is the cost of securing the twin).
 
 All run the same RunConfig (same seed, so the same numbers). Only the steady
 state is timed: for (b), the time per step is taken from the ``stamp`` of the
@@ -25,6 +30,7 @@ Run from the repository root::
     python -m scripts.bench.pipeline                          # N = 1e3 .. 1e6, about 5 minutes
     python -m scripts.bench.pipeline --sizes 1e5 --steps 200 --repeats 5
     python -m scripts.bench.pipeline --recorder with         # (a) and (b) only
+    python -m scripts.bench.pipeline --sizes 1e3 1e5 --recorder with --secure tls   # issue 15's figures
 """
 from __future__ import annotations
 
@@ -54,6 +60,8 @@ FIRST_TIMED = 10
 #: Targets: (b) steps per second at N = 1e3, and (b)/(a) at N = 1e5.
 TARGET_RATE_N, TARGET_RATE = 1_000, 200.0
 TARGET_RATIO_N, TARGET_RATIO = 100_000, 1.5
+#: Target of a secured launch: (s)/(b) at N = 1e5.
+TARGET_SECURED_N, TARGET_SECURED = 100_000, 1.2
 #: Environment variables that change the figures; shown in the output.
 TUNING_PREFIXES = ("MALLOC_", "OPENBLAS_", "OMP_", "MKL_")
 #: 1-min load average above which the output warns that the machine was busy.
@@ -131,14 +139,14 @@ def without_recorder():
 
 
 def run_launched(config: RunConfig, *, recorder: bool, timeout: float, folder: Path,
-                 cloud_points: int | None = None) -> tuple[float, float, int]:
+                 cloud_points: int | None = None, secure: Path | None = None) -> tuple[float, float, int]:
     """(seconds per step over the timed window, wall seconds of the whole launch, degraded steps)."""
     log_path = folder / f"bench-{config.particles}-{time.monotonic_ns()}.mcap"
     context = contextlib.nullcontext() if recorder else without_recorder()
     start = time.perf_counter()
     with context:
         result = launch_module.launch(config, log_path=log_path, timeout=timeout, child_output=None,
-                                      cloud_points=cloud_points, notify=lambda text: None)
+                                      cloud_points=cloud_points, notify=lambda text: None, secure=secure)
     wall = time.perf_counter() - start
     with contextlib.suppress(FileNotFoundError):
         log_path.unlink()
@@ -193,6 +201,9 @@ def main(argv=None) -> int:
     parser.add_argument("--cloud-points", type=int, default=None, metavar="K",
                         help="the entity's foxglove.PointCloud of each step: at most K particles, 0 none "
                              "(default: the entity's default, 1000)")
+    parser.add_argument("--secure", choices=("off", "tls", "usrpwd", "both"), default="tls",
+                        help="also run (b) secured: (s) mutual TLS and access control, (u) user/password and "
+                             "access control, both, or off (default: %(default)s)")
     args = parser.parse_args(argv)
     if args.steps is None:
         steps = [default_steps(n) for n in args.sizes]
@@ -216,6 +227,7 @@ def main(argv=None) -> int:
                for n, t in zip(args.sizes, steps)}
     order = random.Random(args.seed)
     launched = {"both": "bc", "with": "b", "without": "c"}[args.recorder]
+    launched += {"off": "", "tls": "s", "usrpwd": "u", "both": "su"}[args.secure]
     per_step: dict[tuple[int, str], list[float]] = {(n, m): [] for n in configs for m in "a" + launched}
     walls: dict[tuple[int, str], list[float]] = {(n, m): [] for n in configs for m in launched}
     degraded: dict[int, int] = {n: 0 for n in configs}
@@ -226,6 +238,10 @@ def main(argv=None) -> int:
         print(f"warm-up N={n}", file=sys.stderr)
         run_inprocess(config.model_copy(update={"steps": FIRST_TIMED + 2}))
     with tempfile.TemporaryDirectory(prefix="dtpf-bench-") as folder:
+        if set("su") & set(launched):
+            from scripts.secure import init
+            init(Path(folder) / "secure")
+        secure_of = {"s": Path(folder) / "secure" / "tls", "u": Path(folder) / "secure" / "usrpwd"}
         for repeat in range(args.repeats):
             for n, config in configs.items():
                 modes = ["a", *launched]
@@ -235,9 +251,9 @@ def main(argv=None) -> int:
                     if mode == "a":
                         per_step[n, "a"].append(run_inprocess(config))
                     else:
-                        seconds, wall, bad = run_launched(config, recorder=mode == "b", timeout=args.timeout,
+                        seconds, wall, bad = run_launched(config, recorder=mode != "c", timeout=args.timeout,
                                                           cloud_points=args.cloud_points,
-                                                          folder=Path(folder))
+                                                          folder=Path(folder), secure=secure_of.get(mode))
                         per_step[n, mode].append(seconds)
                         walls[n, mode].append(wall)
                         degraded[n] += bad
@@ -252,7 +268,8 @@ def main(argv=None) -> int:
     if load_before > BUSY_LOAD:
         print(f"WARNING: the machine was busy before the run (load {load_before:.2f} on {os.cpu_count()} CPUs): "
               "other processes compete with the five of (b); the figures are unreliable.\n")
-    names = {"b": "(b) 3-process + recorder", "c": "(c) 3-process, no recorder"}
+    names = {"b": "(b) 3-process + recorder", "c": "(c) 3-process, no recorder", "s": "(s) secured, mTLS",
+             "u": "(u) secured, user/password"}
     header = "| N | steps (timed) | (a) in-process steps/s | (a) ms/step |"
     for mode in launched:
         header += f" {names[mode]} steps/s | ({mode}) ms/step | ({mode})/(a) |"
@@ -272,6 +289,17 @@ def main(argv=None) -> int:
             row += (f" {fmt_rate(mb)} | {fmt_ms(mb)} | {ratio_of[n, mode]:.2f} "
                     f"({min(ratios):.2f}-{max(ratios):.2f}) |")
         print(row + f" {statistics.median(walls[n, launched[0]]):.1f} |")
+    secured = [mode for mode in "su" if mode in launched]
+    if secured and "b" in launched:
+        print("\n| N | " + " | ".join(f"({mode})/(b) per step" for mode in secured) + " |")
+        print("|---" * (1 + len(secured)) + "|")
+        for n in configs:
+            cells = []
+            for mode in secured:
+                ratios = [y / x for x, y in zip(per_step[n, "b"], per_step[n, mode])]
+                ratio_of[n, mode + "/b"] = statistics.median(ratios)
+                cells.append(f"{ratio_of[n, mode + '/b']:.2f} ({min(ratios):.2f}-{max(ratios):.2f})")
+            print(f"| {fmt_n(n)} | " + " | ".join(cells) + " |")
     print(f"\nMedians over {args.repeats} repetitions, the modes interleaved in random order. Time per step "
           f"= time from the end of step {FIRST_TIMED} to the end of the last step / (T - {FIRST_TIMED}): "
           "for (b) and (c) from the stamps of the entity's Estimate messages, so process start-up, JIT loading "
@@ -284,7 +312,7 @@ def main(argv=None) -> int:
 
     print("\nTargets (on the product's configuration, (b) when it ran; (c) for the split alone):")
     failed = False
-    for mode in launched:
+    for mode in launched.replace("s", "").replace("u", ""):
         label = names[mode].split(" ", 1)[0]
         if TARGET_RATE_N in configs:
             rate = rate_of[TARGET_RATE_N, mode]
@@ -297,6 +325,13 @@ def main(argv=None) -> int:
             ok = ratio <= TARGET_RATIO
             failed |= not ok and mode == launched[0]
             print(f"- N = {fmt_n(TARGET_RATIO_N)}: {label}/(a) at most {TARGET_RATIO}: {ratio:.2f}, "
+                  f"{'PASS' if ok else 'FAIL'}")
+    for mode in secured:
+        if TARGET_SECURED_N in configs and "b" in launched:
+            ratio = ratio_of[TARGET_SECURED_N, mode + "/b"]
+            ok = ratio <= TARGET_SECURED
+            failed |= not ok
+            print(f"- N = {fmt_n(TARGET_SECURED_N)}: ({mode})/(b) at most {TARGET_SECURED}: {ratio:.2f}, "
                   f"{'PASS' if ok else 'FAIL'}")
     if TARGET_RATE_N not in configs or TARGET_RATIO_N not in configs:
         print(f"- (N = {fmt_n(TARGET_RATE_N)} and N = {fmt_n(TARGET_RATIO_N)} carry the targets; not all measured)")

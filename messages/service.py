@@ -271,12 +271,14 @@ class ServiceShell:
         """An inbox on ``dtpf/<twin>/<layer>/<topic>`` of this twin."""
         return self.inbox_on(keys.key(self.config.twin, layer, topic))
 
-    def inbox_on(self, key_expr: str, *more: str) -> Inbox:
+    def inbox_on(self, key_expr: str, *more: str, payloads: int = _INBOX_PAYLOADS,
+                 min_bytes: int = MIN_INBOX_BYTES) -> Inbox:
         """An inbox on key expressions (closed with the shell), bounded to what this run's messages
-        can weigh: what is bigger, or arrives while the inbox is full, is counted as rejected."""
+        can weigh: what is bigger, or arrives while the inbox is full, is counted as rejected.
+        It holds ``payloads`` of the run's largest payload, at least ``min_bytes``."""
         largest = self.largest_payload()
         inbox = Inbox(self.session, key_expr, *more, max_payload=largest,
-                      max_bytes=max(MIN_INBOX_BYTES, _INBOX_PAYLOADS * largest), on_drop=self._on_drop)
+                      max_bytes=max(min_bytes, payloads * largest), on_drop=self._on_drop)
         self._inboxes.append(inbox)
         return inbox
 

@@ -32,15 +32,15 @@ def _file_endpoints(folder) -> list[str]:
 
 def cmd_router(args: argparse.Namespace) -> int:
     listen = args.listen or ([] if args.secure else ["tcp/127.0.0.1:7447"])
+    stop = threading.Event()
+    for signum in (signal.SIGINT, signal.SIGTERM):  # before the router listens: a client may stop it at once
+        signal.signal(signum, lambda *_: stop.set())
     try:
         session = open_session(zenoh_config(mode="router", listen=listen, secure=args.secure,
                                             role="router" if args.secure else None))
     except BusError as error:
         print(f"dtpf router: error: {error}", file=sys.stderr)
         return 2
-    stop = threading.Event()
-    for signum in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(signum, lambda *_: stop.set())
     where = listen or _file_endpoints(args.secure)
     how = f"secure folder {args.secure}" if args.secure else "no authentication, no access control"
     print(f"dtpf router: routing on {', '.join(where)} ({how}); Ctrl-C stops", file=sys.stderr, flush=True)

@@ -228,8 +228,12 @@ def test_a_secured_launch_gives_the_plain_numbers_and_a_log_that_verifies(tmp_pa
     # (dtpf/<twin>/**) still sends (the access control lets it hear of that subscriber).
     plain = read_log(tmp_path / "plain.mcap") if launch(config, log_path=tmp_path / "plain.mcap", timeout=5.0,
                                                         notify=lambda text: None) else None
-    assert Counter(m.topic for m in log.messages) == Counter(m.topic for m in plain.messages)
-    assert Counter(m.topic for m in log.messages)["dtpf/t-secured/entity/cloud"] == STEPS
+    secured, clean = (Counter(m.topic for m in each.messages) for each in (log, plain))
+    steps_of = lambda counts: {topic: count for topic, count in counts.items() if not topic.endswith("/status")}
+    assert steps_of(secured) == steps_of(clean)  # statuses are also periodic: their number varies with time
+    assert secured["dtpf/t-secured/entity/cloud"] == STEPS
+    for layer in ("entity", "information", "system", "recorder"):  # the first and the last status at least
+        assert secured[f"dtpf/t-secured/{layer}/status"] >= 2
 
 
 def test_secure_init_writes_owner_only_files_and_refuses_a_full_folder(tmp_path, folder):
@@ -262,3 +266,60 @@ def test_a_secure_folder_that_does_not_fit_is_a_clear_error(tmp_path, folder):
         zenoh_config(secure=folder / "tls")
     with pytest.raises(LaunchError, match="not a secure folder"):
         launch(RunConfig(steps=2), log_path=tmp_path / "x.mcap", secure=tmp_path)
+
+
+def test_export_copies_only_the_files_of_the_roles_asked_for(tmp_path, folder):
+    target = tmp_path / "machine-b"
+    written = secure.export(folder / "tls", ["information", "system"], target)
+    assert {path.relative_to(target).as_posix() for path in written} == {
+        "dtpf-secure.json", "ca.pem", "information.json5", "system.json5", "certs/information.pem",
+        "certs/system.pem", "keys/information.key", "keys/system.key"}
+    exported = open_secure_dir(target)
+    assert exported.roles == ("information", "system")
+    json.loads(role_config(exported, "system"))  # its paths resolve inside the exported folder
+    with pytest.raises(SecureError, match="no role 'entity'"):
+        role_config(exported, "entity")
+    with pytest.raises(SecureError, match="no role 'intruder'"):
+        secure.export(folder / "tls", ["system", "intruder"], tmp_path / "nothing")
+    assert not (tmp_path / "nothing").exists()  # nothing written when a role is wrong
+
+
+def test_dtpf_router_enforces_the_folder_and_stops_on_sigint(processes, folder):
+    import signal
+
+    deployment = open_secure_dir(folder / "tls")
+    port = free_port()
+    endpoint = deployment.endpoint("127.0.0.1", port)
+    router = processes.start("router", ["-m", "scripts.cli", "router", "--secure", str(folder), "--listen", endpoint])
+    viewer = None
+    deadline = time.monotonic() + 20
+    while viewer is None:
+        try:
+            viewer = open_session(zenoh_config(secure=deployment, role="viewer", connect=[endpoint]))
+        except BusError:
+            assert time.monotonic() < deadline and router.poll() is None, processes.output(router)
+            time.sleep(0.2)
+    try:
+        with pytest.raises(BusError, match="Unable to connect"):
+            open_session(zenoh_config(mode="client", connect=[f"tcp/127.0.0.1:{port}"]))
+    finally:
+        viewer.close()
+    router.send_signal(signal.SIGINT)
+    assert router.wait(timeout=10) == 0
+    assert f"routing on {endpoint}" in processes.output(router)
+
+
+def test_a_message_on_a_layers_key_must_name_that_layer_and_twin():
+    """What the access control cannot see: the entity may put on its own keys, but not pass a message
+    off there as another layer's or another twin's (services count it as a rejection)."""
+    from messages.models import Status
+
+    def status(layer: str, twin: str = "t-own") -> bytes:
+        return encode(Status(run_id="run", twin_id=twin, step=0, layer=layer, state="running", pid=1,
+                             received=0, rejected=0))
+
+    assert decode_for_key("dtpf/t-own/entity/status", status("entity")).layer.value == "entity"
+    with pytest.raises(MessageError, match="does not belong on this key: layer 'system'"):
+        decode_for_key("dtpf/t-own/entity/status", status("system"))
+    with pytest.raises(MessageError, match="twin_id 't-other'"):
+        decode_for_key("dtpf/t-own/entity/status", status("entity", twin="t-other"))

@@ -228,6 +228,13 @@ def test_a_secured_launch_gives_the_plain_numbers_and_a_log_that_verifies(tmp_pa
     # (dtpf/<twin>/**) still sends (the access control lets it hear of that subscriber).
     plain = read_log(tmp_path / "plain.mcap") if launch(config, log_path=tmp_path / "plain.mcap", timeout=5.0,
                                                         notify=lambda text: None) else None
+    # No key and no password of the folder is in the log (statuses carry the run configuration only).
+    recorded = (tmp_path / "secured.mcap").read_bytes()
+    secrets = [line for path in (folder / "tls" / "keys").iterdir()
+               for line in path.read_text().splitlines() if "PRIVATE KEY" not in line]
+    secrets += [line.split(":", 1)[1].encode().decode() for line in
+                (folder / "usrpwd" / "passwords.txt").read_text().splitlines()]
+    assert len(secrets) >= 7 and not [secret for secret in secrets if secret.encode() in recorded]
     secured, clean = (Counter(m.topic for m in each.messages) for each in (log, plain))
     steps_of = lambda counts: {topic: count for topic, count in counts.items() if not topic.endswith("/status")}
     assert steps_of(secured) == steps_of(clean)  # statuses are also periodic: their number varies with time

@@ -15,6 +15,8 @@
                 ``dtpf secure init`` (made in a temporary folder); (u) the same
                 with user/password over tcp/ (``--secure`` picks which; the
                 ratio (s)/(b) is the cost of securing the twin).
+(n) no cloud     (b) with ``--cloud-points 0``: no foxglove.PointCloud per
+                step (``--cloud-cost``; the ratio (b)/(n) is the cloud's cost).
 
 All run the same RunConfig (same seed, so the same numbers). Only the steady
 state is timed: for (b), the time per step is taken from the ``stamp`` of the
@@ -62,6 +64,8 @@ TARGET_RATE_N, TARGET_RATE = 1_000, 200.0
 TARGET_RATIO_N, TARGET_RATIO = 100_000, 1.5
 #: Target of a secured launch: (s)/(b) at N = 1e5.
 TARGET_SECURED_N, TARGET_SECURED = 100_000, 1.2
+#: Target of the per-step point cloud at its default cap: (b)/(n) at N = 1e5.
+TARGET_CLOUD_N, TARGET_CLOUD = 100_000, 1.10
 #: Environment variables that change the figures; shown in the output.
 TUNING_PREFIXES = ("MALLOC_", "OPENBLAS_", "OMP_", "MKL_")
 #: 1-min load average above which the output warns that the machine was busy.
@@ -201,6 +205,8 @@ def main(argv=None) -> int:
     parser.add_argument("--cloud-points", type=int, default=None, metavar="K",
                         help="the entity's foxglove.PointCloud of each step: at most K particles, 0 none "
                              "(default: the entity's default, 1000)")
+    parser.add_argument("--cloud-cost", action="store_true",
+                        help="also run (n), (b) without the per-step point cloud, and print (b)/(n)")
     parser.add_argument("--secure", choices=("off", "tls", "usrpwd", "both"), default="tls",
                         help="also run (b) secured: (s) mutual TLS and access control, (u) user/password and "
                              "access control, both, or off (default: %(default)s)")
@@ -228,6 +234,9 @@ def main(argv=None) -> int:
     order = random.Random(args.seed)
     launched = {"both": "bc", "with": "b", "without": "c"}[args.recorder]
     launched += {"off": "", "tls": "s", "usrpwd": "u", "both": "su"}[args.secure]
+    launched += "n" if args.cloud_cost else ""
+    if args.cloud_cost and "b" not in launched:
+        parser.error("--cloud-cost compares with (b): use --recorder with or both")
     per_step: dict[tuple[int, str], list[float]] = {(n, m): [] for n in configs for m in "a" + launched}
     walls: dict[tuple[int, str], list[float]] = {(n, m): [] for n in configs for m in launched}
     degraded: dict[int, int] = {n: 0 for n in configs}
@@ -252,7 +261,7 @@ def main(argv=None) -> int:
                         per_step[n, "a"].append(run_inprocess(config))
                     else:
                         seconds, wall, bad = run_launched(config, recorder=mode != "c", timeout=args.timeout,
-                                                          cloud_points=args.cloud_points,
+                                                          cloud_points=0 if mode == "n" else args.cloud_points,
                                                           folder=Path(folder), secure=secure_of.get(mode))
                         per_step[n, mode].append(seconds)
                         walls[n, mode].append(wall)
@@ -269,7 +278,7 @@ def main(argv=None) -> int:
         print(f"WARNING: the machine was busy before the run (load {load_before:.2f} on {os.cpu_count()} CPUs): "
               "other processes compete with the five of (b); the figures are unreliable.\n")
     names = {"b": "(b) 3-process + recorder", "c": "(c) 3-process, no recorder", "s": "(s) secured, mTLS",
-             "u": "(u) secured, user/password"}
+             "u": "(u) secured, user/password", "n": "(n) (b) without cloud"}
     header = "| N | steps (timed) | (a) in-process steps/s | (a) ms/step |"
     for mode in launched:
         header += f" {names[mode]} steps/s | ({mode}) ms/step | ({mode})/(a) |"
@@ -290,13 +299,16 @@ def main(argv=None) -> int:
                     f"({min(ratios):.2f}-{max(ratios):.2f}) |")
         print(row + f" {statistics.median(walls[n, launched[0]]):.1f} |")
     secured = [mode for mode in "su" if mode in launched]
-    if secured and "b" in launched:
-        print("\n| N | " + " | ".join(f"({mode})/(b) per step" for mode in secured) + " |")
-        print("|---" * (1 + len(secured)) + "|")
+    against_b = secured + (["n"] if "n" in launched else [])
+    if against_b and "b" in launched:
+        print("\n| N | " + " | ".join(f"({mode})/(b) per step" if mode != "n" else "(b)/(n): the cloud's cost"
+                                     for mode in against_b) + " |")
+        print("|---" * (1 + len(against_b)) + "|")
         for n in configs:
             cells = []
-            for mode in secured:
-                ratios = [y / x for x, y in zip(per_step[n, "b"], per_step[n, mode])]
+            for mode in against_b:
+                pairs = zip(per_step[n, "b"], per_step[n, mode])
+                ratios = [y / x for x, y in pairs] if mode != "n" else [x / y for x, y in pairs]
                 ratio_of[n, mode + "/b"] = statistics.median(ratios)
                 cells.append(f"{ratio_of[n, mode + '/b']:.2f} ({min(ratios):.2f}-{max(ratios):.2f})")
             print(f"| {fmt_n(n)} | " + " | ".join(cells) + " |")
@@ -312,7 +324,7 @@ def main(argv=None) -> int:
 
     print("\nTargets (on the product's configuration, (b) when it ran; (c) for the split alone):")
     failed = False
-    for mode in launched.replace("s", "").replace("u", ""):
+    for mode in launched.replace("s", "").replace("u", "").replace("n", ""):
         label = names[mode].split(" ", 1)[0]
         if TARGET_RATE_N in configs:
             rate = rate_of[TARGET_RATE_N, mode]
@@ -333,6 +345,12 @@ def main(argv=None) -> int:
             failed |= not ok
             print(f"- N = {fmt_n(TARGET_SECURED_N)}: ({mode})/(b) at most {TARGET_SECURED}: {ratio:.2f}, "
                   f"{'PASS' if ok else 'FAIL'}")
+    if "n" in launched and TARGET_CLOUD_N in configs:
+        ratio = ratio_of[TARGET_CLOUD_N, "n/b"]
+        ok = ratio <= TARGET_CLOUD
+        failed |= not ok
+        print(f"- N = {fmt_n(TARGET_CLOUD_N)}: (b)/(n), the point cloud's cost, at most {TARGET_CLOUD}: {ratio:.3f}, "
+              f"{'PASS' if ok else 'FAIL'}")
     if TARGET_RATE_N not in configs or TARGET_RATIO_N not in configs:
         print(f"- (N = {fmt_n(TARGET_RATE_N)} and N = {fmt_n(TARGET_RATIO_N)} carry the targets; not all measured)")
     return 1 if failed else 0

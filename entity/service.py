@@ -111,6 +111,8 @@ def main(config: RunConfig, zenoh_config: zenoh.Config, args: argparse.Namespace
             ["information", "system"] if config.preprocess else [])
         twin = ZenohTwin(shell, args.timeout) if config.preprocess else None
         live = LiveObservations(shell, model, config, args.observation_timeout) if data is None else None
+        if wait_for:  # the run configuration, at once: a fleet's shared layers learn the twin from it
+            shell.publish_status()
         shell.wait_for_layers(wait_for, args.startup_timeout)
         # Without truth the filter is judged by how it predicts its data: the innovation too.
         pf = ParticleFilter(model, None if data is None else data.observations, config.particles,

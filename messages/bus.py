@@ -33,6 +33,7 @@ __all__ = [
     "zenoh_config_from_args",
     "open_session",
     "Inbox",
+    "Doorbell",
     "Presence",
     "publisher",
     "free_port",
@@ -189,6 +190,33 @@ DEFAULT_MAX_ITEMS = 4096
 DEFAULT_MAX_BYTES = 1 << 30
 
 
+class Doorbell:
+    """Rung by inboxes when a sample arrives, so one thread can wait on many inboxes (a fleet's twins).
+
+    :meth:`wait` returns the names rung since the last call (an inbox rings with
+    its ``name``), at once if any; the set holds each name once, so a flood
+    cannot grow it beyond the number of inboxes.
+    """
+
+    def __init__(self):
+        self._rung: set[str] = set()
+        self._lock = threading.Lock()
+        self._event = threading.Event()
+
+    def ring(self, name: str) -> None:
+        with self._lock:
+            self._rung.add(name)
+        self._event.set()
+
+    def wait(self, timeout: float) -> set[str]:
+        """The names rung since the last call, waiting up to ``timeout`` seconds for one."""
+        self._event.wait(timeout)
+        with self._lock:
+            self._event.clear()
+            rung, self._rung = self._rung, set()
+        return rung
+
+
 class Inbox:
     """Subscribers (one per key expression) whose samples wait in one queue until :meth:`get` takes them.
 
@@ -199,12 +227,16 @@ class Inbox:
     arrives while ``max_items`` samples or ``max_bytes`` bytes wait, is dropped
     (a flood cannot grow the process without bound) and reported to
     ``on_drop(key, reason, detail)`` if given; :attr:`dropped` counts them.
+    A ``doorbell`` (:class:`Doorbell`) is rung with ``name`` for every sample queued.
     """
 
     def __init__(self, session: zenoh.Session, key_expr: str, *more_key_exprs: str,
                  max_payload: int = DEFAULT_MAX_PAYLOAD, max_items: int = DEFAULT_MAX_ITEMS,
-                 max_bytes: int = DEFAULT_MAX_BYTES, on_drop=None):
+                 max_bytes: int = DEFAULT_MAX_BYTES, on_drop=None, doorbell: Doorbell | None = None,
+                 name: str = ""):
         self.key_expr = key_expr
+        self.doorbell = doorbell
+        self.name = name
         self.max_payload = max_payload
         self.max_items = max_items
         self.max_bytes = max_bytes
@@ -231,6 +263,8 @@ class Inbox:
                                           f"{self.max_bytes} bytes waiting): dropped a sample on {key[:200]}")
             return
         self._queue.put(Received(key, sample.payload.to_bytes()))
+        if self.doorbell is not None:
+            self.doorbell.ring(self.name)
 
     def _drop(self, key: str, reason: str, detail: str) -> None:
         with self._lock:

@@ -139,6 +139,22 @@ def twin_pattern(twin: str) -> str:
     return f"{PREFIX}/{check_id(twin, 'twin id')}/**"
 
 
+def twins_chunk(pattern: str) -> str:
+    """The Zenoh chunk of a twin pattern: ``*`` (every twin), a twin id, or an id with ``*`` in it
+    (``line-1-*``: the twins whose id starts so; Zenoh spells it ``line-1-$*``). ValueError otherwise."""
+    if pattern == "*":
+        return pattern
+    if not isinstance(pattern, str) or not pattern or "$" in pattern:
+        raise ValueError(f"a twin pattern uses letters, digits, '_', '.', '-' and '*'; got {pattern!r}")
+    parts = pattern.split("*")
+    for part in parts:
+        if part:
+            check_id(part, "twin pattern")
+    if "" in parts[1:-1]:
+        raise ValueError(f"a twin pattern may not have '**'; got {pattern!r}")
+    return "$*".join(parts)
+
+
 def any_layer_pattern(twin: str, topic: str) -> str:
     """Subscribe pattern for one topic of every layer of one twin: ``dtpf/<twin>/*/<topic>``."""
     return f"{PREFIX}/{check_id(twin, 'twin id')}/*/{check_topic_name(topic)}"

@@ -176,9 +176,17 @@ class ExitWatchdog:
 
 
 class ServiceShell:
-    """Session, presence, publishers, counters and status of one layer process."""
+    """Session, presence, publishers, counters and status of one layer process.
 
-    def __init__(self, layer: str, config: RunConfig, zenoh_config: zenoh.Config):
+    A layer that serves many twins (:mod:`messages.fleet`) has one shell per
+    twin on the process's ``session``: such a shell neither opens nor closes
+    the session, installs no signal handler and runs no status thread (the
+    fleet calls :meth:`tick`); its inboxes ring the fleet's ``doorbell`` with
+    the twin's name.
+    """
+
+    def __init__(self, layer: str, config: RunConfig, zenoh_config: zenoh.Config | None = None, *,
+                 session: zenoh.Session | None = None, doorbell=None):
         self.layer = keys.check_layer(layer)
         self.config = config
         self.log = logging.getLogger(f"dtpf.{self.layer.value}")
@@ -203,18 +211,22 @@ class ServiceShell:
         self._inboxes: list[Inbox] = []
         self._lock = threading.Lock()
         self._config_json = config.model_dump_json()
-        self.watchdog = ExitWatchdog(self.log)
-        self.session = open_session(zenoh_config)
+        self.doorbell = doorbell
+        self.shared = session is not None
+        self.watchdog = ExitWatchdog(self.log) if not self.shared else None
+        self.session = session if self.shared else open_session(zenoh_config)
         self.presence = Presence(self.session, config.twin, self.layer.value, names=_LAYER_NAMES)
         self._status_thread = threading.Thread(target=self._report, name="status", daemon=True)
+        self._next_status = time.monotonic() + STATUS_INTERVAL
 
     # --- lifecycle ---------------------------------------------------------------
 
     def __enter__(self) -> "ServiceShell":
-        for signum in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(signum, self._on_signal)
-        self.watchdog.install()
-        self._status_thread.start()
+        if not self.shared:
+            for signum in (signal.SIGINT, signal.SIGTERM):
+                signal.signal(signum, self._on_signal)
+            self.watchdog.install()
+            self._status_thread.start()
         return self
 
     def __exit__(self, exc_type, exc, tb) -> None:
@@ -223,6 +235,12 @@ class ServiceShell:
             self.last_error = f"{type(exc).__name__}: {exc}"
         elif self.state != ServiceState.FAILED:
             self.state = ServiceState.FINISHED
+        if self.shared:  # one twin of a fleet: its last status, its subscribers and token; the session stays
+            self.publish_status()
+            for inbox in self._inboxes:
+                inbox.close()
+            self.presence.close()
+            return
         # From here on the process exits within the grace, however Zenoh's close behaves.
         self.watchdog.arm(code=130 if self.stopping else (1 if self.state == ServiceState.FAILED else 0))
         self._stop.set()
@@ -278,7 +296,8 @@ class ServiceShell:
         It holds ``payloads`` of the run's largest payload, at least ``min_bytes``."""
         largest = self.largest_payload()
         inbox = Inbox(self.session, key_expr, *more, max_payload=largest,
-                      max_bytes=max(min_bytes, payloads * largest), on_drop=self._on_drop)
+                      max_bytes=max(min_bytes, payloads * largest), on_drop=self._on_drop,
+                      doorbell=self.doorbell, name=self.config.twin)
         self._inboxes.append(inbox)
         return inbox
 
@@ -312,6 +331,15 @@ class ServiceShell:
             self.reject(misfit.kind, misfit.detail, key=item.key)
             return None
         return message
+
+    def take(self, inbox: Inbox, expected: type[Message]) -> Message | None:
+        """The next message of ``inbox`` that applies to this run, without waiting (the bad ones on the
+        way are counted); None once the inbox is empty."""
+        while (item := inbox.get(timeout=0)) is not None:
+            message = self.receive(item, expected)
+            if message is not None:
+                return message
+        return None
 
     def reject(self, reason: str, detail: str | None = None, key: str | None = None) -> None:
         """Count a rejected message by the kind of its reason (and its key); log a kind the first
@@ -362,6 +390,13 @@ class ServiceShell:
 
     def _report(self) -> None:
         while not self._stop.wait(STATUS_INTERVAL):
+            self.publish_status()
+            self._sum_up_rejections()
+
+    def tick(self, now: float) -> None:
+        """A fleet's shell: publish the status and sum up rejections when STATUS_INTERVAL has passed."""
+        if now >= self._next_status:
+            self._next_status = now + STATUS_INTERVAL
             self.publish_status()
             self._sum_up_rejections()
 

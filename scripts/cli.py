@@ -95,11 +95,15 @@ def cmd_launch(args: argparse.Namespace) -> int:
         except SecureError as error:
             print(f"dtpf launch: error: {error}", file=sys.stderr)
             return 2
-    print(f"dtpf: launching recorder, system, information and entity for twin {config.twin} "
+    who = f"twin {config.twin}" if args.twins is None else \
+        f"{args.twins} twins {config.twin}-1 .. {config.twin}-{args.twins} (one entity each)"
+    print(f"dtpf: launching recorder, system, information and entity for {who} "
           f"({how}{source})", file=sys.stderr)
     if config.live:
         print(f"dtpf: the entity filters what arrives on {config.observation_key()} (start a sensor, e.g. "
               f"'dtpf sensor --twin {config.twin}'); Ctrl-C ends the run", file=sys.stderr)
+    if args.twins is not None:
+        return _launch_fleet(config, args)
     try:
         result = launch(config, log_path=args.log, port=args.port, timeout=args.timeout,
                         startup_timeout=args.startup_timeout, log_level=args.log_level, rate=args.rate,
@@ -111,11 +115,32 @@ def cmd_launch(args: argparse.Namespace) -> int:
     except LaunchError as error:
         print(f"dtpf launch: error: {error}", file=sys.stderr)
         return 1
-    print(result.summary())
-    if result.failure:
-        print(f"dtpf launch: error: {result.failure}", file=sys.stderr)
+    return _finish(result.summary(), result.failure, result.interrupted)
+
+
+def _finish(summary: str, failure: str | None, interrupted: bool) -> int:
+    """Print a launch's summary; its exit code (1 on a failure, 130 when interrupted)."""
+    print(summary)
+    if failure:
+        print(f"dtpf launch: error: {failure}", file=sys.stderr)
         return 1
-    return 130 if result.interrupted else 0
+    return 130 if interrupted else 0
+
+
+def _launch_fleet(config, args: argparse.Namespace) -> int:
+    from scripts.fleet import launch_fleet
+    from scripts.launch import LaunchError
+
+    try:
+        result = launch_fleet(config, args.twins, log_path=args.log, port=args.port, timeout=args.timeout,
+                              startup_timeout=args.startup_timeout, log_level=args.log_level, rate=args.rate,
+                              progress=None if args.quiet else ProgressBar(), cloud_points=args.cloud_points,
+                              secure=args.secure)
+    except (LaunchError, ValueError) as error:
+        print(f"dtpf launch: error: {error}", file=sys.stderr)
+        return 1
+    failure = f"{len(result.failures)} twins did not end their run" if result.failures else None
+    return _finish(result.summary(), failure, result.interrupted)
 
 
 def _address(text: str):
@@ -192,6 +217,10 @@ def build_parser() -> argparse.ArgumentParser:
                             "listens on tls/ (or tcp/ with passwords) and enforces its access control, each "
                             "service connects with its role's certificate or password (default: plain tcp/ on "
                             "loopback, no authentication)")
+    group.add_argument("--twins", type=int, default=None, metavar="K",
+                       help="a fleet: K twins <twin>-1 .. <twin>-K, one entity process each, served by one "
+                            "information and one system service and recorded by one recorder into one log "
+                            "(default: one twin)")
     group.add_argument("--restarts", type=int, default=3, metavar="COUNT",
                        help="start a dead information, system or recorder service again at most this many "
                             "times each; the entity runs on meanwhile with plain resampling (its estimates say "

@@ -16,9 +16,7 @@ the log stays readable.
 """
 from __future__ import annotations
 
-import argparse
 import datetime as dt
-import os
 import signal
 import subprocess
 import sys
@@ -32,10 +30,11 @@ from messages import keys
 from messages.bus import BusError, Inbox, Presence, free_port, open_session, zenoh_config
 from messages.codec import MessageError, decode_for_key
 from messages.config import RunConfig
-from messages.models import Estimate, Layer, ServiceState, Status
+from messages.models import Estimate, Layer, Status
 from messages.service import release_memory
 
-__all__ = ["launch", "LaunchResult", "LaunchError", "EstimateTally", "Restart", "segment_path"]
+__all__ = ["launch", "LaunchResult", "LaunchError", "EstimateTally", "Restart", "segment_path", "open_router",
+           "rejected_by_layer"]
 
 #: Start order: the recorder first (so nothing is missed), the entity last.
 LAYERS = ("recorder", "system", "information", "entity")
@@ -212,10 +211,7 @@ class LaunchResult:
     @property
     def rejected(self) -> dict[str, int]:
         """Rejected messages per layer, summed over every process the layer had."""
-        totals: dict[str, int] = {}
-        for status in self.statuses_by_pid.values():
-            totals[status.layer.value] = totals.get(status.layer.value, 0) + status.rejected
-        return totals
+        return rejected_by_layer(self.statuses_by_pid.values())
 
     def summary(self) -> str:
         t = self.tally
@@ -243,6 +239,14 @@ class LaunchResult:
             f"log             {log}",
         ]
         return "\n".join(lines)
+
+
+def rejected_by_layer(statuses) -> dict[str, int]:
+    """The rejected messages of ``statuses`` (the last of each process, or of each process and twin), by layer."""
+    totals: dict[str, int] = {}
+    for status in statuses:
+        totals[status.layer.value] = totals.get(status.layer.value, 0) + status.rejected
+    return totals
 
 
 class Bridge:
@@ -300,8 +304,9 @@ def default_log_path(config: RunConfig) -> Path:
 def service_command(layer: str, config: RunConfig, endpoint: str, *, timeout: float, log_path: Path,
                     log_level: str, rate: float | None = None,
                     observation_timeout: float | None = None, cloud_points: int | None = None,
-                    secure: Path | None = None) -> list[str]:
-    """The command line of one child service (``secure``: the secure folder; its role is the layer)."""
+                    secure: Path | None = None, wait_for_recorder: bool = True) -> list[str]:
+    """The command line of one child service (``secure``: the secure folder; its role is the layer;
+    ``wait_for_recorder``: the entity waits for its twin's recorder too)."""
     command = [sys.executable, "-m", MODULES[layer],
                "--scenario", config.scenario, "--particles", str(config.particles),
                "--resampler", config.resampler, "--threshold", str(config.threshold),
@@ -323,7 +328,7 @@ def service_command(layer: str, config: RunConfig, endpoint: str, *, timeout: fl
     if not config.preprocess:
         command += ["--no-preprocess"]
     if layer == "entity":
-        wait = ["recorder"] + (["information", "system"] if config.preprocess else [])
+        wait = (["recorder"] if wait_for_recorder else []) + (["information", "system"] if config.preprocess else [])
         for other in wait:
             command += ["--wait-for", other]
         if rate:
@@ -367,20 +372,8 @@ def launch(config: RunConfig, *, log_path: Path | None = None, port: int | None 
     :attr:`LaunchResult.failure` set.
     """
     log_path = Path(log_path) if log_path else default_log_path(config)
-    port = port or free_port()
-    if secure is not None:
-        from messages.secure import SecureError, open_secure_dir
-        try:
-            secure = open_secure_dir(secure)
-        except SecureError as error:
-            raise LaunchError(str(error)) from None
-    endpoint = secure.endpoint("127.0.0.1", port) if secure is not None else f"tcp/127.0.0.1:{port}"
+    router, endpoint, secure = open_router(port, secure)
     notify = notify or (lambda text: print(f"dtpf launch: {text}", file=sys.stderr, flush=True))
-    try:
-        router = open_session(zenoh_config(mode="router", listen=[endpoint], secure=secure,
-                                           role="router" if secure is not None else None))
-    except BusError as error:
-        raise LaunchError(f"embedded Zenoh router cannot start on {endpoint}: {error}") from None
     result = LaunchResult(config, log_path, tally=EstimateTally(config.steps, keep=keep_estimates))
     children: dict[str, subprocess.Popen] = {}
     layer_of_pid: dict[int, str] = {}
@@ -494,6 +487,26 @@ def launch(config: RunConfig, *, log_path: Path | None = None, port: int | None 
             presence.close()
         router.close()
     return result
+
+
+def open_router(port: int | None, secure=None):
+    """The launcher's Zenoh router on 127.0.0.1 (``port`` or a free one): (session, endpoint, secure
+    folder or None). With ``secure`` (a folder of ``dtpf secure init``) it listens on the folder's
+    protocol and enforces its access control. LaunchError names what went wrong."""
+    port = port or free_port()
+    if secure is not None:
+        from messages.secure import SecureError, open_secure_dir
+        try:
+            secure = open_secure_dir(secure)
+        except SecureError as error:
+            raise LaunchError(str(error)) from None
+    endpoint = secure.endpoint("127.0.0.1", port) if secure is not None else f"tcp/127.0.0.1:{port}"
+    try:
+        router = open_session(zenoh_config(mode="router", listen=[endpoint], secure=secure,
+                                           role="router" if secure is not None else None))
+    except BusError as error:
+        raise LaunchError(f"embedded Zenoh router cannot start on {endpoint}: {error}") from None
+    return router, endpoint, secure
 
 
 def _wait_for_recorder(recorder: subprocess.Popen, presence: Presence, timeout: float) -> None:

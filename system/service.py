@@ -13,7 +13,6 @@ Run ``python -m system.service --help`` for the options.
 from __future__ import annotations
 
 import argparse
-import time
 
 import zenoh
 
@@ -21,13 +20,14 @@ from entity import sources
 from information.mirror import WeightSummary
 from messages.admission import RunShape
 from messages.bus import add_zenoh_arguments
+from messages.fleet import add_fleet_arguments, serve_layer
 from messages.config import RunConfig, add_run_arguments
 from messages.models import ParticleSet, PSCommand, WeightState
 from messages.service import ServiceShell, add_service_arguments, run_service
 from system.layer import SystemLayer
 from system.predict import Snapshot
 
-__all__ = ["main", "summary_of", "ParticleSets"]
+__all__ = ["main", "summary_of", "ParticleSets", "TwinSystem"]
 
 
 def summary_of(state: WeightState) -> WeightSummary:
@@ -47,16 +47,15 @@ class ParticleSets:
         self.inbox = shell.inbox("information", "preprocessed")
         self.pending: dict[int, ParticleSet] = {}
 
-    def wait_for(self, step: int, timeout: float) -> Snapshot | None:
-        """The snapshot of ``step``, waiting up to ``timeout`` for it; None if it does not come."""
-        deadline = time.monotonic() + timeout
-        while step not in self.pending and not self.shell.stopping:
-            remaining = deadline - time.monotonic()
-            if remaining <= 0:
-                break
-            message = self.shell.receive(self.inbox.get(timeout=min(remaining, 0.2)), ParticleSet)
+    def take(self, step: int) -> None:
+        """Keep what has arrived for steps ``step`` .. ``step + MAX_AHEAD``."""
+        while (item := self.inbox.get(timeout=0)) is not None:
+            message = self.shell.receive(item, ParticleSet)
             if message is not None and step <= message.step <= step + MAX_AHEAD:
                 self.pending[message.step] = message
+
+    def snapshot(self, step: int) -> Snapshot | None:
+        """The snapshot of ``step`` if its set has arrived (older ones are dropped)."""
         for old in [s for s in self.pending if s < step]:
             del self.pending[old]
         message = self.pending.pop(step, None)
@@ -65,34 +64,62 @@ class ParticleSets:
         return Snapshot.of(message.particles, message.weights, message.observation)
 
 
-def main(config: RunConfig, zenoh_config: zenoh.Config, args: argparse.Namespace) -> int:
-    """Serve PS decisions for the twin of ``config`` until SIGINT/SIGTERM."""
-    model = sources.load_model(config)
-    # The service keeps only what the policies look back on, not the run's whole history.
-    layer = SystemLayer.from_config(config, model=model, keep=16)
-    with ServiceShell("system", config, zenoh_config) as shell:
+class TwinSystem:
+    """The system layer of one twin in a service: weight state in, PS decision out.
+
+    :meth:`poll` never blocks: a policy that simulates waits for the
+    preprocessed set of the weight state's step, at most ``timeout`` seconds,
+    and then decides from the weight state alone (and says so).
+    """
+
+    def __init__(self, shell: ServiceShell, config: RunConfig, model, timeout: float):
+        self.shell = shell
+        self.timeout = timeout
+        # The service keeps only what the policies look back on, not the run's whole history.
+        self.layer = SystemLayer.from_config(config, model=model, keep=16)
         shell.expect(RunShape.of(config, model))
-        states = shell.inbox("information", "weight_state")
-        sets = ParticleSets(shell) if layer.needs_particles else None
-        shell.running()
-        while not shell.stopping:
-            state = shell.receive(states.get(timeout=0.2), WeightState)
-            if state is None:
-                continue
+        self.states = shell.inbox("information", "weight_state")
+        self.sets = ParticleSets(shell) if self.layer.needs_particles else None
+        self.waiting: WeightState | None = None
+        self.deadline = 0.0
+
+    def poll(self, now: float) -> float | None:
+        """Handle what has arrived; the time to look again if a weight state waits for its set."""
+        shell = self.shell
+        while True:
+            if self.waiting is None:
+                state = shell.take(self.states, WeightState)
+                if state is None:
+                    return None
+                self.waiting, self.deadline = state, now + self.timeout
+            state = self.waiting
             snapshot = None
-            if sets is not None:
-                snapshot = sets.wait_for(state.step, args.timeout)
+            if self.sets is not None:
+                self.sets.take(state.step)
+                snapshot = self.sets.snapshot(state.step)
                 if snapshot is None:
+                    if now < self.deadline and not shell.stopping:
+                        return self.deadline
                     shell.log.warning("step %d: no preprocessed set within %.1f s, deciding from the weight "
-                                      "state alone", state.step, args.timeout)
-            try:
-                decision = layer.observe(state.step, summary_of(state), snapshot)
-            except ValueError as error:  # a state the predictor cannot take: counted, the service goes on
-                shell.reject("weight state the predictor cannot take", f"step {state.step}: {error}",
-                             key=states.key_expr)
-                continue
-            shell.publish(PSCommand(**shell.header(state.step), **decision.command_fields()))
-    return 0
+                                      "state alone", state.step, self.timeout)
+            self.waiting = None
+            self._decide(state, snapshot)
+
+    def _decide(self, state: WeightState, snapshot: Snapshot | None) -> None:
+        try:
+            decision = self.layer.observe(state.step, summary_of(state), snapshot)
+        except ValueError as error:  # a state the predictor cannot take: counted, the service goes on
+            self.shell.reject("weight state the predictor cannot take", f"step {state.step}: {error}",
+                              key=self.states.key_expr)
+            return
+        self.shell.publish(PSCommand(**self.shell.header(state.step), **decision.command_fields()))
+
+
+def main(config: RunConfig, zenoh_config: zenoh.Config, args: argparse.Namespace) -> int:
+    """Serve PS decisions for the twin of ``config`` (or, with --twins, every twin under the pattern)
+    until SIGINT/SIGTERM."""
+    return serve_layer("system", config, zenoh_config, args, sources.load_model,
+                       lambda shell, twin_config, model: TwinSystem(shell, twin_config, model, args.timeout))
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -102,6 +129,7 @@ def build_parser() -> argparse.ArgumentParser:
                     "publishes the preprocessing degree PS for the next step, with its reason.")
     add_run_arguments(parser)
     add_service_arguments(parser)
+    add_fleet_arguments(parser)
     add_zenoh_arguments(parser)
     return parser
 

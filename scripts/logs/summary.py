@@ -420,6 +420,11 @@ def format_summary(summary: LogSummary) -> str:
     if not summary.twins:
         lines.append("no estimate, PS or status message of any twin in the log")
     for t in summary.twins:
+        if not t.steps and not t.ps_commanded and set(t.statuses) == {"recorder"}:  # a fleet's recorder
+            s = t.statuses["recorder"]
+            lines += ["", f"recorder of the fleet (twin {t.twin}, run {t.run_id}): {s.rejected} of {s.received} "
+                          f"received rejected ({s.state})" + (f", last error: {s.last_error}" if s.last_error else "")]
+            continue
         lines += ["", f"twin {t.twin}, run {t.run_id}"]
         c = t.config
         if c:

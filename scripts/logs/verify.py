@@ -102,19 +102,34 @@ def verify(log: Log, twin: str | None = None, model_override: str | None = None)
     ``model_override``: a model reference to load instead of the one the log's
     run configuration names (the same model, found elsewhere).
     """
-    by_topic: dict[str, list] = {}
-    twins = set()
-    for item, message in log.decoded():
-        if isinstance(message, Exception):
-            continue
-        twins.add(message.twin_id)
-        by_topic.setdefault(item.topic, []).append(message)
+    by_topic = decoded_by_topic(log)
+    twins = filtered_twins(by_topic)
     if twin is None:
         if len(twins) != 1:
-            raise LogError(f"the log holds twins {sorted(twins)}: choose one with --twin")
-        twin = twins.pop()
-    elif twin not in twins:
-        raise LogError(f"twin {twin!r} is not in the log; it holds {sorted(twins)}")
+            raise LogError(f"the log holds twins {twins}: choose one with --twin")
+        twin = twins[0]
+    elif twin not in {m.twin_id for ms in by_topic.values() for m in ms}:
+        raise LogError(f"twin {twin!r} is not in the log; it holds {twins}")
+    return verify_twin(by_topic, twin, log.problem, model_override)
+
+
+def decoded_by_topic(log: Log) -> dict[str, list]:
+    """Every message of ``log`` that decodes, by topic."""
+    by_topic: dict[str, list] = {}
+    for item, message in log.decoded():
+        if not isinstance(message, Exception):
+            by_topic.setdefault(item.topic, []).append(message)
+    return by_topic
+
+
+def filtered_twins(by_topic: dict[str, list]) -> list[str]:
+    """The twins whose entity recorded particle sets (a fleet's recorder reports under a twin of its own)."""
+    return sorted({m.twin_id for topic, ms in by_topic.items() if topic.endswith("/entity/particles") for m in ms})
+
+
+def verify_twin(by_topic: dict[str, list], twin: str, problem: str | None = None,
+                model_override: str | None = None) -> Verification:
+    """:func:`verify` of one twin of an already decoded log."""
 
     def recorded(topic: str) -> dict[int, object]:
         return {m.step: m for m in by_topic.get(f"dtpf/{twin}/{topic}", [])}
@@ -122,7 +137,7 @@ def verify(log: Log, twin: str | None = None, model_override: str | None = None)
     statuses = [m for topic, ms in by_topic.items() if topic.startswith(f"dtpf/{twin}/") for m in ms
                 if isinstance(m, Status)]
     config = _config_of(statuses, twin)
-    result = Verification(twin, config, problem=log.problem)
+    result = Verification(twin, config, problem=problem)
     particle_sets = recorded("entity/particles")
     preprocessed = recorded("information/preprocessed")
     weight_states = recorded("information/weight_state")
@@ -198,16 +213,30 @@ def _ranges(steps: list[int]) -> str:
 def cmd_verify(args: argparse.Namespace) -> int:
     try:
         log = read_logs(args.log)
-        result = verify(log, args.twin, args.model)
+        if args.twin is None:  # every twin of the log, one after the other (a fleet's log holds many)
+            by_topic = decoded_by_topic(log)
+            twins = filtered_twins(by_topic)
+            if not twins:
+                raise LogError("the log holds no entity particle set to verify")
+            results = [verify_twin(by_topic, twin, log.problem, args.model) for twin in twins]
+        else:
+            results = [verify(log, args.twin, args.model)]
     except LogError as error:
         print(f"dtpf verify: error: {error}")
         return 2
     if log.problem:
         print(f"note: {log.problem}")
+    codes = [_report(result, args.verbose) for result in results]
+    if len(results) > 1:
+        print(f"{codes.count(0)} of {len(results)} twins reproduced exactly")
+    return max(codes)
+
+
+def _report(result: Verification, verbose: bool) -> int:
     c = result.config
     print(f"twin {result.twin}: re-running information (threshold {c.threshold}, weight rule {c.weight_rule}) "
           f"and system (policy {c.policy}, PS {c.ps:g}) on the recorded entity particle sets")
-    if args.verbose:
+    if verbose:
         for step in result.checked:
             print(f"step {step}: ok")
     if result.unanswered:
@@ -231,7 +260,7 @@ def register(subparsers) -> None:
     parser.add_argument("log", nargs="+", metavar="LOG",
                         help="MCAP log written by dtpf launch or the recorder; several: the segments of one "
                              "run, in order")
-    parser.add_argument("--twin", help="twin to verify (default: the only twin in the log)")
+    parser.add_argument("--twin", help="twin to verify (default: every twin of the log, one after the other)")
     parser.add_argument("--model", metavar="REF", default=None,
                         help="load the run's model from this reference instead of the one the log names "
                              "(for a model file that has moved)")

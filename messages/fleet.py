@@ -1,0 +1,276 @@
+"""One layer process serving many twins: the event loop, the twins it learns, the twins it drops.
+
+A layer's work for one twin is an object with ``poll(now) -> deadline | None``
+(handle what has arrived for that twin without blocking; say when it next
+needs to look even if nothing arrives) on a :class:`~messages.service.ServiceShell`
+of its own. :func:`serve_one` runs one such twin (a service started with the
+twin's flags); :func:`serve_fleet` learns the twins under a key pattern from
+their entities and runs each of them on the process's one Zenoh session:
+
+- a twin is learned from its entity's Status (state ``starting``, with its
+  run configuration), which the entity publishes before it waits for the
+  layers and every second after; the layer then declares
+  ``dtpf/<twin>/<layer>/alive`` for that twin, which is what the entity waits
+  for;
+- a twin is dropped, its state freed, when its entity says it has finished or
+  failed, when its entity's liveliness token goes after having been seen, or
+  when its entity has not been seen for ``forget_after`` seconds;
+- a new run of a twin replaces the old one.
+
+Only built-in or registered models (no ``--model REF``) are served unless the
+reference is in ``allow_models``: a status from the bus must not make a shared
+service import code.
+"""
+from __future__ import annotations
+
+import logging
+import signal
+import threading
+import time
+from dataclasses import dataclass
+
+from messages import keys
+from messages.admission import kind_of
+from messages.bus import Doorbell, Inbox, open_session
+from messages.codec import MessageError, decode_for_key
+from messages.config import RunConfig
+from messages.models import ServiceState, Status
+from messages.service import EXIT_GRACE, ExitWatchdog, ServiceShell, Tally
+
+__all__ = ["serve_layer", "serve_one", "serve_fleet", "add_fleet_arguments", "ConfigWatch", "Learned", "FleetStats"]
+
+#: Longest wait between two looks at the twins when nothing arrives.
+_IDLE = 0.2
+#: Most twins a fleet service serves at once; a status beyond them is counted, not served.
+MAX_TWINS = 10_000
+
+
+def add_fleet_arguments(parser) -> None:
+    """``--twins PATTERN`` and ``--allow-model REF``: serve every twin under a pattern."""
+    group = parser.add_argument_group("fleet")
+    group.add_argument("--twins", metavar="PATTERN", default=None,
+                       help="serve every twin whose entity appears under this key chunk ('*' for all, 'line-1-*' "
+                            "for some), each with the run configuration its entity announces; the run options "
+                            "above are then ignored (default: serve only the twin of the run options)")
+    group.add_argument("--allow-model", action="append", default=[], metavar="REF",
+                       help="with --twins: a model reference (--model of a twin) this service may load; built-in "
+                            "and registered scenarios need none (repeatable)")
+
+
+def _wait_time(deadline: float | None, now: float) -> float:
+    return _IDLE if deadline is None else min(_IDLE, max(0.0, deadline - now))
+
+
+def serve_layer(layer: str, config: RunConfig, zenoh_config, args, load_model, make_work) -> int:
+    """The ``main`` of a layer service: the twin of the run options, or (``--twins``) every twin under the
+    pattern. ``load_model(config)`` gives a twin's model, ``make_work(shell, config, model)`` the layer's
+    work for it; a model that cannot load stops a solo service before its session opens."""
+    if args.twins:
+        serve_fleet(layer, args.twins, zenoh_config,
+                    lambda shell, twin_config: make_work(shell, twin_config, load_model(twin_config)),
+                    allow_models=args.allow_model)
+        return 0
+    model = load_model(config)
+    doorbell = Doorbell()
+    with ServiceShell(layer, config, zenoh_config, doorbell=doorbell) as shell:
+        work = make_work(shell, config, model)
+        shell.running()
+        serve_one(shell, work, doorbell)
+    return 0
+
+
+def serve_one(shell: ServiceShell, twin, doorbell: Doorbell) -> None:
+    """Poll ``twin`` whenever its inboxes ring (or its deadline comes) until the shell stops."""
+    while not shell.stopping:
+        deadline = twin.poll(time.monotonic())
+        doorbell.wait(_wait_time(deadline, time.monotonic()))
+
+
+@dataclass(frozen=True)
+class Learned:
+    """What an entity's status says of its twin: a run to serve, or the end of one."""
+
+    twin: str
+    config: RunConfig | None   #: the run to serve (None: the run ``run_id`` ended)
+    run_id: str
+
+
+class ConfigWatch:
+    """The entities' statuses under a twin pattern, as the runs they announce and end."""
+
+    def __init__(self, session, pattern: str, on_reject):
+        self.pattern = pattern
+        self.on_reject = on_reject
+        self.inbox = Inbox(session, f"{keys.PREFIX}/{keys.twins_chunk(pattern)}/entity/status",
+                           max_payload=1 << 20, max_items=10_000,
+                           max_bytes=64 << 20, on_drop=lambda key, reason, detail: on_reject(reason, detail))
+        #: When each twin's entity was last heard (any status).
+        self.heard: dict[str, float] = {}
+
+    def poll(self, now: float) -> list[Learned]:
+        learned = []
+        while (item := self.inbox.get(timeout=0)) is not None:
+            try:
+                status = decode_for_key(item.key, item.payload)
+                if not isinstance(status, Status):
+                    raise MessageError(f"expected Status, got {type(status).__name__}", key=item.key)
+            except MessageError as error:
+                self.on_reject(error.reason, str(error))
+                continue
+            if status.twin_id not in self.heard and len(self.heard) >= MAX_TWINS:
+                self.on_reject("too many twins", f"{len(self.heard)} twins heard, at most {MAX_TWINS}")
+                continue
+            self.heard[status.twin_id] = now
+            if status.state in (ServiceState.FINISHED, ServiceState.FAILED):
+                learned.append(Learned(status.twin_id, None, status.run_id))
+                continue
+            if status.config_json is None:
+                continue
+            try:
+                config = RunConfig.model_validate_json(status.config_json)
+            except ValueError as error:
+                self.on_reject("run configuration that does not validate", f"{item.key}: {str(error)[:300]}")
+                continue
+            if config.twin != status.twin_id or config.run_id != status.run_id:
+                self.on_reject("run configuration of another twin or run",
+                               f"{item.key}: configuration of {config.twin}/{config.run_id}")
+                continue
+            learned.append(Learned(status.twin_id, config, status.run_id))
+        return learned
+
+    def forget(self, twin: str) -> None:
+        self.heard.pop(twin, None)
+
+    def close(self) -> None:
+        self.inbox.close()
+
+
+@dataclass
+class FleetStats:
+    """What a fleet service did: twins served and dropped, and why."""
+
+    served: int = 0
+    dropped: dict[str, int] | None = None
+
+    def drop(self, why: str) -> None:
+        self.dropped = self.dropped or {}
+        self.dropped[why] = self.dropped.get(why, 0) + 1
+
+
+class _Served:
+    """One twin a fleet serves: its shell and its layer's work."""
+
+    def __init__(self, shell: ServiceShell, work, run_id: str):
+        self.shell = shell
+        self.work = work
+        self.run_id = run_id
+        self.deadline: float | None = None
+        self.entity_seen = False
+
+
+def serve_fleet(layer: str, pattern: str, zenoh_config, make_work, *, allow_models=(), forget_after: float = 30.0,
+                log: logging.Logger | None = None, on_change=None) -> FleetStats:
+    """Serve every twin whose entity appears under ``pattern`` until SIGINT/SIGTERM.
+
+    ``make_work(shell, config)`` builds the layer's work for a twin (it may
+    raise ValueError or RunInputError: the twin is then refused and counted).
+    ``on_change(served)`` is told the set of twins served whenever it changes.
+    """
+    log = log or logging.getLogger(f"dtpf.{layer}")
+    stop = threading.Event()
+
+    def on_signal(signum, frame):
+        log.info("received %s, stopping", signal.Signals(signum).name)
+        stop.set()
+
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, on_signal)
+    watchdog = ExitWatchdog(log, grace=EXIT_GRACE)
+    watchdog.install()
+    doorbell = Doorbell()
+    stats = FleetStats()
+    refusals = Tally()
+
+    def refuse(reason: str, detail: str | None = None) -> None:
+        if refusals.add(kind_of(reason)):
+            log.warning("refused (%s; further ones of this kind are counted): %s", kind_of(reason),
+                        (detail or reason)[:500])
+
+    session = open_session(zenoh_config)
+    watch = ConfigWatch(session, pattern, refuse)
+    served: dict[str, _Served] = {}
+
+    def drop(twin: str, why: str) -> None:
+        entry = served.pop(twin)
+        entry.shell.__exit__(None, None, None)
+        watch.forget(twin)
+        stats.drop(why)
+        log.info("twin %s: %s; its state is freed (%d twins served)", twin, why, len(served))
+        if on_change is not None:
+            on_change(set(served))
+
+    def serve(config: RunConfig) -> None:
+        if config.model is not None and config.model not in allow_models:
+            refuse("model not allowed", f"twin {config.twin}: model {config.model!r} is not in --allow-model; "
+                                        "a fleet service loads only built-in and registered models by itself")
+            return
+        shell = ServiceShell(layer, config, session=session, doorbell=doorbell).__enter__()
+        try:
+            work = make_work(shell, config)
+        except (ValueError, OSError) as error:
+            shell.state = ServiceState.FAILED
+            shell.last_error = str(error)[:500]
+            shell.__exit__(None, None, None)
+            refuse("twin that cannot be served", f"twin {config.twin}: {error}")
+            return
+        shell.running()
+        served[config.twin] = _Served(shell, work, config.run_id)
+        stats.served += 1
+        log.info("twin %s: serving run %s (%d twins served)", config.twin, config.run_id, len(served))
+        if on_change is not None:
+            on_change(set(served))
+
+    try:
+        rung: set[str] = set()
+        next_sweep = 0.0
+        while not stop.is_set():
+            now = time.monotonic()
+            for event in watch.poll(now):
+                entry = served.get(event.twin)
+                if event.config is None:
+                    if entry is not None and entry.run_id == event.run_id:
+                        drop(event.twin, "its entity finished")
+                    continue
+                if entry is not None and entry.run_id == event.config.run_id:
+                    continue
+                if entry is not None:
+                    drop(event.twin, f"a new run {event.config.run_id} replaces run {entry.run_id}")
+                serve(event.config)
+            if now >= next_sweep:  # liveness and statuses of every twin, a few times a second
+                next_sweep = now + _IDLE
+                for twin, entry in list(served.items()):
+                    if "entity" in entry.shell.presence.alive:
+                        entry.entity_seen = True
+                    elif entry.entity_seen:
+                        drop(twin, "its entity is gone")
+                        continue
+                    elif now - watch.heard.get(twin, now) > forget_after:
+                        drop(twin, f"its entity was not heard for {forget_after:.0f} s")
+                        continue
+                    entry.shell.tick(now)
+                    rung.add(twin)  # a deadline may have passed
+            for twin in rung:
+                entry = served.get(twin)
+                if entry is not None:
+                    entry.deadline = entry.work.poll(now)
+            deadlines = [entry.deadline for entry in served.values() if entry.deadline is not None] \
+                if len(served) < 64 else []
+            next_deadline = min(deadlines, default=None)
+            rung = doorbell.wait(_wait_time(next_deadline, time.monotonic()))
+    finally:
+        watchdog.arm(code=0)
+        for twin in list(served):
+            drop(twin, "the service stops")
+        watch.close()
+        session.close()
+    return stats

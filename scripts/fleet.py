@@ -1,0 +1,190 @@
+"""``dtpf launch --twins K``: K twins against one information, one system service and one recorder.
+
+The twins are ``<twin>-1`` .. ``<twin>-K``, each an entity process with the
+run's options (the same seed: the random streams are derived per twin, so
+every twin's numbers are those of its own ``dtpf run --twin <twin>-i``). The
+information and system services are started with ``--twins '<twin>-*'`` and
+learn each twin from its entity (:mod:`messages.fleet`); the recorder records
+every twin into one log (``--all-twins``). The run ends when every entity has
+ended; the summary gives a line per twin and the fleet's totals.
+"""
+from __future__ import annotations
+
+import subprocess
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from messages import keys
+from messages.bus import Inbox, Presence
+from messages.codec import MessageError, decode_for_key
+from messages.config import RunConfig
+from messages.models import Estimate, Layer, Status
+from scripts.launch import (EstimateTally, LaunchError, _describe_code, _stop, _wait_for_recorder,
+                            default_log_path, open_router, rejected_by_layer, service_command)
+
+__all__ = ["launch_fleet", "FleetResult", "twin_configs"]
+
+#: Most messages taken from the inbox before the launcher looks at its children again.
+_BATCH = 256
+
+
+def twin_configs(config: RunConfig, count: int) -> list[RunConfig]:
+    """The run of each twin of a fleet of ``count``: ``<twin>-1`` .. ``<twin>-<count>``."""
+    if count < 1:
+        raise ValueError(f"--twins must be at least 1, got {count}")
+    return [config.model_copy(update={"twin": f"{config.twin}-{i}"}) for i in range(1, count + 1)]
+
+
+@dataclass
+class FleetResult:
+    """What the launcher saw of a fleet's run."""
+
+    config: RunConfig
+    twins: list[RunConfig]
+    log_path: Path
+    tallies: dict[str, EstimateTally] = field(default_factory=dict)
+    #: The last status of every (process, twin): a shared service reports for each twin it serves.
+    statuses: dict[tuple[int, str], Status] = field(default_factory=dict)
+    exit_codes: dict[str, int | None] = field(default_factory=dict)
+    failures: dict[str, str] = field(default_factory=dict)
+    elapsed: float = 0.0
+    #: Seconds from the first estimate to the last (the fleet's steady throughput window).
+    stepping: float = 0.0
+    interrupted: bool = False
+
+    @property
+    def twin_steps(self) -> int:
+        return sum(t.count for t in self.tallies.values())
+
+    @property
+    def rejected(self) -> dict[str, int]:
+        """Rejected messages by layer, summed over every process and every twin the layer served."""
+        return rejected_by_layer(self.statuses.values())
+
+    def summary(self) -> str:
+        c = self.config
+        lines = [f"fleet           {len(self.twins)} twins {self.twins[0].twin} .. {self.twins[-1].twin} of "
+                 f"{c.model_ref} (N = {c.particles}, T = {c.steps}, seed {c.seed})",
+                 f"{'twin':<16}{'steps':>7}{'RMSE':>10}{'mean ESS':>10}{'degraded':>10}"]
+        for twin in self.twins:
+            t = self.tallies[twin.twin]
+            rmse = f"{t.rmse:.4f}" if t.truth_steps else "-"
+            ess = f"{t.mean_ess:.1f}" if t.count else "-"
+            lines.append(f"{twin.twin:<16}{t.count:>7}{rmse:>10}{ess:>10}{t.degraded:>10}"
+                         + (f"   {self.failures[twin.twin]}" if twin.twin in self.failures else ""))
+        rate = self.twin_steps / self.stepping if self.stepping > 0 else float("nan")
+        lines += [
+            f"twin-steps      {self.twin_steps} of {len(self.twins) * (c.steps or 0)}"
+            f"{' (interrupted)' if self.interrupted else ''}",
+            f"degraded steps  {sum(t.degraded for t in self.tallies.values())}",
+            "rejected        " + (", ".join(f"{k} {v}" for k, v in sorted(self.rejected.items())) or "-"),
+            f"throughput      {rate:.0f} twin-steps/s (first estimate to last)",
+            f"time            {self.elapsed:.2f} s",
+            f"log             {self.log_path}",
+        ]
+        return "\n".join(lines)
+
+
+def launch_fleet(config: RunConfig, count: int, *, log_path: Path | None = None, port: int | None = None,
+                 timeout: float = 2.0, startup_timeout: float = 20.0, log_level: str = "WARNING",
+                 rate: float | None = None, progress=None, child_output=None, cloud_points: int | None = None,
+                 secure=None, notify=None) -> FleetResult:
+    """Run ``count`` twins of ``config`` around an embedded Zenoh router (see the module's text)."""
+    twins = twin_configs(config, count)
+    if config.live:
+        raise LaunchError("--twins runs simulated or file observations; a live fleet is not supported yet")
+    log_path = Path(log_path) if log_path else default_log_path(config)
+    router, endpoint, secure = open_router(port, secure)
+    chunk = keys.twins_chunk(f"{config.twin}-*")
+    result = FleetResult(config, twins, log_path,
+                         tallies={t.twin: EstimateTally(t.steps, keep=False) for t in twins})
+    children: dict[str, subprocess.Popen] = {}
+    layer_of_pid: dict[int, str] = {}
+    total = count * (config.steps or 0)
+    start = time.monotonic()
+    first_estimate = last_estimate = None
+
+    def start_child(name: str, layer: str, run: RunConfig, *extra: str) -> None:
+        command = service_command(layer, run, endpoint, timeout=timeout, log_path=log_path, log_level=log_level,
+                                  rate=rate, cloud_points=cloud_points,
+                                  secure=secure.path if secure is not None else None, wait_for_recorder=False)
+        children[name] = subprocess.Popen(command + list(extra), stderr=child_output, start_new_session=True)
+        layer_of_pid[children[name].pid] = layer
+
+    watch = presence = None
+    try:
+        watch = Inbox(router, f"dtpf/{chunk}/entity/estimate", f"dtpf/{chunk}/*/status",
+                      keys.any_layer_pattern(config.twin, "status"), max_payload=1 << 20, max_items=100_000)
+        presence = Presence(router, config.twin, "launcher", names=[layer.value for layer in Layer])
+        start_child("recorder", "recorder", config, "--all-twins")
+        _wait_for_recorder(children["recorder"], presence, startup_timeout)
+        start_child("system", "system", config, "--twins", f"{config.twin}-*")
+        start_child("information", "information", config, "--twins", f"{config.twin}-*")
+        for twin in twins:
+            start_child(twin.twin, "entity", twin)
+        per_step = timeout + (1.0 / rate if rate else 0.0)
+        deadline = time.monotonic() + startup_timeout * max(1.0, count / 10) + per_step * (config.steps or 0) + 60.0
+        entities = [twin.twin for twin in twins]
+        while True:
+            item = watch.get(timeout=0.1)
+            taken = 0
+            while item is not None:
+                estimate = _take(result, item, layer_of_pid)
+                if estimate is not None:
+                    last_estimate = time.monotonic()
+                    first_estimate = first_estimate or last_estimate
+                    if progress is not None:
+                        progress(result.twin_steps, total)
+                taken += 1
+                item = watch.get(timeout=0) if taken < _BATCH else None
+            if all(children[name].poll() is not None for name in entities):
+                break
+            for layer in ("recorder", "information", "system"):
+                if children[layer].poll() is not None:
+                    raise LaunchError(f"the shared {layer} service died "
+                                      f"({_describe_code(children[layer].returncode)})")
+            if time.monotonic() > deadline:
+                raise LaunchError("the fleet did not finish in time")
+        for name in entities:
+            code = children[name].returncode
+            if code != 0:
+                result.failures[name] = f"the entity ended the run: {_describe_code(code)}"
+        _stop(children, ("information", "system"), result)
+        _drain(watch, result, layer_of_pid)
+        _stop(children, ("recorder",), result)
+    except KeyboardInterrupt:
+        result.interrupted = True
+    finally:
+        _stop(children, tuple(children), result)
+        result.elapsed = time.monotonic() - start
+        if first_estimate is not None:
+            result.stepping = last_estimate - first_estimate
+        if presence is not None:
+            presence.close()
+        if watch is not None:
+            watch.close()
+        router.close()
+    return result
+
+
+def _take(result: FleetResult, item, layer_of_pid) -> Estimate | None:
+    try:
+        message = decode_for_key(item.key, item.payload)
+    except MessageError:
+        return None
+    if message.run_id != result.config.run_id:
+        return None
+    if isinstance(message, Estimate):
+        tally = result.tallies.get(message.twin_id)
+        if tally is not None and tally.add(message):
+            return message
+    elif isinstance(message, Status) and layer_of_pid.get(message.pid) == message.layer.value:
+        result.statuses[message.pid, message.twin_id] = message
+    return None
+
+
+def _drain(watch: Inbox, result: FleetResult, layer_of_pid) -> None:
+    deadline = time.monotonic() + 5.0
+    while time.monotonic() < deadline and (item := watch.get(timeout=0.3)) is not None:
+        _take(result, item, layer_of_pid)

@@ -1,0 +1,159 @@
+"""Issue 16: one information and one system service serve many twins, each learned from its entity.
+
+Real processes on a free loopback port: entity services (one per twin, with
+the twin's own flags) and one information and one system service started
+with ``--twins 'f-*'`` and no run flags. Each twin's estimates must equal its
+own in-process run, number for number.
+"""
+from __future__ import annotations
+
+import signal
+
+import numpy as np
+import pytest
+
+from conftest import service_args
+from messages.config import RunConfig
+from messages.keys import twins_chunk
+from messages.models import Estimate, ServiceState, Status
+from scripts import inprocess
+
+STEPS = 30
+
+
+def run_flags(config: RunConfig) -> list[str]:
+    return ["--twin", config.twin, "--seed", str(config.seed), "--particles", str(config.particles),
+            "--steps", str(config.steps), "--policy", config.policy, "--ps", repr(config.ps),
+            "--resampler", config.resampler, "--scenario", config.scenario, "--timeout", "10"]
+
+
+def start_shared(processes, router, pattern: str):
+    return [processes.start(layer, service_args(f"{layer}.service", router.endpoint, "--twins", pattern))
+            for layer in ("information", "system")]
+
+
+def start_entity(processes, router, config: RunConfig, *extra: str):
+    return processes.start(config.twin, service_args("entity.service", router.endpoint, *run_flags(config),
+                                                     "--wait-for", "information", "--wait-for", "system", *extra))
+
+
+def estimates_by_twin(messages) -> dict[str, dict[int, Estimate]]:
+    out: dict[str, dict[int, Estimate]] = {}
+    for message in messages:
+        if isinstance(message, Estimate):
+            out.setdefault(message.twin_id, {})[message.step] = message
+    return out
+
+
+def test_one_information_and_one_system_service_serve_five_twins_as_their_solo_runs(processes, router):
+    configs = [RunConfig(particles=150 + 25 * i, steps=STEPS, seed=20 + i, twin=f"f-{i}", policy=policy,
+                         ps=ps, resampler=resampler)
+               for i, (policy, ps, resampler) in enumerate([("fixed", 0.81, "systematic"), ("rule", 0.5, "stratified"),
+                                                            ("predictive", 0.9, "residual"), ("fixed", 0.3, "multinomial"),
+                                                            ("fixed", 0.81, "systematic")])]
+    shared = start_shared(processes, router, "f-*")
+    entities = [start_entity(processes, router, config) for config in configs]
+    done = router.collect(lambda ms: all(len(estimates_by_twin(ms).get(c.twin, {})) == STEPS for c in configs),
+                          timeout=150)
+    assert done, {c.twin: len(estimates_by_twin(router.messages).get(c.twin, {})) for c in configs}
+    for entity in entities:
+        assert entity.wait(timeout=30) == 0, processes.output(entity)
+    got = estimates_by_twin(router.messages)
+    for config in configs:
+        reference = inprocess.run(config)
+        steps = got[config.twin]
+        assert not any(e.degraded for e in steps.values()), config.twin
+        np.testing.assert_array_equal([steps[k].mean for k in range(1, STEPS + 1)], reference.means,
+                                      err_msg=config.twin)
+    # Each finished twin is dropped by the shared services: their last status for it says finished.
+    router.collect(lambda ms: _finished_twins(ms) >= {(c.twin, layer) for c in configs
+                                                       for layer in ("information", "system")}, timeout=10)
+    assert _finished_twins(router.messages) >= {(c.twin, layer) for c in configs for layer in ("information", "system")}
+    for service in shared:
+        assert service.poll() is None, processes.output(service)  # the services stay for the next twins
+        service.send_signal(signal.SIGINT)
+        assert service.wait(timeout=10) == 0
+
+
+def _finished_twins(messages) -> set[tuple[str, str]]:
+    return {(m.twin_id, m.layer.value) for m in messages
+            if isinstance(m, Status) and m.layer.value in ("information", "system") and m.state == ServiceState.FINISHED}
+
+
+def test_a_killed_twin_leaves_the_others_whole_and_a_late_one_is_served(processes, router):
+    victim = RunConfig(particles=200, steps=200, seed=3, twin="k-victim")
+    steady = RunConfig(particles=200, steps=STEPS, seed=4, twin="k-steady")
+    late = RunConfig(particles=200, steps=STEPS, seed=5, twin="k-late")
+    start_shared(processes, router, "k-*")
+    killed = start_entity(processes, router, victim, "--rate", "20")
+    start_entity(processes, router, steady, "--rate", "20")
+    assert router.collect(lambda ms: len(estimates_by_twin(ms).get("k-victim", {})) >= 5, timeout=90)
+    killed.send_signal(signal.SIGKILL)
+    killed.wait(timeout=10)
+    # The shared services see the entity's token go and free the twin's state (their last status says so).
+    assert router.collect(lambda ms: {("k-victim", "information"), ("k-victim", "system")} <= _finished_twins(ms),
+                          timeout=20)
+    start_entity(processes, router, late)
+    assert router.collect(lambda ms: all(len(estimates_by_twin(ms).get(c.twin, {})) == STEPS
+                                         for c in (steady, late)), timeout=120)
+    got = estimates_by_twin(router.messages)
+    for config in (steady, late):
+        assert not any(e.degraded for e in got[config.twin].values()), config.twin
+        np.testing.assert_array_equal([got[config.twin][k].mean for k in range(1, STEPS + 1)],
+                                      inprocess.run(config).means, err_msg=config.twin)
+
+
+def test_a_shared_service_loads_no_model_a_status_names_unless_allowed(processes, router):
+    """A status from the bus must not make a shared service import code: a twin of --model REF is refused
+    (its entity goes on with plain resampling) unless the service was started with --allow-model REF."""
+    from conftest import ROOT
+
+    reference = f"{ROOT / 'docs' / 'examples' / 'range_bearing.py'}:RangeBearingTarget"
+    config = RunConfig(particles=100, steps=5, seed=1, twin="m-1", model=reference)
+    start_shared(processes, router, "m-*")
+    entity = start_entity(processes, router, config, "--model", reference, "--startup-timeout", "3")
+    assert entity.wait(timeout=60) == 0, processes.output(entity)
+    assert router.collect(lambda ms: len(estimates_by_twin(ms).get("m-1", {})) == 5, timeout=10)
+    assert all(e.degraded for e in estimates_by_twin(router.messages)["m-1"].values())  # no answer came
+    assert not [m for m in router.messages if isinstance(m, Status) and m.twin_id == "m-1"
+                and m.layer.value in ("information", "system")]  # never served
+
+
+@pytest.mark.parametrize("pattern, chunk", [("*", "*"), ("line-1-*", "line-1-$*"), ("a*b", "a$*b"), ("t-1", "t-1")])
+def test_twin_patterns_become_zenoh_chunks(pattern, chunk):
+    assert twins_chunk(pattern) == chunk
+
+
+@pytest.mark.parametrize("pattern", ["", "a/b", "**", "a**", "$*", "x$y"])
+def test_a_twin_pattern_that_is_not_one_chunk_is_refused(pattern):
+    with pytest.raises(ValueError, match="twin pattern|'\\*\\*'"):
+        twins_chunk(pattern)
+
+
+def test_dtpf_launch_twins_runs_a_fleet_whose_log_verifies_twin_by_twin(tmp_path):
+    from messages.logfile import read_log
+    from scripts.fleet import launch_fleet
+    from scripts.logs.summary import format_summary, summarise
+    from scripts.logs.verify import decoded_by_topic, filtered_twins, verify_twin
+
+    config = RunConfig(particles=200, steps=20, seed=6, twin="fl")
+    result = launch_fleet(config, 4, log_path=tmp_path / "fleet.mcap", timeout=10.0)
+    assert [t.twin for t in result.twins] == ["fl-1", "fl-2", "fl-3", "fl-4"]
+    assert result.twin_steps == 80 and not result.failures
+    assert result.exit_codes["information"] == 0 and result.exit_codes["system"] == 0
+    references = {twin.twin: inprocess.run(twin) for twin in result.twins}
+    for twin in result.twins:
+        assert result.tallies[twin.twin].rmse == pytest.approx(references[twin.twin].rmse, rel=1e-12)
+        assert result.tallies[twin.twin].degraded == 0
+    text = result.summary()
+    assert "fl-4" in text and "twin-steps      80 of 80" in text
+    log = read_log(tmp_path / "fleet.mcap")
+    by_topic = decoded_by_topic(log)
+    assert filtered_twins(by_topic) == ["fl-1", "fl-2", "fl-3", "fl-4"]
+    for twin in filtered_twins(by_topic):
+        recorded = sorted(by_topic[f"dtpf/{twin}/entity/estimate"], key=lambda e: e.step)
+        np.testing.assert_array_equal([e.mean for e in recorded], references[twin].means)  # number for number
+        verification = verify_twin(by_topic, twin)
+        assert verification.ok and verification.checked == list(range(1, 21)), twin
+    summary = format_summary(summarise(log))
+    assert summary.count("steps         20 of 20") == 4 and "recorder of the fleet" in summary

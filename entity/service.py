@@ -33,6 +33,7 @@ from messages.bus import add_zenoh_arguments
 from messages.config import RunConfig, add_run_arguments
 from messages.models import (ARRAYS_CHECKED, Estimate, Observation, PackedElementField, ParticleSet, ParticleSetKind,
                              PointCloud, ServiceState, Time)
+from messages.fleet import host_twins
 from messages.service import ServiceShell, add_service_arguments, run_service
 
 __all__ = ["ZenohTwin", "main"]
@@ -102,29 +103,58 @@ def main(config: RunConfig, zenoh_config: zenoh.Config, args: argparse.Namespace
     sensor one at a time, one filter step each, until the sensor ends its
     stream, ``--steps`` are done or the service is stopped.
     """
+    if args.twins:
+        configs = hosted_configs(config, args.twins)
+        models: dict[str, object] = {}  # one model object per reference, shared by the twins of this process
+
+        def run(shell: ServiceShell, twin_config: RunConfig) -> int:
+            model = models.setdefault(twin_config.model_ref, sources.load_model(twin_config))
+            return run_twin(shell, twin_config, model, sources.observations_of(twin_config, model), args)
+
+        return host_twins("entity", configs, zenoh_config, run)
     model = sources.load_model(config)
     data = sources.observations_of(config, model)
     with ServiceShell("entity", config, zenoh_config) as shell:
-        steps = config.steps if config.steps is not None or data is None else len(data.observations)
-        shell.expect(RunShape(config.particles, model.dim, model.obs_dim, steps))
-        wait_for = args.wait_for if args.wait_for is not None else (
-            ["information", "system"] if config.preprocess else [])
-        twin = ZenohTwin(shell, args.timeout) if config.preprocess else None
-        live = LiveObservations(shell, model, config, args.observation_timeout) if data is None else None
-        if wait_for:  # the run configuration, at once: a fleet's shared layers learn the twin from it
-            shell.publish_status()
-        shell.wait_for_layers(wait_for, args.startup_timeout)
-        # Without truth the filter is judged by how it predicts its data: the innovation too.
-        pf = ParticleFilter(model, None if data is None else data.observations, config.particles,
-                            resampler=config.resampler, resample_below=config.resample_below, seed=config.seed,
-                            twin=config.twin, preprocessor=twin, innovation=data is None or data.truth is None)
-        if twin is not None:
-            twin.while_waiting = pf.work_ahead
-        pf.warm_up()
-        shell.running()
-        if live is not None:
-            return _run_live(shell, pf, live, config, args.cloud_points)
-        return _run_batch(shell, pf, data, model, config, args)
+        return run_twin(shell, config, model, data, args)
+
+
+def hosted_configs(config: RunConfig, twins: str) -> list[RunConfig]:
+    """The runs of ``--twins``: K (``<twin>-1`` .. ``<twin>-K``) or a comma-separated list of twin ids,
+    each with the run options of ``config``."""
+    if twins.isdigit():
+        count = int(twins)
+        if count < 1:
+            raise ValueError(f"--twins must be at least 1, got {count}")
+        names = [f"{config.twin}-{i}" for i in range(1, count + 1)]
+    else:
+        names = [name.strip() for name in twins.split(",") if name.strip()]
+    if not names or len(set(names)) != len(names):
+        raise ValueError(f"--twins takes a count or distinct twin ids, got {twins!r}")
+    return [RunConfig.model_validate({**config.model_dump(), "twin": name}) for name in names]
+
+
+def run_twin(shell: ServiceShell, config: RunConfig, model, data, args: argparse.Namespace) -> int:
+    """One twin's filter on ``shell``, to the end (or until the shell stops)."""
+    steps = config.steps if config.steps is not None or data is None else len(data.observations)
+    shell.expect(RunShape(config.particles, model.dim, model.obs_dim, steps))
+    wait_for = args.wait_for if args.wait_for is not None else (
+        ["information", "system"] if config.preprocess else [])
+    twin = ZenohTwin(shell, args.timeout) if config.preprocess else None
+    live = LiveObservations(shell, model, config, args.observation_timeout) if data is None else None
+    if wait_for:  # the run configuration, at once: a fleet's shared layers learn the twin from it
+        shell.publish_status()
+    shell.wait_for_layers(wait_for, args.startup_timeout)
+    # Without truth the filter is judged by how it predicts its data: the innovation too.
+    pf = ParticleFilter(model, None if data is None else data.observations, config.particles,
+                        resampler=config.resampler, resample_below=config.resample_below, seed=config.seed,
+                        twin=config.twin, preprocessor=twin, innovation=data is None or data.truth is None)
+    if twin is not None:
+        twin.while_waiting = pf.work_ahead
+    pf.warm_up()
+    shell.running()
+    if live is not None:
+        return _run_live(shell, pf, live, config, args.cloud_points)
+    return _run_batch(shell, pf, data, model, config, args)
 
 
 def _publish_step(shell: ServiceShell, step, truth, observation, model, config: RunConfig, cloud: int = 0) -> None:
@@ -252,6 +282,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--observation-timeout", type=float, default=5.0, metavar="SECONDS",
                         help="live observations: after this long without one, say so in the status and "
                              "the log and keep waiting; the filter never invents a step (default: %(default)s)")
+    parser.add_argument("--twins", metavar="K|IDS", default=None,
+                        help="host several twins in this process, as an edge box with several sensors: K twins "
+                             "<twin>-1 .. <twin>-K, or a comma-separated list of twin ids, each with the run "
+                             "options above and numbers equal to its own run (default: the one twin --twin)")
     add_service_arguments(parser)
     add_zenoh_arguments(parser)
     return parser

@@ -33,11 +33,11 @@ from messages import keys
 from messages.admission import kind_of
 from messages.bus import Doorbell, Inbox, open_session
 from messages.codec import MessageError, decode_for_key
-from messages.config import RunConfig
+from messages.config import RunConfig, RunInputError
 from messages.models import ServiceState, Status
 from messages.service import EXIT_GRACE, ExitWatchdog, ServiceShell, Tally
 
-__all__ = ["serve_layer", "serve_one", "serve_fleet", "add_fleet_arguments", "ConfigWatch", "Learned", "FleetStats"]
+__all__ = ["serve_layer", "serve_one", "serve_fleet", "host_twins", "add_fleet_arguments", "ConfigWatch", "Learned", "FleetStats"]
 
 #: Longest wait between two looks at the twins when nothing arrives.
 _IDLE = 0.2
@@ -274,3 +274,50 @@ def serve_fleet(layer: str, pattern: str, zenoh_config, make_work, *, allow_mode
         watch.close()
         session.close()
     return stats
+
+
+def host_twins(layer: str, configs: list[RunConfig], zenoh_config, run) -> int:
+    """Run ``run(shell, config)`` for each twin of ``configs``, each in a thread of its own on one Zenoh
+    session (an entity hosting several twins); SIGINT/SIGTERM stop them all. Returns the largest exit
+    code of the twins (2 when a twin's model or file is wrong)."""
+    log = logging.getLogger(f"dtpf.{layer}")
+    session = open_session(zenoh_config)
+    shells = [ServiceShell(layer, config, session=session) for config in configs]
+    codes: dict[str, int] = {}
+
+    def on_signal(signum, frame):
+        log.info("received %s, stopping %d twins", signal.Signals(signum).name, len(shells))
+        for shell in shells:
+            shell.stop()
+
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, on_signal)
+    watchdog = ExitWatchdog(log, grace=EXIT_GRACE)
+    watchdog.install()
+
+    def body(shell: ServiceShell) -> None:
+        twin = shell.config.twin
+        try:
+            with shell:
+                codes[twin] = run(shell, shell.config)
+        except RunInputError as error:
+            log.error("twin %s: %s", twin, error)
+            codes[twin] = 2
+        except Exception:  # a bug of ours: this twin fails, the others go on
+            log.exception("twin %s failed", twin)
+            codes[twin] = 1
+
+    threads = [threading.Thread(target=body, args=(shell,), name=f"twin {shell.config.twin}") for shell in shells]
+    for thread in threads:
+        thread.start()
+    # The statuses of every twin (a waiting entity's status is how a fleet's shared layers learn it).
+    while any(thread.is_alive() for thread in threads):
+        now = time.monotonic()
+        for shell, thread in zip(shells, threads):
+            if thread.is_alive():
+                shell.tick(now)
+        threads[0].join(timeout=_IDLE) if threads[0].is_alive() else time.sleep(_IDLE)
+    code = max((c if isinstance(c, int) else 1 for c in codes.values()), default=1)
+    watchdog.arm(code=code)
+    session.close()
+    return code

@@ -31,7 +31,7 @@ from threadpoolctl import threadpool_limits
 
 from messages import keys
 from messages.admission import RunShape, kind_of
-from messages.bus import BusError, Inbox, Presence, Received, open_session, publisher
+from messages.bus import DEFAULT_MAX_ITEMS, BusError, Inbox, Presence, Received, open_session, publisher
 from messages.codec import MessageError, decode_for_key, encode
 from messages.config import RunConfig, RunInputError
 from messages.models import Layer, Message, NamedCount, ServiceState, Status
@@ -290,12 +290,12 @@ class ServiceShell:
         return self.inbox_on(keys.key(self.config.twin, layer, topic))
 
     def inbox_on(self, key_expr: str, *more: str, payloads: int = _INBOX_PAYLOADS,
-                 min_bytes: int = MIN_INBOX_BYTES) -> Inbox:
+                 min_bytes: int = MIN_INBOX_BYTES, max_items: int = DEFAULT_MAX_ITEMS) -> Inbox:
         """An inbox on key expressions (closed with the shell), bounded to what this run's messages
         can weigh: what is bigger, or arrives while the inbox is full, is counted as rejected.
         It holds ``payloads`` of the run's largest payload, at least ``min_bytes``."""
         largest = self.largest_payload()
-        inbox = Inbox(self.session, key_expr, *more, max_payload=largest,
+        inbox = Inbox(self.session, key_expr, *more, max_payload=largest, max_items=max_items,
                       max_bytes=max(min_bytes, payloads * largest), on_drop=self._on_drop,
                       doorbell=self.doorbell, name=self.config.twin)
         self._inboxes.append(inbox)

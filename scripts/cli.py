@@ -96,7 +96,7 @@ def cmd_launch(args: argparse.Namespace) -> int:
             print(f"dtpf launch: error: {error}", file=sys.stderr)
             return 2
     who = f"twin {config.twin}" if args.twins is None else \
-        f"{args.twins} twins {config.twin}-1 .. {config.twin}-{args.twins} (one entity each)"
+        f"{args.twins} twins {config.twin}-1 .. {config.twin}-{args.twins}"
     print(f"dtpf: launching recorder, system, information and entity for {who} "
           f"({how}{source})", file=sys.stderr)
     if config.live:
@@ -135,7 +135,7 @@ def _launch_fleet(config, args: argparse.Namespace) -> int:
         result = launch_fleet(config, args.twins, log_path=args.log, port=args.port, timeout=args.timeout,
                               startup_timeout=args.startup_timeout, log_level=args.log_level, rate=args.rate,
                               progress=None if args.quiet else ProgressBar(), cloud_points=args.cloud_points,
-                              secure=args.secure)
+                              secure=args.secure, entities=args.entities)
     except (LaunchError, ValueError) as error:
         print(f"dtpf launch: error: {error}", file=sys.stderr)
         return 1
@@ -218,9 +218,11 @@ def build_parser() -> argparse.ArgumentParser:
                             "service connects with its role's certificate or password (default: plain tcp/ on "
                             "loopback, no authentication)")
     group.add_argument("--twins", type=int, default=None, metavar="K",
-                       help="a fleet: K twins <twin>-1 .. <twin>-K, one entity process each, served by one "
+                       help="a fleet: K twins <twin>-1 .. <twin>-K in a few entity processes (--entities), served by one "
                             "information and one system service and recorded by one recorder into one log "
                             "(default: one twin)")
+    group.add_argument("--entities", type=int, default=None, metavar="E",
+                       help="with --twins: how many entity processes host the twins (default: one per CPU)")
     group.add_argument("--restarts", type=int, default=3, metavar="COUNT",
                        help="start a dead information, system or recorder service again at most this many "
                             "times each; the entity runs on meanwhile with plain resampling (its estimates say "

@@ -1,8 +1,9 @@
 """``dtpf launch --twins K``: K twins against one information, one system service and one recorder.
 
-The twins are ``<twin>-1`` .. ``<twin>-K``, each an entity process with the
-run's options (the same seed: the random streams are derived per twin, so
-every twin's numbers are those of its own ``dtpf run --twin <twin>-i``). The
+The twins are ``<twin>-1`` .. ``<twin>-K``, with the run's options (the same
+seed: the random streams are derived per twin, so every twin's numbers are
+those of its own ``dtpf run --twin <twin>-i``), hosted by a few entity
+processes (``entity.service --twins``, one per CPU by default). The
 information and system services are started with ``--twins '<twin>-*'`` and
 learn each twin from its entity (:mod:`messages.fleet`); the recorder records
 every twin into one log (``--all-twins``). The run ends when every entity has
@@ -10,6 +11,7 @@ ended; the summary gives a line per twin and the fleet's totals.
 """
 from __future__ import annotations
 
+import os
 import subprocess
 import time
 from dataclasses import dataclass, field
@@ -23,10 +25,25 @@ from messages.models import Estimate, Layer, Status
 from scripts.launch import (EstimateTally, LaunchError, _describe_code, _stop, _wait_for_recorder,
                             default_log_path, open_router, rejected_by_layer, service_command)
 
-__all__ = ["launch_fleet", "FleetResult", "twin_configs"]
+__all__ = ["launch_fleet", "FleetResult", "twin_configs", "entity_groups"]
 
 #: Most messages taken from the inbox before the launcher looks at its children again.
 _BATCH = 256
+
+
+def entity_groups(twins: list[str], entities: int | None = None) -> list[list[str]]:
+    """The twins of each entity process: ``entities`` groups (default: one per CPU), as even as can be,
+    in order."""
+    entities = min(len(twins), entities or os.cpu_count() or 1)
+    if entities < 1:
+        raise ValueError(f"a fleet needs at least one entity process, got {entities}")
+    size, extra = divmod(len(twins), entities)
+    groups, start = [], 0
+    for index in range(entities):
+        end = start + size + (index < extra)
+        groups.append(twins[start:end])
+        start = end
+    return groups
 
 
 def twin_configs(config: RunConfig, count: int) -> list[RunConfig]:
@@ -89,8 +106,11 @@ class FleetResult:
 def launch_fleet(config: RunConfig, count: int, *, log_path: Path | None = None, port: int | None = None,
                  timeout: float = 2.0, startup_timeout: float = 20.0, log_level: str = "WARNING",
                  rate: float | None = None, progress=None, child_output=None, cloud_points: int | None = None,
-                 secure=None, notify=None) -> FleetResult:
-    """Run ``count`` twins of ``config`` around an embedded Zenoh router (see the module's text)."""
+                 secure=None, notify=None, entities: int | None = None) -> FleetResult:
+    """Run ``count`` twins of ``config`` around an embedded Zenoh router (see the module's text).
+
+    ``entities``: how many entity processes host the twins (default: one per CPU, at most one per twin).
+    """
     twins = twin_configs(config, count)
     if config.live:
         raise LaunchError("--twins runs simulated or file observations; a live fleet is not supported yet")
@@ -121,11 +141,12 @@ def launch_fleet(config: RunConfig, count: int, *, log_path: Path | None = None,
         _wait_for_recorder(children["recorder"], presence, startup_timeout)
         start_child("system", "system", config, "--twins", f"{config.twin}-*")
         start_child("information", "information", config, "--twins", f"{config.twin}-*")
-        for twin in twins:
-            start_child(twin.twin, "entity", twin)
+        groups = entity_groups([twin.twin for twin in twins], entities)
+        for index, group in enumerate(groups, start=1):
+            start_child(f"entity-{index}", "entity", config, "--twins", ",".join(group))
         per_step = timeout + (1.0 / rate if rate else 0.0)
         deadline = time.monotonic() + startup_timeout * max(1.0, count / 10) + per_step * (config.steps or 0) + 60.0
-        entities = [twin.twin for twin in twins]
+        entity_names = [f"entity-{index}" for index in range(1, len(groups) + 1)]
         while True:
             item = watch.get(timeout=0.1)
             taken = 0
@@ -138,7 +159,7 @@ def launch_fleet(config: RunConfig, count: int, *, log_path: Path | None = None,
                         progress(result.twin_steps, total)
                 taken += 1
                 item = watch.get(timeout=0) if taken < _BATCH else None
-            if all(children[name].poll() is not None for name in entities):
+            if all(children[name].poll() is not None for name in entity_names):
                 break
             for layer in ("recorder", "information", "system"):
                 if children[layer].poll() is not None:
@@ -146,10 +167,11 @@ def launch_fleet(config: RunConfig, count: int, *, log_path: Path | None = None,
                                       f"({_describe_code(children[layer].returncode)})")
             if time.monotonic() > deadline:
                 raise LaunchError("the fleet did not finish in time")
-        for name in entities:
+        for name, group in zip(entity_names, groups):
             code = children[name].returncode
             if code != 0:
-                result.failures[name] = f"the entity ended the run: {_describe_code(code)}"
+                for twin in group:
+                    result.failures[twin] = f"its entity process ended: {_describe_code(code)}"
         _stop(children, ("information", "system"), result)
         _drain(watch, result, layer_of_pid)
         _stop(children, ("recorder",), result)

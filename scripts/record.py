@@ -33,6 +33,8 @@ from messages.service import ServiceShell, add_service_arguments, run_service
 
 #: The recorder's inbox holds this many of the run's largest payload, at least this many bytes.
 RECORDER_INBOX_PAYLOADS, RECORDER_INBOX_BYTES = 64, 512 << 20
+#: ... and at most this many messages (a fleet of 40 twins filled 4,096 with small ones in a burst).
+RECORDER_INBOX_ITEMS = 1 << 16
 
 __all__ = ["main"]
 
@@ -68,7 +70,8 @@ def _record(shell: ServiceShell, recording: McapRecording, pattern: str, compres
     # The recorder takes every message of the twin and must lose none: a burst it cannot write at once
     # (a busy machine, N = 1e5 at 120 steps/s is 390 MB/s of particle sets) waits in a deeper inbox than a
     # layer's; 64 MiB dropped sets at N = 1e5 with the machine's 2 cores shared.
-    inbox = shell.inbox_on(pattern, *extra, payloads=RECORDER_INBOX_PAYLOADS, min_bytes=RECORDER_INBOX_BYTES)
+    inbox = shell.inbox_on(pattern, *extra, payloads=RECORDER_INBOX_PAYLOADS, min_bytes=RECORDER_INBOX_BYTES,
+                           max_items=RECORDER_INBOX_ITEMS)
     admission = Admission(shell, all_twins=args.all_twins)
     shell.running()
     shell.log.info("recording %s into %s (%s chunks)", pattern, args.output, compression)

@@ -157,3 +157,24 @@ def test_dtpf_launch_twins_runs_a_fleet_whose_log_verifies_twin_by_twin(tmp_path
         assert verification.ok and verification.checked == list(range(1, 21)), twin
     summary = format_summary(summarise(log))
     assert summary.count("steps         20 of 20") == 4 and "recorder of the fleet" in summary
+
+
+def test_entity_groups_split_the_twins_evenly_in_order():
+    from scripts.fleet import entity_groups
+
+    twins = [f"t-{i}" for i in range(1, 8)]
+    assert entity_groups(twins, 3) == [["t-1", "t-2", "t-3"], ["t-4", "t-5"], ["t-6", "t-7"]]
+    assert entity_groups(twins[:1], 4) == [["t-1"]]
+    assert sum(entity_groups(twins, 2), []) == twins
+
+
+def test_an_entity_hosts_k_twins_or_a_list_and_refuses_repeats():
+    from entity.service import hosted_configs
+
+    base = RunConfig(twin="edge", seed=3)
+    assert [c.twin for c in hosted_configs(base, "3")] == ["edge-1", "edge-2", "edge-3"]
+    assert [c.twin for c in hosted_configs(base, "a, b")] == ["a", "b"]
+    assert {c.seed for c in hosted_configs(base, "2")} == {3}
+    for bad in ("0", "a,a", ",", "bad/id"):
+        with pytest.raises(ValueError):
+            hosted_configs(base, bad)

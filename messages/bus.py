@@ -272,6 +272,11 @@ class Inbox:
         if self.on_drop is not None:
             self.on_drop(key, reason, detail)
 
+    def ring(self) -> None:
+        """Ring the doorbell (if any) as if a sample had arrived: there is more to take."""
+        if self.doorbell is not None and len(self):
+            self.doorbell.ring(self.name)
+
     def get(self, timeout: float | None = None) -> Received | None:
         """The next sample, waiting up to ``timeout`` seconds (None: forever); None on timeout."""
         try:

@@ -107,9 +107,13 @@ class ConfigWatch:
         #: When each twin's entity was last heard (any status).
         self.heard: dict[str, float] = {}
 
-    def poll(self, now: float) -> list[Learned]:
+    def poll(self, now: float, budget: int = 256) -> list[Learned]:
+        """What the statuses that arrived say, at most ``budget`` of them (the rest at the next call)."""
         learned = []
-        while (item := self.inbox.get(timeout=0)) is not None:
+        for _ in range(budget):
+            item = self.inbox.get(timeout=0)
+            if item is None:
+                break
             try:
                 status = decode_for_key(item.key, item.payload)
                 if not isinstance(status, Status):

@@ -55,6 +55,8 @@ EXIT_GRACE = 1.8
 MAX_JSON_PAYLOAD = 4 << 20
 #: Bytes an inbox may hold: this many of its largest payload, at least MIN_INBOX_BYTES.
 _INBOX_PAYLOADS, MIN_INBOX_BYTES = 16, 64 << 20
+#: Most bad messages :meth:`ServiceShell.take` skips in one call.
+TAKE_BUDGET = 64
 #: Bytes of a particle set's envelope besides its arrays that an inbox allows.
 _ENVELOPE_ALLOWANCE = 1 << 20
 
@@ -332,13 +334,19 @@ class ServiceShell:
             return None
         return message
 
-    def take(self, inbox: Inbox, expected: type[Message]) -> Message | None:
+    def take(self, inbox: Inbox, expected: type[Message], budget: int = TAKE_BUDGET) -> Message | None:
         """The next message of ``inbox`` that applies to this run, without waiting (the bad ones on the
-        way are counted); None once the inbox is empty."""
-        while (item := inbox.get(timeout=0)) is not None:
+        way are counted); None once the inbox is empty, or after ``budget`` bad ones (the inbox then rings
+        its doorbell again: a fleet looks at its other twins first, so a flood of one twin's keys cannot
+        hold the others up)."""
+        for _ in range(budget):
+            item = inbox.get(timeout=0)
+            if item is None:
+                return None
             message = self.receive(item, expected)
             if message is not None:
                 return message
+        inbox.ring()
         return None
 
     def reject(self, reason: str, detail: str | None = None, key: str | None = None) -> None:

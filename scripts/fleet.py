@@ -106,10 +106,12 @@ class FleetResult:
 def launch_fleet(config: RunConfig, count: int, *, log_path: Path | None = None, port: int | None = None,
                  timeout: float = 2.0, startup_timeout: float = 20.0, log_level: str = "WARNING",
                  rate: float | None = None, progress=None, child_output=None, cloud_points: int | None = None,
-                 secure=None, notify=None, entities: int | None = None) -> FleetResult:
+                 secure=None, notify=None, entities: int | None = None,
+                 keep_estimates: bool = False) -> FleetResult:
     """Run ``count`` twins of ``config`` around an embedded Zenoh router (see the module's text).
 
     ``entities``: how many entity processes host the twins (default: one per CPU, at most one per twin).
+    ``keep_estimates``: keep every twin's estimates (in ``tallies[twin].estimates``).
     """
     twins = twin_configs(config, count)
     if config.live:
@@ -118,7 +120,7 @@ def launch_fleet(config: RunConfig, count: int, *, log_path: Path | None = None,
     router, endpoint, secure = open_router(port, secure)
     chunk = keys.twins_chunk(f"{config.twin}-*")
     result = FleetResult(config, twins, log_path,
-                         tallies={t.twin: EstimateTally(t.steps, keep=False) for t in twins})
+                         tallies={t.twin: EstimateTally(t.steps, keep=keep_estimates) for t in twins})
     children: dict[str, subprocess.Popen] = {}
     layer_of_pid: dict[int, str] = {}
     total = count * (config.steps or 0)

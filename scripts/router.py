@@ -36,14 +36,15 @@ def cmd_router(args: argparse.Namespace) -> int:
     for signum in (signal.SIGINT, signal.SIGTERM):  # before the router listens: a client may stop it at once
         signal.signal(signum, lambda *_: stop.set())
     try:
-        session = open_session(zenoh_config(mode="router", listen=listen, secure=args.secure,
+        session = open_session(zenoh_config(mode="router", listen=listen, connect=args.connect, secure=args.secure,
                                             role="router" if args.secure else None))
     except BusError as error:
         print(f"dtpf router: error: {error}", file=sys.stderr)
         return 2
     where = listen or _file_endpoints(args.secure)
     how = f"secure folder {args.secure}" if args.secure else "no authentication, no access control"
-    print(f"dtpf router: routing on {', '.join(where)} ({how}); Ctrl-C stops", file=sys.stderr, flush=True)
+    joined = f", joined to {', '.join(args.connect)}" if args.connect else ""
+    print(f"dtpf router: routing on {', '.join(where)}{joined} ({how}); Ctrl-C stops", file=sys.stderr, flush=True)
     try:
         while not stop.wait(0.5):
             pass
@@ -62,6 +63,9 @@ def register(subparsers) -> None:
     router.add_argument("--listen", "-l", action="append", default=[], metavar="ENDPOINT",
                         help="where to listen, e.g. tls/10.0.0.1:7447 (repeatable; default: tcp/127.0.0.1:7447, "
                              "or with --secure the endpoint of the folder's router.json5)")
+    router.add_argument("--connect", "-e", action="append", default=[], metavar="ENDPOINT",
+                        help="another router to join, e.g. tcp/10.0.0.2:7447: the routers then route between "
+                             "their clients (repeatable)")
     router.add_argument("--secure", metavar="DIR", help="a folder made by 'dtpf secure init' (DIR, DIR/tls or "
                                                         "DIR/usrpwd)")
     router.set_defaults(handler=cmd_router)

@@ -8,6 +8,7 @@ own in-process run, number for number.
 from __future__ import annotations
 
 import signal
+import time
 
 import numpy as np
 import pytest
@@ -178,3 +179,72 @@ def test_an_entity_hosts_k_twins_or_a_list_and_refuses_repeats():
     for bad in ("0", "a,a", ",", "bad/id"):
         with pytest.raises(ValueError):
             hosted_configs(base, bad)
+
+
+def test_a_flooded_twin_is_counted_against_itself_and_slows_no_other(processes, router):
+    import threading
+
+    import zenoh
+
+    from messages.bus import Inbox, open_session, zenoh_config
+    from messages.codec import MessageError, decode_for_key
+
+    calm = [RunConfig(particles=200, steps=STEPS, seed=7 + i, twin=f"z-calm-{i}") for i in range(2)]
+    flooded = RunConfig(particles=200, steps=STEPS, seed=9, twin="z-flood")
+    # The test's own view: estimates and statuses only (the router fixture's dtpf/** would fill with the flood).
+    watch = Inbox(router.session, "dtpf/*/entity/estimate", "dtpf/*/*/status", max_items=100_000)
+    seen = []
+
+    def collect(until, timeout):
+        deadline = time.monotonic() + timeout
+        while not until(seen) and time.monotonic() < deadline:
+            item = watch.get(timeout=0.1)
+            if item is not None:
+                try:
+                    seen.append(decode_for_key(item.key, item.payload))
+                except MessageError:
+                    pass
+        return until(seen)
+
+    start_shared(processes, router, "z-*")
+    for config in (*calm, flooded):
+        start_entity(processes, router, config, "--rate", "15")
+    assert collect(lambda ms: all(len(estimates_by_twin(ms).get(c.twin, {})) >= 3 for c in (*calm, flooded)), 90)
+    session = open_session(zenoh_config(mode="client", connect=[router.endpoint]))
+    sent = 0
+    stop = threading.Event()
+
+    def flood():  # garbage on every key the shared services take for this twin, thousands a second
+        nonlocal sent
+        publishers = [session.declare_publisher(f"dtpf/z-flood/{key}", congestion_control=zenoh.CongestionControl.BLOCK)
+                      for key in ("entity/particles", "information/weight_state", "system/ps",
+                                  "information/preprocessed")]
+        while not stop.is_set():
+            for publisher in publishers:
+                publisher.put(b"\x00garbage" * (1 + sent % 50))
+                sent += 1
+            if sent % 400 == 0:
+                time.sleep(0.01)
+
+    flooder = threading.Thread(target=flood)
+    flooder.start()
+    try:
+        assert collect(lambda ms: all(len(estimates_by_twin(ms).get(c.twin, {})) == STEPS for c in calm), 120)
+    finally:
+        stop.set()
+        flooder.join()
+        session.close()
+    collect(lambda ms: False, 1.5)  # the statuses after the flood
+    watch.close()
+    assert sent >= 5_000
+    got = estimates_by_twin(seen)
+    for config in calm:  # every step, none degraded, the numbers of the solo run
+        assert not any(e.degraded for e in got[config.twin].values()), config.twin
+        np.testing.assert_array_equal([got[config.twin][k].mean for k in range(1, STEPS + 1)],
+                                      inprocess.run(config).means, err_msg=config.twin)
+    last = {}
+    for m in seen:
+        if isinstance(m, Status) and m.layer.value in ("information", "system"):
+            last[m.twin_id, m.layer.value] = m
+    assert last["z-flood", "information"].rejected > 0 and last["z-flood", "system"].rejected > 0
+    assert all(last[c.twin, layer].rejected == 0 for c in calm for layer in ("information", "system"))

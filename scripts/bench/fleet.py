@@ -1,0 +1,235 @@
+"""A fleet's throughput, step latency and memory: K twins on shared layers against K solo launches.
+
+For each (N, K): (f) ``scripts.fleet.launch_fleet`` (K twins in one entity
+process per CPU, one information, one system service, one recorder), and,
+where it fits (``--solo-max``), (k) K solo ``scripts.launch.launch`` at once
+(4 processes per twin). Figures:
+
+- twin-steps/s: every estimate of every twin, divided by the time from the
+  first estimate of the fleet to its last;
+- step latency p50 / p99: per twin, the time between two consecutive
+  estimates (one lockstep step: particles out, preprocessed set back,
+  resampled, estimate out), steps 10..T of every twin pooled;
+- RSS: the largest resident set of each child process, sampled every 0.25 s
+  from /proc (the launcher's own process is not counted), summed by kind;
+  "shared per twin" is (RSS of the information + system services at K minus
+  at K = 1) / (K - 1), the growth the issue bounds at 2 MB per twin at N = 1e3.
+
+Run from the repository root::
+
+    python -m scripts.bench.fleet                              # K = 1, 10, 100 at 1e3; 1, 10 at 1e5
+    python -m scripts.bench.fleet --cases 1e3:1,10 --steps 100
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import statistics
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+from messages.config import RunConfig
+from scripts.fleet import launch_fleet
+from scripts.launch import launch
+
+#: (N, K) measured by default, and the steps of each run.
+DEFAULT_CASES = {1_000: (1, 10, 100), 100_000: (1, 10)}
+DEFAULT_STEPS = {1_000: 200, 100_000: 60}
+FIRST_TIMED = 10
+TARGET_K, TARGET_N, TARGET_RATE = 100, 1_000, 1_000.0
+TARGET_SHARED_MB_PER_TWIN = 2.0
+
+
+class RssSampler:
+    """The largest RSS of every child process of this process (and their children), by kind."""
+
+    def __init__(self, interval: float = 0.25):
+        self.interval = interval
+        self.peak: dict[int, tuple[str, int]] = {}
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def __enter__(self):
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc):
+        self._stop.set()
+        self._thread.join()
+
+    def _run(self) -> None:
+        me = os.getpid()
+        while not self._stop.wait(self.interval):
+            for pid, kind, rss in _descendants(me):
+                if rss > self.peak.get(pid, ("", 0))[1]:
+                    self.peak[pid] = (kind, rss)
+
+    def by_kind(self) -> dict[str, list[int]]:
+        kinds: dict[str, list[int]] = {}
+        for kind, rss in self.peak.values():
+            kinds.setdefault(kind, []).append(rss)
+        return kinds
+
+
+def _descendants(root: int):
+    """(pid, kind, rss bytes) of every process below ``root``; kind from its command line."""
+    parents, info = {}, {}
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit():
+            continue
+        try:
+            with open(f"/proc/{entry}/stat") as f:
+                stat = f.read()
+            with open(f"/proc/{entry}/cmdline", "rb") as f:
+                command = f.read().split(b"\0")
+            with open(f"/proc/{entry}/statm") as f:
+                pages = int(f.read().split()[1])
+        except OSError:
+            continue
+        ppid = int(stat.rsplit(")", 1)[1].split()[1])
+        parents[int(entry)] = ppid
+        info[int(entry)] = (_kind(command), pages * os.sysconf("SC_PAGE_SIZE"))
+    below = {root}
+    changed = True
+    while changed:
+        changed = False
+        for pid, ppid in parents.items():
+            if ppid in below and pid not in below:
+                below.add(pid)
+                changed = True
+    return [(pid, *info[pid]) for pid in below if pid != root and pid in info]
+
+
+def _kind(command: list[bytes]) -> str:
+    text = b" ".join(command).decode(errors="replace")
+    for module, kind in (("entity.service", "entity"), ("information.service", "information"),
+                         ("system.service", "system"), ("scripts.record", "recorder")):
+        if module in text:
+            return kind
+    return "other"
+
+
+def step_latencies(estimates_by_twin: dict[str, list]) -> list[float]:
+    """Seconds between consecutive estimates of each twin, from step FIRST_TIMED on, pooled."""
+    gaps = []
+    for estimates in estimates_by_twin.values():
+        stamps = [e.stamp.to_ns() * 1e-9 for e in sorted(estimates, key=lambda e: e.step) if e.step >= FIRST_TIMED]
+        gaps += list(np.diff(stamps))
+    return gaps
+
+
+def run_fleet(n: int, k: int, steps: int, folder: Path) -> dict:
+    config = RunConfig(particles=n, steps=steps, twin=f"b{n}k{k}", run_id="bench")
+    with RssSampler() as rss:
+        result = launch_fleet(config, k, log_path=folder / f"fleet-{n}-{k}.mcap", timeout=10.0, keep_estimates=True)
+    if result.failures or result.twin_steps != k * steps:
+        raise RuntimeError(f"fleet N={n} K={k} incomplete: {result.twin_steps} of {k * steps} twin-steps, "
+                           f"{result.failures}")
+    by_twin = {twin: tally.estimates for twin, tally in result.tallies.items()}
+    return {"rate": result.twin_steps / result.stepping, "gaps": step_latencies(by_twin), "rss": rss.by_kind(),
+            "degraded": sum(t.degraded for t in result.tallies.values()), "rejected": sum(result.rejected.values())}
+
+
+def run_solo(n: int, k: int, steps: int, folder: Path) -> dict:
+    results: dict[int, object] = {}
+
+    def one(i: int) -> None:
+        config = RunConfig(particles=n, steps=steps, twin=f"s{n}k{k}-{i}", run_id="bench")
+        results[i] = launch(config, log_path=folder / f"solo-{n}-{k}-{i}.mcap", timeout=10.0,
+                            notify=lambda text: None)
+
+    with RssSampler() as rss:
+        threads = [threading.Thread(target=one, args=(i,)) for i in range(1, k + 1)]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join()
+    estimates = [e for r in results.values() for e in r.estimates]
+    if len(estimates) != k * steps:
+        raise RuntimeError(f"solo N={n} K={k} incomplete: {len(estimates)} of {k * steps} estimates")
+    stamps = [e.stamp.to_ns() * 1e-9 for e in estimates]
+    by_twin = {str(i): r.estimates for i, r in results.items()}
+    return {"rate": len(estimates) / (max(stamps) - min(stamps)), "gaps": step_latencies(by_twin),
+            "rss": rss.by_kind(), "degraded": sum(e.degraded for e in estimates),
+            "rejected": sum(sum(r.rejected.values()) for r in results.values())}
+
+
+def parse_cases(texts: list[str]) -> dict[int, tuple[int, ...]]:
+    cases = {}
+    for text in texts:
+        n, _, ks = text.partition(":")
+        cases[int(float(n))] = tuple(int(k) for k in ks.split(","))
+    return cases
+
+
+def _mb(values) -> str:
+    return f"{sum(values) / 2**20:.0f}" if values else "-"
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m scripts.bench.fleet", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--cases", nargs="+", default=None, metavar="N:K,K",
+                        help="the (N, K) to measure, e.g. 1e3:1,10,100 1e5:1,10 (the default)")
+    parser.add_argument("--steps", type=int, default=None, help="steps per twin (default: 200 at 1e3, 60 at 1e5)")
+    parser.add_argument("--solo-max", type=int, default=10,
+                        help="run K solo launches for comparison when K is at most this (default: %(default)s)")
+    args = parser.parse_args(argv)
+    cases = parse_cases(args.cases) if args.cases else DEFAULT_CASES
+    rows = []
+    load_before = os.getloadavg()[0]
+    start = time.perf_counter()
+    with tempfile.TemporaryDirectory(prefix="dtpf-bench-fleet-") as folder:
+        for n, ks in cases.items():
+            steps = args.steps or DEFAULT_STEPS.get(n, 100)
+            for k in ks:
+                for mode, run in (("fleet", run_fleet), ("solo", run_solo)):
+                    if mode == "solo" and k > args.solo_max:
+                        continue
+                    print(f"N={n} K={k} {mode} ({steps} steps)", file=sys.stderr)
+                    rows.append((n, k, mode, run(n, k, steps, Path(folder))))
+                    for path in Path(folder).glob("*.mcap"):
+                        path.unlink()
+    print(f"`python -m scripts.bench.fleet{' ' + ' '.join(sys.argv[1:]) if sys.argv[1:] else ''}`: Python "
+          f"{platform.python_version()}, {os.cpu_count()} CPUs, {time.perf_counter() - start:.0f} s in all, "
+          f"1-min load {load_before:.2f} before.\n")
+    print("| N | K | mode | twin-steps/s | step p50 ms | step p99 ms | RSS MB: entity | information | system | "
+          "recorder | degraded | rejected |")
+    print("|---" * 12 + "|")
+    shared_at: dict[tuple[int, int], float] = {}
+    for n, k, mode, r in rows:
+        gaps = r["gaps"]
+        p50, p99 = (1e3 * float(np.percentile(gaps, q)) for q in (50, 99))
+        rss = r["rss"]
+        if mode == "fleet":
+            shared_at[n, k] = (sum(rss.get("information", [])) + sum(rss.get("system", []))) / 2**20
+        print(f"| {n:.0e} | {k} | {mode} | {r['rate']:.0f} | {p50:.2f} | {p99:.2f} | {_mb(rss.get('entity', []))} | "
+              f"{_mb(rss.get('information', []))} | {_mb(rss.get('system', []))} | {_mb(rss.get('recorder', []))} | "
+              f"{r['degraded']} | {r['rejected']} |")
+    print("\nRSS: the peak of each process, summed over the processes of a kind (K solo launches have K of each).")
+    failed = False
+    for (n, k), shared in sorted(shared_at.items()):
+        if k > 1 and (n, 1) in shared_at:
+            per_twin = (shared - shared_at[n, 1]) / (k - 1)
+            line = f"- N = {n:.0e}: shared services grow {per_twin:.2f} MB per twin from K = 1 to K = {k}"
+            if n == TARGET_N:
+                ok = per_twin <= TARGET_SHARED_MB_PER_TWIN
+                failed |= not ok
+                line += f" (target at most {TARGET_SHARED_MB_PER_TWIN}: {'PASS' if ok else 'FAIL'})"
+            print(line)
+    for n, k, mode, r in rows:
+        if (n, k, mode) == (TARGET_N, TARGET_K, "fleet"):
+            ok = r["rate"] >= TARGET_RATE
+            failed |= not ok
+            print(f"- N = {n:.0e}, K = {k}: {r['rate']:.0f} twin-steps/s (target at least {TARGET_RATE:.0f}: "
+                  f"{'PASS' if ok else 'FAIL'})")
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

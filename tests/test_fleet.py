@@ -46,16 +46,29 @@ def estimates_by_twin(messages) -> dict[str, dict[int, Estimate]]:
     return out
 
 
-def test_one_information_and_one_system_service_serve_five_twins_as_their_solo_runs(processes, router):
-    configs = [RunConfig(particles=150 + 25 * i, steps=STEPS, seed=20 + i, twin=f"f-{i}", policy=policy,
-                         ps=ps, resampler=resampler)
-               for i, (policy, ps, resampler) in enumerate([("fixed", 0.81, "systematic"), ("rule", 0.5, "stratified"),
-                                                            ("predictive", 0.9, "residual"), ("fixed", 0.3, "multinomial"),
-                                                            ("fixed", 0.81, "systematic")])]
+def test_one_information_and_one_system_service_serve_twenty_twins_as_their_solo_runs(processes, router, tmp_path):
+    """20 twins of two models, different N, seeds, PS, policies and resamplers, in 10 entity processes of two
+    twins each (an edge box hosts the twins of one configuration), one information and one system service;
+    each twin equals its own in-process run, and the fleet's log verifies twin by twin."""
+    from messages.logfile import read_log
+    from scripts.logs.verify import decoded_by_topic, filtered_twins, verify_twin
+
+    kinds = [("fixed", 0.81, "systematic", "ungm"), ("rule", 0.5, "stratified", "ungm-printed"),
+             ("predictive", 0.9, "residual", "ungm"), ("fixed", 0.3, "multinomial", "ungm-printed"),
+             ("rule", 0.81, "systematic", "ungm")]
+    groups = [RunConfig(particles=100 + 20 * i, steps=STEPS, seed=20 + i, twin=f"f-{i}", policy=policy, ps=ps,
+                        resampler=resampler, scenario=scenario)
+              for i, (policy, ps, resampler, scenario) in enumerate(kinds * 2)]
+    log = tmp_path / "fleet.mcap"
+    recorder = processes.start("recorder", service_args("scripts.record", router.endpoint, "--all-twins",
+                                                        "--twin", "f-recorder", "-o", str(log)))
     shared = start_shared(processes, router, "f-*")
-    entities = [start_entity(processes, router, config) for config in configs]
+    entities = [start_entity(processes, router, group, "--twins", f"{group.twin}-a,{group.twin}-b")
+                for group in groups]
+    configs = [group.model_copy(update={"twin": f"{group.twin}-{side}"}) for group in groups for side in "ab"]
+    assert len(configs) == 20
     done = router.collect(lambda ms: all(len(estimates_by_twin(ms).get(c.twin, {})) == STEPS for c in configs),
-                          timeout=150)
+                          timeout=240)
     assert done, {c.twin: len(estimates_by_twin(router.messages).get(c.twin, {})) for c in configs}
     for entity in entities:
         assert entity.wait(timeout=30) == 0, processes.output(entity)
@@ -67,13 +80,20 @@ def test_one_information_and_one_system_service_serve_five_twins_as_their_solo_r
         np.testing.assert_array_equal([steps[k].mean for k in range(1, STEPS + 1)], reference.means,
                                       err_msg=config.twin)
     # Each finished twin is dropped by the shared services: their last status for it says finished.
-    router.collect(lambda ms: _finished_twins(ms) >= {(c.twin, layer) for c in configs
-                                                       for layer in ("information", "system")}, timeout=10)
-    assert _finished_twins(router.messages) >= {(c.twin, layer) for c in configs for layer in ("information", "system")}
+    everyone = {(c.twin, layer) for c in configs for layer in ("information", "system")}
+    router.collect(lambda ms: _finished_twins(ms) >= everyone, timeout=10)
+    assert _finished_twins(router.messages) >= everyone
     for service in shared:
         assert service.poll() is None, processes.output(service)  # the services stay for the next twins
         service.send_signal(signal.SIGINT)
         assert service.wait(timeout=10) == 0
+    recorder.send_signal(signal.SIGINT)
+    assert recorder.wait(timeout=30) == 0
+    by_topic = decoded_by_topic(read_log(log))
+    assert filtered_twins(by_topic) == sorted(c.twin for c in configs)
+    for config in configs:
+        verification = verify_twin(by_topic, config.twin)
+        assert verification.ok and verification.checked == list(range(1, STEPS + 1)), config.twin
 
 
 def _finished_twins(messages) -> set[tuple[str, str]]:

@@ -35,7 +35,7 @@ from messages.bus import Doorbell, Inbox, open_session
 from messages.codec import MessageError, decode_for_key
 from messages.config import RunConfig, RunInputError
 from messages.models import ServiceState, Status
-from messages.service import EXIT_GRACE, ExitWatchdog, ServiceShell, Tally
+from messages.service import EXIT_GRACE, ExitWatchdog, ServiceShell, Tally, release_memory
 
 __all__ = ["serve_layer", "serve_one", "serve_fleet", "host_twins", "add_fleet_arguments", "ConfigWatch", "Learned", "FleetStats"]
 
@@ -204,11 +204,14 @@ def serve_fleet(layer: str, pattern: str, zenoh_config, make_work, *, allow_mode
     watch = ConfigWatch(session, pattern, refuse)
     served: dict[str, _Served] = {}
 
+    trim = {"due": False}
+
     def drop(twin: str, why: str) -> None:
         entry = served.pop(twin)
         entry.shell.__exit__(None, None, None)
         watch.forget(twin)
         stats.drop(why)
+        trim["due"] = True  # the twin's buffers go back to the system at the next sweep
         log.info("twin %s: %s; its state is freed (%d twins served)", twin, why, len(served))
         if on_change is not None:
             on_change(set(served))
@@ -252,6 +255,9 @@ def serve_fleet(layer: str, pattern: str, zenoh_config, make_work, *, allow_mode
                 serve(event.config)
             if now >= next_sweep:  # liveness and statuses of every twin, a few times a second
                 next_sweep = now + _IDLE
+                if trim["due"]:
+                    trim["due"] = False
+                    release_memory()
                 for twin, entry in list(served.items()):
                     if "entity" in entry.shell.presence.alive:
                         entry.entity_seen = True

@@ -67,6 +67,10 @@ class TwinInformation:
         self.commands = PSInbox(shell, self.layer)
         self.published = 0  # the last step whose weight state this process sent
         self.system_was_alive = True
+        #: Whether this twin's system layer has been seen alive, or waited for once. A fleet's service learns
+        #: a twin while the twin's system layer may be announcing itself: its token can arrive after the
+        #: first particle sets, and not waiting then would apply the old PS (and differ from the solo run).
+        self.system_known = False
         self.waiting: ParticleSet | None = None  # a set waiting for the decision of the step before
         self.deadline = 0.0
         self.layer.warm_up()  # before the entity can send step 1
@@ -83,7 +87,7 @@ class TwinInformation:
                 system_alive = self._system_alive(message.step)
                 step = message.step
                 # The system decides on the weight state we sent; after a restart there is none to wait for.
-                if step - 1 == self.published and step > 1 and system_alive and \
+                if step - 1 == self.published and step > 1 and (system_alive or not self.system_known) and \
                         self.commands.latest_step < step - 1:
                     self.waiting, self.deadline = message, now + self.timeout
                     continue
@@ -91,15 +95,18 @@ class TwinInformation:
                 message = self.waiting
                 step = message.step
                 if self.commands.latest_step < step - 1:
-                    if now < self.deadline and "system" in shell.presence.alive and not shell.stopping:
+                    expected = "system" in shell.presence.alive or not self.system_known
+                    if now < self.deadline and expected and not shell.stopping:
                         return self.deadline
                     shell.log.warning("step %d: no PS decision of step %d within %.1f s, keeping PS = %g",
                                       step, step - 1, self.timeout, self.layer.ps)
                 self.waiting = None
+                self.system_known = True
             self._answer(message)
 
     def _system_alive(self, step: int) -> bool:
         system_alive = "system" in self.shell.presence.alive
+        self.system_known |= system_alive
         if system_alive != self.system_was_alive:
             if system_alive:
                 self.shell.log.info("step %d: the system layer is alive, taking its PS decisions again", step)

@@ -102,18 +102,21 @@ def threshold(weights: np.ndarray, rule: str | float = "neff") -> float:
 
 
 @numba.njit(cache=True, nogil=True)
-def _split(weights, limit):  # pragma: no cover - compiled
-    # Eq. 28 in one branch-free pass: indices of large (weight > W) and small particles.
-    n = weights.shape[0]
-    large = np.empty(n, dtype=np.int32)  # int32: half the memory traffic of int64; N < 2**31
-    small = np.empty(n, dtype=np.int32)
+def _split(weights, limit, particles):  # pragma: no cover - compiled
+    # Eq. 28 in one branch-free pass: the indices of the small particles (weight <= W), and the rows
+    # of the large ones (weight > W) copied in index order, so that the moves read their partners
+    # from a compact array of M rows instead of from all N (random reads in 3 MB, not 8 MB, at
+    # N = 1e6 and M = 0.37 N: 10x faster).
+    n, d = particles.shape
+    small = np.empty(n, dtype=np.int32)  # int32: half the memory traffic of int64; N < 2**31
+    rows = np.empty((n, d))
     n_large = 0
     for i in range(n):
-        is_large = weights[i] > limit
-        large[n_large] = i
+        for c in range(d):
+            rows[n_large, c] = particles[i, c]
         small[i - n_large] = i
-        n_large += is_large
-    return large[:n_large], small[: n - n_large]
+        n_large += weights[i] > limit
+    return small[: n - n_large], rows[:n_large]
 
 
 # --- the random stream of the rules --------------------------------------------
@@ -188,37 +191,27 @@ def _draws(state, n_small, n_large):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, nogil=True)
-def _pairings(large, n_small, ps, state):  # pragma: no cover - compiled
-    # For each small particle in index order: its partner x_m, drawn uniformly
-    # from the large set, and f with x_tilde = x_m + f x_l. Returns
-    # (partners, factors, number on the mixed branch).
-    n_large = large.shape[0]
-    partners = np.empty(n_small, dtype=np.int32)
-    factors = np.empty(n_small)
+def _move(particles, small, rows, ps, state, out):  # pragma: no cover - compiled
+    # For each small particle x_l in index order: its partner x_m drawn uniformly from the large
+    # rows, r and u, then out[l] = x_m + f x_l (Eq. 29-30). Returns the number on the mixed branch.
+    n_large = rows.shape[0]
+    d = particles.shape[1]
     n_mixed = 0
     s0, s1, s2, s3 = state[0], state[1], state[2], state[3]
-    for l in range(n_small):
+    for l in range(small.shape[0]):
         v, s0, s1, s2, s3 = _uniform(s0, s1, s2, s3)
         r, s0, s1, s2, s3 = _uniform(s0, s1, s2, s3)
         u, s0, s1, s2, s3 = _uniform(s0, s1, s2, s3)
-        partners[l] = large[int(v * n_large)]
-        factors[l] = _factor(r, u, ps)
+        f = _factor(r, u, ps)
         n_mixed += u <= ps
-    return partners, factors, n_mixed
-
-
-@numba.njit(cache=True, nogil=True)
-def _move(particles, small, partners, factors, out):  # pragma: no cover - compiled
-    # out[small[l]] = x_m + f_l x_l. Partners are known before the loop, so
-    # the random reads of many iterations overlap (drawing them inside this
-    # loop made it 3x slower at N = 1e6).
-    d = particles.shape[1]
-    for l in range(small.shape[0]):
         i = small[l]
-        m = partners[l]
-        f = factors[l]
-        for c in range(d):
-            out[i, c] = particles[m, c] + f * particles[i, c]
+        m = int(v * n_large)
+        if d == 1:  # the loop over components, even of length 1, serialises the random reads
+            out[i, 0] = rows[m, 0] + f * particles[i, 0]
+        else:
+            for c in range(d):
+                out[i, c] = rows[m, c] + f * particles[i, c]
+    return n_mixed
 
 
 def draws(rng: np.random.Generator, n_small: int, n_large: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -305,16 +298,14 @@ def preprocess(
         raise ValueError("weight rule 'likelihood' needs the observation's log_likelihood")
 
     limit = threshold(w, threshold_rule)
-    large_idx, small_idx = _split(w, limit)
-    n_small = small_idx.size
-    if large_idx.size == 0 or n_small == 0:
-        report = PreprocessReport(limit, int(large_idx.size), 0, 0, 0, ps)
+    small_idx, large_rows = _split(w, limit, x)
+    n_small, n_large = small_idx.size, large_rows.shape[0]
+    if n_large == 0 or n_small == 0:
+        report = PreprocessReport(limit, n_large, 0, 0, 0, ps)
         return PreprocessResult(x.copy(), w.copy(), report)
 
-    partners, factors, n_mixed = _pairings(large_idx, n_small, ps, _seed(rng))
     new_particles = x.copy()
-    _move(x, small_idx, partners, factors, new_particles)
-    n_mixed = int(n_mixed)
+    n_mixed = int(_move(x, small_idx, large_rows, ps, _seed(rng), new_particles))
 
     if weight_rule == "inherit":
         new_weights = w.view()  # unchanged: a read-only view, not a copy
@@ -327,5 +318,5 @@ def preprocess(
         log_w[small_idx] = np.where(np.isneginf(log_small), -np.inf, log_small + delta)
         new_weights = np.exp(log_w - log_w.max())
         new_weights /= new_weights.sum()
-    report = PreprocessReport(limit, int(large_idx.size), n_small, n_mixed, n_small - n_mixed, ps)
+    report = PreprocessReport(limit, n_large, n_small, n_mixed, n_small - n_mixed, ps)
     return PreprocessResult(new_particles, new_weights, report)

@@ -12,6 +12,10 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+#: From this many draws on, the kernels draw the normals themselves; below it numpy does, because
+#: handing a Generator to a compiled function costs about 8 us (numba builds its ctypes view).
+COMPILED_DRAWS = 2048
+
 
 @numba.njit(cache=True, nogil=True)
 def normals(rng, out):  # pragma: no cover - compiled

@@ -62,6 +62,8 @@ class GrowthModel(StateSpaceModel):
         return rng.normal(self.prior_mean, math.sqrt(self.prior_var), size=(n, 1))
 
     def propagation_noise(self, n, k, rng):
+        if n * self.dim < _growth.COMPILED_DRAWS:
+            return rng.standard_normal((n, self.dim))
         return _growth.normals(rng, np.empty((n, self.dim)))
 
     def propagate(self, particles, k, rng, noise=None):
@@ -69,8 +71,10 @@ class GrowthModel(StateSpaceModel):
         # noise * sqrt(Q) + transition_mean(particles, k), noise ~ N(0, 1).
         x = np.ascontiguousarray(particles, dtype=np.float64)
         args = (math.sqrt(self.process_var), self.growth, 8.0 * math.cos(1.2 * (k - 1)))
-        if noise is None:
+        if noise is None and x.size >= _growth.COMPILED_DRAWS:
             return _growth.propagate_drawing(x, rng, *args)
+        if noise is None:
+            noise = rng.standard_normal(x.shape)
         return _growth.propagate(x, noise, *args)
 
     def log_likelihood(self, particles, observation, k):

@@ -288,18 +288,19 @@ def test_a_model_that_propagates_to_nan_fails_at_that_step():
 
 # --- no avoidable temporaries, the same numbers ---------------------------------------
 
-def test_growth_model_kernels_give_the_numbers_of_the_numpy_laws():
+@pytest.mark.parametrize("n", [100, 5000])  # numpy draws the noise below COMPILED_DRAWS, the kernel above
+def test_growth_model_kernels_give_the_numbers_of_the_numpy_laws(n):
     # entity._growth does Eq. 35 and 36 in compiled passes: bit for bit the numpy expressions.
     model = models.get("ungm")
     rng = np.random.default_rng(3)
-    x = 10.0 * rng.standard_normal((5000, 1))
+    x = 10.0 * rng.standard_normal((n, 1))
     x[:3, 0] = [0.0, -0.0, 1e70]
     for k in (1, 2, 17):
-        noise = np.random.default_rng(k).standard_normal((5000, 1))
+        noise = np.random.default_rng(k).standard_normal((n, 1))
         expected = noise * math.sqrt(model.process_var) + model.transition_mean(x, k)
         np.testing.assert_array_equal(model.propagate(x, k, np.random.default_rng(k)), expected)
         np.testing.assert_array_equal(model.propagate(x, k, None, noise=noise.copy()), expected)
-        np.testing.assert_array_equal(model.propagation_noise(5000, k, np.random.default_rng(k)), noise)
+        np.testing.assert_array_equal(model.propagation_noise(n, k, np.random.default_rng(k)), noise)
         z = 3.0
         residual = z - x[:, 0] ** 2 / 20.0
         expected = -0.5 * residual * residual / model.observation_var - 0.5 * math.log(

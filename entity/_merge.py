@@ -185,3 +185,13 @@ def distinct(ancestors):  # pragma: no cover - compiled
     for i in range(1, ancestors.shape[0]):
         changes += ancestors[i] != ancestors[i - 1]
     return 1 + changes
+
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def gather_parallel(particles, ancestors, out):  # pragma: no cover - compiled
+    # out[i] = particles[ancestors[i]] on numba's threads: the same array whatever their number.
+    for i in numba.prange(ancestors.shape[0]):
+        for c in range(particles.shape[1]):
+            out[i, c] = particles[ancestors[i], c]
+    return out

@@ -336,8 +336,7 @@ class ParticleFilter:
         out = self._gathered
         if out is None or out.shape != particles.shape or np.may_share_memory(out, particles):
             out = np.empty_like(particles)
-        np.take(particles, ancestors, axis=0, out=out)
-        self._gathered = out
+        self._gathered = resampling.gather(particles, ancestors, out)
         return out
 
     def _resample(self, weights: np.ndarray, rng: np.random.Generator) -> np.ndarray:

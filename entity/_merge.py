@@ -90,7 +90,8 @@ def systematic(weights, u, out):  # pragma: no cover - compiled
 def stratified(weights, v, out):  # pragma: no cover - compiled
     # Point k is k + v_k on the scale N C_j (v_k in [0, 1), one per stratum). With s = N C_j and
     # m = floor(s): every point below m - 1 lies below s, every point from m + 1 on above, so
-    # particle j ends at m, less one if point m - 1 rounds up to s, plus one if point m is below s.
+    # particle j ends at m, less one if point m - 1 rounds up to s (only if s is the integer m),
+    # plus one if point m is below s.
     # The points are computed as the plain merge computes them, float(k) + v_k.
     n = weights.shape[0]
     cumulative = 0.0
@@ -101,9 +102,10 @@ def stratified(weights, v, out):  # pragma: no cover - compiled
         cumulative += weights[j]
         scaled = cumulative * n
         m = min(max(int(scaled), 0), n)  # floor: scaled >= 0
-        before = max(m - 1, 0)
         at = min(m, n - 1)
-        end = m - int((m >= 1) & (before + v[before] >= scaled)) + int((m < n) & (at + v[at] < scaled))
+        end = m + int((m < n) & (at + v[at] < scaled))
+        if scaled == m and m >= 1 and (m - 1) + v[m - 1] >= scaled:  # N C_j an integer: rare
+            end -= 1
         k = _put(out, k, end, j)
     fill_tail(out, k, weights)
     return out

@@ -224,6 +224,20 @@ def _move(particles, small, rows, ps, state, out):  # pragma: no cover - compile
     return n_mixed
 
 
+@numba.njit(cache=True, nogil=True)
+def _rules(particles, weights, limit, rank, capacity, ps, state):  # pragma: no cover - compiled
+    # Eq. 28-30 in one call, for small sets, where each call into compiled code costs more than
+    # the work: W (the value of ascending rank ``rank`` if rank >= 0, else ``limit``), the split,
+    # the copy and the moves. Returns (new particles, W, M, N - M, number mixed).
+    if rank >= 0:
+        limit = np.partition(weights, rank)[rank]
+    small, rows = _split(weights, limit, particles, capacity)
+    out = particles.copy()
+    if rows.shape[0] == 0 or small.shape[0] == 0:
+        return out, limit, rows.shape[0], 0, 0
+    return out, limit, rows.shape[0], small.shape[0], _move(particles, small, rows, ps, state, out)
+
+
 def draws(rng: np.random.Generator, n_small: int, n_large: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The random numbers :func:`preprocess` draws from ``rng`` for ``n_small`` small particles.
 
@@ -258,6 +272,28 @@ def apply_rules(x_m: np.ndarray, x_l: np.ndarray, r: np.ndarray, u: np.ndarray, 
     # Eq. 29 into Eq. 30 simplifies to x_tilde = x_m + f x_l (Eq. 33, 34).
     factors = _factors(np.asarray(r, dtype=np.float64), np.asarray(u, dtype=np.float64), float(ps))
     return x_m + factors[:, None] * x_l
+
+
+#: Below this many particles :func:`preprocess` makes one compiled call (numba's np.partition selects W);
+#: from it on, numpy's partition or the radix select (information.select) is faster than that.
+SMALL_SET = 1 << 12
+
+
+def _preprocess_small(x, w, threshold_rule, ps, rng):
+    """:func:`preprocess`'s numbers for N < SMALL_SET and a PCG64, in one compiled call: (new particles
+    or None, W, M, N - M, mixed). The four seed words are drawn first and given back (the PCG64 steps
+    back 4) when nothing is moved, so ``rng`` ends where the general path leaves it."""
+    n = w.size
+    if isinstance(threshold_rule, str) and threshold_rule == "neff":
+        k = min(max(round(1.0 / float(np.dot(w, w))), 1), n)
+        limit, rank, capacity = 0.0, (n - k - 1 if k < n else -1), (k if k < n else n)
+    else:
+        (limit, capacity), rank = _threshold(w, threshold_rule), -1
+    out, limit, n_large, n_small, n_mixed = _rules(x, w, limit, rank, capacity, ps, _seed(rng))
+    if n_large == 0 or n_small == 0:
+        rng.bit_generator.advance(-4 % 2 ** 128)
+        return None, float(limit), int(n_large), 0, 0
+    return out, float(limit), int(n_large), int(n_small), int(n_mixed)
 
 
 def preprocess(
@@ -307,15 +343,18 @@ def preprocess(
     if weight_rule == "likelihood" and log_likelihood is None:
         raise ValueError("weight rule 'likelihood' needs the observation's log_likelihood")
 
-    limit, capacity = _threshold(w, threshold_rule)
-    small_idx, large_rows = _split(w, limit, x, capacity)
-    n_small, n_large = small_idx.size, large_rows.shape[0]
+    if w.size < SMALL_SET and type(rng.bit_generator) is np.random.PCG64:
+        new_particles, limit, n_large, n_small, n_mixed = _preprocess_small(x, w, threshold_rule, ps, rng)
+    else:
+        limit, capacity = _threshold(w, threshold_rule)
+        small_idx, large_rows = _split(w, limit, x, capacity)
+        n_small, n_large = small_idx.size, large_rows.shape[0]
+        if n_large > 0 and n_small > 0:
+            new_particles = x.copy()
+            n_mixed = int(_move(x, small_idx, large_rows, ps, _seed(rng), new_particles))
     if n_large == 0 or n_small == 0:
         report = PreprocessReport(limit, n_large, 0, 0, 0, ps)
         return PreprocessResult(x.copy(), w.copy(), report)
-
-    new_particles = x.copy()
-    n_mixed = int(_move(x, small_idx, large_rows, ps, _seed(rng), new_particles))
 
     if weight_rule == "inherit":
         new_weights = w.view()  # unchanged: a read-only view, not a copy
@@ -323,6 +362,7 @@ def preprocess(
     else:
         with np.errstate(divide="ignore"):
             log_w = np.log(w)
+        small_idx = np.flatnonzero(w <= limit)
         log_small = log_w[small_idx]
         delta = log_likelihood(new_particles[small_idx]) - log_likelihood(x[small_idx])
         log_w[small_idx] = np.where(np.isneginf(log_small), -np.inf, log_small + delta)

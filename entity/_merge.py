@@ -71,44 +71,47 @@ def inverse_cdf(points, weights, out):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, nogil=True)
-def systematic(weights, u, out):  # pragma: no cover - compiled
-    # Points (k + u) / N are computed, not stored: point k < C_j  <=>  k < N C_j - u,
-    # so particle j ends at ceil(N C_j - u).
+def _by_ends(weights, u, v, out):  # pragma: no cover - compiled
+    # The merges whose points need no search: particle j's last point follows from the running sum
+    # C_j. Systematic (v empty): points (k + u) / N, and point k < C_j <=> k < N C_j - u, so particle
+    # j ends at ceil(N C_j - u). Stratified: point k is k + v_k on the scale N C_j (v_k in [0, 1), one
+    # per stratum). With s = N C_j and m = floor(s), every point below m - 1 lies below s and every
+    # point from m + 1 on above it, so particle j ends at m, less one if point m - 1 rounds up to s
+    # (only when s is the integer m), plus one if point m is below s; the points are computed as the
+    # plain merge computes them, float(k) + v_k.
     n = weights.shape[0]
+    stratified = v.shape[0] == n
     cumulative = 0.0
     k = 0
     for j in range(n):
         if k >= n:
             break
         cumulative += weights[j]
-        k = _put(out, k, min(n, int(np.ceil(cumulative * n - u))), j)
-    fill_tail(out, k, weights)
-    return out
-
-
-@numba.njit(cache=True, nogil=True)
-def stratified(weights, v, out):  # pragma: no cover - compiled
-    # Point k is k + v_k on the scale N C_j (v_k in [0, 1), one per stratum). With s = N C_j and
-    # m = floor(s): every point below m - 1 lies below s, every point from m + 1 on above, so
-    # particle j ends at m, less one if point m - 1 rounds up to s (only if s is the integer m),
-    # plus one if point m is below s.
-    # The points are computed as the plain merge computes them, float(k) + v_k.
-    n = weights.shape[0]
-    cumulative = 0.0
-    k = 0
-    for j in range(n):
-        if k >= n:
-            break
-        cumulative += weights[j]
-        scaled = cumulative * n
-        m = min(max(int(scaled), 0), n)  # floor: scaled >= 0
-        at = min(m, n - 1)
-        end = m + int((m < n) & (at + v[at] < scaled))
-        if scaled == m and m >= 1 and (m - 1) + v[m - 1] >= scaled:  # N C_j an integer: rare
-            end -= 1
+        if stratified:
+            scaled = cumulative * n
+            m = min(max(int(scaled), 0), n)  # floor: scaled >= 0
+            at = min(m, n - 1)
+            end = m + int((m < n) & (at + v[at] < scaled))
+            if scaled == m and m >= 1 and (m - 1) + v[m - 1] >= scaled:  # N C_j an integer: rare
+                end -= 1
+        else:
+            end = min(n, int(np.ceil(cumulative * n - u)))
         k = _put(out, k, end, j)
     fill_tail(out, k, weights)
     return out
+
+
+_NO_STRATA = np.empty(0)
+
+
+def systematic(weights, u, out):
+    """Systematic ancestors of ``weights`` with the uniform ``u``, into ``out``."""
+    return _by_ends(weights, u, _NO_STRATA, out)
+
+
+def stratified(weights, v, out):
+    """Stratified ancestors of ``weights`` with the uniforms ``v`` (one per stratum), into ``out``."""
+    return _by_ends(weights, 0.0, v, out)
 
 
 @numba.njit(cache=True, nogil=True)

@@ -1,14 +1,26 @@
-"""Resampling kernels and one filter step: dtpf beside particles and filterpy.
+"""Resampling kernels and one filter step: dtpf beside particles, filterpy and the memory floors.
 
 Part 1, kernels: normalised weights -> N ancestor indices, at each N.
 
-- dtpf: ``entity.resampling.RESAMPLERS[scheme](W, rng)`` (numba, weights checked);
+- the floors, timed in the same repetitions: one pass over the weights
+  (``np.cumsum(W, out=)``), one gather of the particles by sorted ancestors
+  (``np.take(X, A, axis=0, out=)``), N uniforms from the run's generator
+  (``rng.random(N, out=)``);
+- dtpf: ``entity.resampling.RESAMPLERS[scheme](W, rng, out=, checked=True)``, as
+  the filter calls it (numba, into a buffer, weights checked where they were
+  made), and the public call that checks W and allocates;
 - particles: ``particles.resampling.<scheme>(W)`` (numba; global ``np.random``,
-  seeded before it is timed): the reference of each scheme;
+  seeded before it is timed);
 - filterpy: ``filterpy.monte_carlo.<scheme>_resample(W)`` (Python loops; at
   N >= 1e6 timed in one repetition only);
-- DT preprocessing: ``information.rules.preprocess(X, W, 0.81, rng)`` with X of
-  shape (N, 1) (Eq. 28-30), against dtpf's systematic.
+- systematic + gather: dtpf's systematic, then ``entity.resampling.gather`` on
+  1 thread and on every core (numba's parallel loop), against the two floors;
+- DT preprocessing: ``information.rules.preprocess(X, W, 0.81, rng, checked=True)``
+  with X of shape (N, 1) (Eq. 28-30), against dtpf's systematic.
+
+Each dtpf kernel gets its ratio to the floor that bounds it (``BOUNDS``), to
+the weight pass alone, and to particles' kernel; the issue-18 targets
+(``TARGETS``, ``TARGET_FILTER``) are checked at the end.
 
 W is proportional to exp(lw) with lw ~ N(0, 1) i.i.d. (ESS/N about 0.37), fresh
 in every repetition and shared by every implementation in it. Fast calls are
@@ -37,7 +49,7 @@ medians of per-repetition ratios against the reference of the same repetition.
 
 Run from the repository root::
 
-    python -m scripts.bench.resampling                       # N = 1e3 .. 1e6, about 4 minutes
+    python -m scripts.bench.resampling                       # N = 1e3 .. 1e6, 2-4 minutes
     python -m scripts.bench.resampling --quick               # smoke run, a few seconds
     python -m scripts.bench.resampling --sizes 1e5 --repeats 5
 

@@ -23,7 +23,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from entity import _growth
 from entity.base import StateSpaceModel
 
 __all__ = ["StateSpaceModel", "GrowthModel", "MODELS", "get"]
@@ -62,6 +61,8 @@ class GrowthModel(StateSpaceModel):
         return rng.normal(self.prior_mean, math.sqrt(self.prior_var), size=(n, 1))
 
     def propagation_noise(self, n, k, rng):
+        from entity import _growth  # numba on first use: a process that only reads models (the recorder) skips it
+
         if n * self.dim < _growth.COMPILED_DRAWS:
             return rng.standard_normal((n, self.dim))
         return _growth.normals(rng, np.empty((n, self.dim)))
@@ -69,6 +70,8 @@ class GrowthModel(StateSpaceModel):
     def propagate(self, particles, k, rng, noise=None):
         # One compiled pass (entity._growth): the numbers of
         # noise * sqrt(Q) + transition_mean(particles, k), noise ~ N(0, 1).
+        from entity import _growth
+
         x = np.ascontiguousarray(particles, dtype=np.float64)
         args = (math.sqrt(self.process_var), self.growth, 8.0 * math.cos(1.2 * (k - 1)))
         if noise is None and x.size >= _growth.COMPILED_DRAWS:
@@ -78,6 +81,8 @@ class GrowthModel(StateSpaceModel):
         return _growth.propagate(x, noise, *args)
 
     def log_likelihood(self, particles, observation, k):
+        from entity import _growth
+
         z = float(np.asarray(observation).reshape(-1)[0])
         constant = 0.5 * math.log(2.0 * math.pi * self.observation_var)
         return _growth.log_likelihood(np.ascontiguousarray(particles, dtype=np.float64), z,

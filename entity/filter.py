@@ -287,8 +287,11 @@ class ParticleFilter:
 
     def warm_up(self) -> None:
         """Resample a small throwaway set once, so that the compiled resampler is loaded before the
-        first step (its first call costs about 0.15 s); the run's random streams are not touched."""
+        first step (its first call costs about 0.15 s), and make a stream of step 0 (the compiled
+        SeedSequence); the run's random streams are not touched."""
         self.resample(np.full(8, 1.0 / 8), np.random.default_rng(0))
+        resampling.distinct(np.zeros(2, dtype=np.int64))
+        stream(self.seed, self.twin, 0, "entity")
 
     def prepare_next_step(self) -> None:
         """Draw the random numbers that start the next step now: its stream and propagation noise.

@@ -77,6 +77,7 @@ class InformationLayer:
             rules.preprocess(particles, weights, self.ps, rng, threshold_rule=self.threshold_rule,
                              weight_rule="inherit")
         summarise(particles, weights, self.threshold_rule, None)
+        stream(self.seed, self.twin, 0, "information")  # the compiled SeedSequence (messages._seedseq)
 
     def set_ps(self, ps: float, applies_from_step: int) -> None:
         """Schedule a new PS from the system layer, in force from ``applies_from_step``.

@@ -158,15 +158,17 @@ def normalise(log_weights: np.ndarray) -> np.ndarray:
     return _normalise(log_weights)[0]
 
 
-def _normalise(log_weights: np.ndarray) -> tuple[np.ndarray, float]:
-    """Normalised weights and log sum_i exp(log_weights_i), from one pass of exponentials."""
+def _normalise(log_weights: np.ndarray) -> tuple[np.ndarray, float, float]:
+    """Normalised weights, log sum_i exp(log_weights_i) and the largest log-weight, from one pass of
+    exponentials into the new array (Eq. 23 normalised, shifted by the maximum)."""
     top = float(np.max(log_weights))
     if not np.isfinite(top):
         raise FilterError(f"every log-weight is {top}: no particle explains the observation")
-    weights = np.exp(log_weights - top)
+    weights = np.subtract(log_weights, top)
+    np.exp(weights, out=weights)
     total = weights.sum()
     weights /= total
-    return weights, top + float(np.log(total))
+    return weights, top + float(np.log(total)), top
 
 
 def normalised_innovation(model, particles: np.ndarray, prior_weights: np.ndarray, observation: np.ndarray,
@@ -194,8 +196,8 @@ def moments(particles: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.
     """Weighted mean and variance per dimension: (d,), (d,)."""
     mean = weights @ particles
     centred = particles - mean
-    var = weights @ (centred * centred)
-    return mean, var
+    np.multiply(centred, centred, out=centred)
+    return mean, weights @ centred
 
 
 class ParticleFilter:
@@ -263,6 +265,10 @@ class ParticleFilter:
         self._log_total = float(np.log(self.n))
         self.particles: np.ndarray | None = None
         self.log_weights = np.zeros(self.n)
+        #: log_weights are all 0 (after a resampling): the next step's are its log-likelihoods.
+        self._flat = True
+        #: Where the resampled particles are gathered: reused while nothing else holds them.
+        self._gathered: np.ndarray | None = None
         self.parents: int | None = None
         #: (step, rng, noise) of the next step, drawn ahead by prepare_next_step().
         self._ahead: tuple[int, np.random.Generator, np.ndarray | None] | None = None
@@ -281,8 +287,11 @@ class ParticleFilter:
 
     def warm_up(self) -> None:
         """Resample a small throwaway set once, so that the compiled resampler is loaded before the
-        first step (its first call costs about 0.15 s); the run's random streams are not touched."""
+        first step (its first call costs about 0.15 s), and make a stream of step 0 (the compiled
+        SeedSequence); the run's random streams are not touched."""
         self.resample(np.full(8, 1.0 / 8), np.random.default_rng(0))
+        resampling.distinct(np.zeros(2, dtype=np.int64))
+        stream(self.seed, self.twin, 0, "entity")
 
     def prepare_next_step(self) -> None:
         """Draw the random numbers that start the next step now: its stream and propagation noise.
@@ -312,13 +321,30 @@ class ParticleFilter:
             return
         k, weights, rng = self._waiting
         state = rng.bit_generator.state
-        self._resampled = (k, state, weights, self.resample(weights, rng))
+        self._resampled = (k, state, weights, self._resample(weights, rng))
 
     def work_ahead(self) -> None:
         """Everything the answer of the preprocessor does not change: :meth:`resample_ahead`, then
         :meth:`prepare_next_step`. The entity service calls it during the lockstep wait."""
         self.resample_ahead()
         self.prepare_next_step()
+
+    def _gather(self, particles: np.ndarray, ancestors: np.ndarray) -> np.ndarray:
+        """particles[ancestors], into the array of the last gather when nothing else holds it.
+
+        The resampled set is only the next propagation's input; a model whose ``propagate`` returned
+        its input (an in-place model) makes that array a step's ``particles``, and :meth:`_step`
+        then lets it go.
+        """
+        out = self._gathered
+        if out is None or out.shape != particles.shape or np.may_share_memory(out, particles):
+            out = np.empty_like(particles)
+        self._gathered = resampling.gather(particles, ancestors, out)
+        return out
+
+    def _resample(self, weights: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        """The configured scheme on weights made (normalised) or checked (check_set) this step: not scanned again."""
+        return self.resample(weights, rng, checked=True)
 
     def _ancestors(self, k: int, weights: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """Ancestor indices of step k: those of resample_ahead() if they were drawn from these weights."""
@@ -328,7 +354,7 @@ class ParticleFilter:
             if used is weights or np.array_equal(used, weights):
                 return ancestors
             rng.bit_generator.state = state  # as if nothing had been drawn
-        return self.resample(weights, rng)
+        return self._resample(weights, rng)
 
     def __next__(self) -> FilterStep:
         """One step of the particle filter, on the next of the observations it was given."""
@@ -362,21 +388,28 @@ class ParticleFilter:
             self.particles = check_particles(self.model.propagate(self.particles, k, rng))
         else:
             self.particles = check_particles(self.model.propagate(self.particles, k, rng, noise=noise))
+        if self._gathered is not None and np.may_share_memory(self.particles, self._gathered):
+            self._gathered = None  # propagated in place: this step's particles, not to be gathered over
         prior_log_total = self._log_total
         innovation = None
         if self.innovation:
             prior = np.exp(self.log_weights - prior_log_total)
             innovation = normalised_innovation(self.model, self.particles, prior, observation, k)
-        self.log_weights = self.log_weights + self.model.log_likelihood(self.particles, observation, k)
-        weights, log_total = _normalise(self.log_weights)
+        log_likelihood = self.model.log_likelihood(self.particles, observation, k)
+        if self._flat:  # 0 + l is l: no pass over zeros
+            np.copyto(self.log_weights, log_likelihood)
+        else:
+            np.add(self.log_weights, log_likelihood, out=self.log_weights)
+        weights, log_total, top = _normalise(self.log_weights)
         log_predictive = log_total - prior_log_total  # log sum_i W_(k-1)^i p(z_k | x_k^i)
-        top = self.log_weights.max()
-        self.log_weights -= top  # keep log-weights near 0 between resamplings
-        self._log_total = log_total - float(top)
+        self._log_total = log_total - top
         ess = 1.0 / float(np.dot(weights, weights))
         particles = self.particles
 
         due = self.resample_below is None or ess < self.resample_below * self.n
+        self._flat = due
+        if not due:
+            self.log_weights -= top  # keep log-weights near 0 between resamplings
         degraded = False
         report = None
         target_particles, target_weights = particles, weights
@@ -402,10 +435,9 @@ class ParticleFilter:
         parents = self.parents
         if due:
             ancestors = self._ancestors(k, target_weights, rng)
-            self.particles = target_particles[ancestors]
-            self.log_weights = np.zeros(self.n)
+            self.particles = self._gather(target_particles, ancestors)
+            self.log_weights.fill(0.0)
             self._log_total = float(np.log(self.n))
-            # Ancestors are sorted: distinct ones = 1 + number of changes.
-            self.parents = 1 + int(np.count_nonzero(ancestors[1:] != ancestors[:-1]))
+            self.parents = resampling.distinct(ancestors)
         return FilterStep(k, particles, weights, ess, mean, var, mean - half, mean + half,
                           due, degraded, report, ancestors, parents, log_predictive, innovation)

@@ -61,21 +61,32 @@ class GrowthModel(StateSpaceModel):
         return rng.normal(self.prior_mean, math.sqrt(self.prior_var), size=(n, 1))
 
     def propagation_noise(self, n, k, rng):
-        return rng.standard_normal((n, self.dim))
+        from entity import _growth  # numba on first use: a process that only reads models (the recorder) skips it
+
+        if n * self.dim < _growth.COMPILED_DRAWS:
+            return rng.standard_normal((n, self.dim))
+        return _growth.normals(rng, np.empty((n, self.dim)))
 
     def propagate(self, particles, k, rng, noise=None):
+        # One compiled pass (entity._growth): the numbers of
+        # noise * sqrt(Q) + transition_mean(particles, k), noise ~ N(0, 1).
+        from entity import _growth
+
+        x = np.ascontiguousarray(particles, dtype=np.float64)
+        args = (math.sqrt(self.process_var), self.growth, 8.0 * math.cos(1.2 * (k - 1)))
+        if noise is None and x.size >= _growth.COMPILED_DRAWS:
+            return _growth.propagate_drawing(x, rng, *args)
         if noise is None:
-            noise = self.propagation_noise(particles.shape[0], k, rng)
-        noise *= math.sqrt(self.process_var)
-        noise += self.transition_mean(particles, k)
-        return noise
+            noise = rng.standard_normal(x.shape)
+        return _growth.propagate(x, noise, *args)
 
     def log_likelihood(self, particles, observation, k):
+        from entity import _growth
+
         z = float(np.asarray(observation).reshape(-1)[0])
-        residual = z - particles[:, 0] ** 2 / 20.0
-        return -0.5 * residual * residual / self.observation_var - 0.5 * math.log(
-            2.0 * math.pi * self.observation_var
-        )
+        constant = 0.5 * math.log(2.0 * math.pi * self.observation_var)
+        return _growth.log_likelihood(np.ascontiguousarray(particles, dtype=np.float64), z,
+                                      self.observation_var, constant)
 
     def observation_moments(self, particles, k):
         return particles[:, :1] ** 2 / 20.0, np.array([self.observation_var])

@@ -70,10 +70,14 @@ class InformationLayer:
         """Run the rules and the mirror once on a small throwaway set, so that their compiled kernels
         are loaded before the first real step (the first call costs about 0.2 s); no state changes."""
         rng = np.random.default_rng(0)
-        particles = rng.standard_normal((n, self.model.dim))
-        weights = np.full(n, 1.0 / n)
-        rules.preprocess(particles, weights, self.ps, rng, threshold_rule=self.threshold_rule, weight_rule="inherit")
+        for size in (n, rules.SMALL_SET):  # below SMALL_SET the rules are one compiled call, from it on three
+            particles = rng.standard_normal((size, self.model.dim))
+            weights = rng.random(size)
+            weights /= weights.sum()
+            rules.preprocess(particles, weights, self.ps, rng, threshold_rule=self.threshold_rule,
+                             weight_rule="inherit")
         summarise(particles, weights, self.threshold_rule, None)
+        stream(self.seed, self.twin, 0, "information")  # the compiled SeedSequence (messages._seedseq)
 
     def set_ps(self, ps: float, applies_from_step: int) -> None:
         """Schedule a new PS from the system layer, in force from ``applies_from_step``.

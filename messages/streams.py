@@ -13,33 +13,68 @@ Example::
 """
 from __future__ import annotations
 
+import functools
 import hashlib
 
 import numpy as np
+from numpy.random.bit_generator import ISeedSequence
 
 #: Layers (and purposes) that draw random numbers. A closed set, so a typo
 #: fails loudly instead of silently opening a new, unrelated stream.
 LAYERS = ("scenario", "entity", "information", "system")
 
 
-def _words(text: str) -> list[int]:
+@functools.lru_cache(maxsize=64)
+def _words(text: str) -> tuple[int, ...]:
     """Stable 32-bit words from a string (Python's hash() is salted per process)."""
     digest = hashlib.blake2b(text.encode("utf-8"), digest_size=16).digest()
-    return [int.from_bytes(digest[i:i + 4], "little") for i in range(0, 16, 4)]
+    return tuple(int.from_bytes(digest[i:i + 4], "little") for i in range(0, 16, 4))
 
 
-def seed_sequence(seed: int, twin: str, step: int, layer: str) -> np.random.SeedSequence:
-    """The SeedSequence of one (seed, twin, step, layer)."""
+def _entropy(seed: int, twin: str, step: int, layer: str) -> list[int]:
     if layer not in LAYERS:
         raise ValueError(f"unknown stream layer {layer!r}; expected one of {', '.join(LAYERS)}")
     if int(seed) < 0:
         raise ValueError(f"seed must be non-negative, got {seed!r}")
     if int(step) < 0:
         raise ValueError(f"step must be non-negative, got {step!r}")
-    entropy = [int(seed) & 0xFFFFFFFF, int(seed) >> 32, *_words(twin), int(step), LAYERS.index(layer)]
-    return np.random.SeedSequence(entropy)
+    return [int(seed) & 0xFFFFFFFF, int(seed) >> 32, *_words(twin), int(step), LAYERS.index(layer)]
+
+
+def seed_sequence(seed: int, twin: str, step: int, layer: str) -> np.random.SeedSequence:
+    """The SeedSequence of one (seed, twin, step, layer)."""
+    return np.random.SeedSequence(_entropy(seed, twin, step, layer))
+
+
+def _uint32_words(values: list[int]) -> np.ndarray:
+    """The entropy as numpy's SeedSequence reads a list of non-negative ints: 32-bit words, little end first."""
+    words = []
+    for value in values:
+        words.append(value & 0xFFFFFFFF)
+        value >>= 32
+        while value:
+            words.append(value & 0xFFFFFFFF)
+            value >>= 32
+    return np.array(words, dtype=np.int64)
+
+
+class _PCG64Seed(ISeedSequence):
+    """The 4 uint64 words SeedSequence(entropy) hands a PCG64, computed by :mod:`messages._seedseq`."""
+
+    __slots__ = ("state",)
+
+    def __init__(self, entropy: list[int]):
+        from messages import _seedseq  # numba on first use: processes that draw nothing skip it
+
+        self.state = _seedseq.state_words(_uint32_words(entropy)).view(np.uint64)
+
+    def generate_state(self, n_words, dtype=np.uint32):
+        if n_words != 4 or np.dtype(dtype) != np.uint64:
+            raise ValueError("a PCG64 seed gives 4 uint64 words only")
+        return self.state
 
 
 def stream(seed: int, twin: str, step: int, layer: str) -> np.random.Generator:
-    """A fresh Generator (PCG64) for one (seed, twin, step, layer)."""
-    return np.random.Generator(np.random.PCG64(seed_sequence(seed, twin, step, layer)))
+    """A fresh Generator (PCG64) for one (seed, twin, step, layer): the generator
+    ``Generator(PCG64(seed_sequence(seed, twin, step, layer)))``, the same numbers, built in 3 us, not 17."""
+    return np.random.Generator(np.random.PCG64(_PCG64Seed(_entropy(seed, twin, step, layer))))

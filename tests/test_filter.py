@@ -284,3 +284,51 @@ def test_a_model_that_propagates_to_nan_fails_at_that_step():
     next(pf), next(pf)
     with pytest.raises(ValueError, match=r"particles contain non-finite values at index 7 \(value inf\)"):
         next(pf)
+
+
+# --- no avoidable temporaries, the same numbers ---------------------------------------
+
+@pytest.mark.parametrize("n", [100, 5000])  # numpy draws the noise below COMPILED_DRAWS, the kernel above
+def test_growth_model_kernels_give_the_numbers_of_the_numpy_laws(n):
+    # entity._growth does Eq. 35 and 36 in compiled passes: bit for bit the numpy expressions.
+    model = models.get("ungm")
+    rng = np.random.default_rng(3)
+    x = 10.0 * rng.standard_normal((n, 1))
+    x[:3, 0] = [0.0, -0.0, 1e70]
+    for k in (1, 2, 17):
+        noise = np.random.default_rng(k).standard_normal((n, 1))
+        expected = noise * math.sqrt(model.process_var) + model.transition_mean(x, k)
+        np.testing.assert_array_equal(model.propagate(x, k, np.random.default_rng(k)), expected)
+        np.testing.assert_array_equal(model.propagate(x, k, None, noise=noise.copy()), expected)
+        np.testing.assert_array_equal(model.propagation_noise(n, k, np.random.default_rng(k)), noise)
+        z = 3.0
+        residual = z - x[:, 0] ** 2 / 20.0
+        expected = -0.5 * residual * residual / model.observation_var - 0.5 * math.log(
+            2.0 * math.pi * model.observation_var)
+        np.testing.assert_array_equal(model.log_likelihood(x, np.array([z]), k), expected)
+
+
+class InPlaceGrowth(models.GrowthModel):
+    """A model whose propagate overwrites its input and returns it (allowed: it may work in place)."""
+
+    def propagate(self, particles, k, rng, noise=None):
+        particles[:] = super().propagate(particles, k, rng, noise)
+        return particles
+
+
+def copying(step, particles, weights, observation, parents):
+    return Preprocessed(particles + 0.0, weights)
+
+
+@pytest.mark.parametrize("preprocessor", [None, copying], ids=["plain", "preprocessed"])
+@pytest.mark.parametrize("model", [models.get("ungm"), InPlaceGrowth()], ids=["ungm", "in-place"])
+def test_steps_kept_after_the_run_keep_their_own_numbers(model, preprocessor):
+    # The filter reuses the array it gathers the resampled set into; no step it returned may see it change.
+    _, z = models.get("ungm").simulate(15, np.random.default_rng(2))
+    copies = [(s.particles.copy(), s.weights.copy(), s.ancestors.copy())
+              for s in ParticleFilter(model, z, 200, seed=4, preprocessor=preprocessor)]
+    kept = list(ParticleFilter(model, z, 200, seed=4, preprocessor=preprocessor))
+    for (particles, weights, ancestors), step in zip(copies, kept):
+        np.testing.assert_array_equal(step.particles, particles)
+        np.testing.assert_array_equal(step.weights, weights)
+        np.testing.assert_array_equal(step.ancestors, ancestors)

@@ -716,3 +716,16 @@ def test_check_set_trusts_only_float64_arrays_of_the_right_shapes():
         check_set(np.zeros((4, 2)), np.full(3, 1 / 3), checked=True)
     with pytest.raises(ValueError, match="weights must sum to 1"):
         check_set(x, np.ones(3, dtype=np.float32), checked=True)  # float32: checked in full
+
+
+def test_streams_are_the_seed_sequences_generators():
+    # stream() computes SeedSequence's state in a compiled pass: the generator must be numpy's own.
+    from messages import streams
+
+    for seed in (0, 7, 2 ** 32 - 1, 2 ** 32, 2 ** 70 + 3):
+        for twin in ("ungm-1", "", "a-twin-with-a-long-name-" * 3):
+            for step in (0, 1, 99, 2 ** 33 + 1):
+                for layer in streams.LAYERS:
+                    expected = np.random.Generator(np.random.PCG64(streams.seed_sequence(seed, twin, step, layer)))
+                    got = streams.stream(seed, twin, step, layer)
+                    np.testing.assert_array_equal(got.integers(0, 2 ** 63, 4), expected.integers(0, 2 ** 63, 4))

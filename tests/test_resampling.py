@@ -165,3 +165,110 @@ def test_inverse_cdf_picks_the_interval_of_each_point():
     w = np.array([0.1, 0.0, 0.4, 0.5])
     points = np.array([0.0, 0.0999, 0.1, 0.49, 0.5, 0.99999])
     np.testing.assert_array_equal(rs.inverse_cdf(points, w), [0, 0, 2, 2, 3, 3])
+
+
+# --- the same numbers as the plain merge --------------------------------------
+# The compiled kernels write each particle's first copies without a branch. These references are
+# the plain merges they replace ("while the next point is below the running sum, take it"), in
+# Python, with the same floating-point operations: the ancestors must be the same, bit for bit.
+
+def _plain_merge(weights, points_below, m):
+    """Ancestors from ``points_below(k, running sum)``: the plain merge with the tail guard."""
+    ancestors = np.empty(m, dtype=np.int64)
+    cumulative, k = 0.0, 0
+    for j, w in enumerate(weights):
+        cumulative += w
+        while k < m and points_below(k, cumulative):
+            ancestors[k] = j
+            k += 1
+    positive = np.flatnonzero(weights > 0)
+    ancestors[k:] = positive[-1] if positive.size else weights.size - 1
+    return ancestors
+
+
+def reference(scheme, weights, rng):
+    n = weights.size
+    if scheme == "systematic":
+        u = rng.random()
+        return _plain_merge(weights, lambda k, c: k < int(np.ceil(c * n - u)), n)
+    if scheme == "stratified":
+        v = rng.random(n)
+        return _plain_merge(weights, lambda k, c: k + v[k] < c * n, n)
+    if scheme == "multinomial":
+        e = rng.standard_exponential(n + 1)
+        total = 0.0
+        for x in e:
+            total += x
+        points = np.empty(n)
+        point = e[0]
+        for k in range(n):
+            points[k] = point
+            point += e[k + 1]
+        return _plain_merge(weights * total, lambda k, c: points[k] < c, n)
+    raise ValueError(scheme)
+
+
+def merge_cases():
+    """Weights the branch-free writes could get wrong: zeros, ties, integer N w, long runs of copies."""
+    rng = np.random.default_rng(31)
+    for n in (1, 2, 3, 7, 50, 333):
+        yield skewed_weights(n, seed=n) if n > 1 else np.ones(1)
+        yield np.full(n, 1.0 / n)
+        w = rng.integers(0, 4, n).astype(float)  # N C_j lands on integers
+        w[0] += 1.0
+        yield w / w.sum()
+        w = np.exp(3.0 * rng.standard_normal(n))  # a few particles take most points
+        w[rng.random(n) < 0.4] = 0.0
+        w[-1] = 1.0
+        yield w / w.sum()
+
+
+@pytest.mark.parametrize("scheme", ["systematic", "stratified", "multinomial"])
+def test_ancestors_are_those_of_the_plain_merge(scheme):
+    for i, w in enumerate(merge_cases()):
+        for seed in range(5):
+            expected = reference(scheme, w, np.random.default_rng(seed))
+            rng = np.random.default_rng(seed)
+            got = rs.RESAMPLERS[scheme](w, rng)
+            np.testing.assert_array_equal(got, expected, err_msg=f"case {i}, seed {seed}")
+            after = np.random.default_rng(seed)
+            reference(scheme, w, after)
+            assert rng.random() == after.random(), "the scheme draws what the plain merge draws"
+
+
+def test_stratified_points_that_round_up_to_the_running_sum():
+    # Point k is float(k) + v_k: with v_k = 1 - 2**-53 it rounds to k + 1, which is not below a running
+    # sum of exactly k + 1; with v = 0 it sits on N C_j exactly, not below either.
+    from entity import _merge
+
+    n = 8
+    w = np.full(n, 1.0 / n)
+    for v in (np.full(n, 1.0 - 2.0 ** -53), np.zeros(n), np.tile([0.0, 1.0 - 2.0 ** -53], n // 2)):
+        expected = _plain_merge(w, lambda k, c: k + v[k] < c * n, n)
+        np.testing.assert_array_equal(_merge.stratified(w, v, np.empty(n, dtype=np.int64)), expected)
+
+
+@pytest.mark.parametrize("scheme", SCHEMES)
+def test_out_buffer_and_checked_weights_give_the_same_ancestors(scheme):
+    w = skewed_weights(300)
+    expected = rs.RESAMPLERS[scheme](w, np.random.default_rng(8))
+    out = np.full(300, -1, dtype=np.int64)
+    got = rs.RESAMPLERS[scheme](w, np.random.default_rng(8), out=out, checked=True)
+    assert got is out
+    np.testing.assert_array_equal(out, expected)
+
+
+@pytest.mark.parametrize("out", [np.empty(5, dtype=np.int64), np.empty(10), np.empty(20, dtype=np.int64)[::2]])
+def test_an_out_buffer_that_cannot_hold_the_ancestors_is_named(out):
+    with pytest.raises(ValueError, match=r"out must be a writeable C-contiguous int64 array of shape \(10,\)"):
+        rs.systematic(np.full(10, 0.1), np.random.default_rng(0), out=out)
+
+
+def test_checked_weights_of_another_type_are_still_checked():
+    with pytest.raises(ValueError, match="weights must sum to 1"):
+        rs.systematic([0.2, 0.2], np.random.default_rng(0), checked=True)  # a list: scanned in full
+
+
+def test_distinct_counts_the_parents():
+    assert rs.distinct(np.array([0, 0, 2, 3, 3, 3, 9])) == 4
+    assert rs.distinct(np.array([5])) == 1

@@ -19,8 +19,12 @@ def dtpf(*args: str, timeout: float = 120) -> subprocess.CompletedProcess:
 @pytest.fixture(scope="module")
 def small_log(tmp_path_factory):
     path = tmp_path_factory.mktemp("habits") / "run.mcap"
-    result = launch(RunConfig(particles=100, steps=10, twin="t-habits"), log_path=path, notify=lambda text: None)
+    # The lockstep timeout of the other launch tests: under a loaded suite a 2 s wait was once too short, a
+    # step went on degraded and the log's RMSE was not the in-process run's.
+    result = launch(RunConfig(particles=100, steps=10, twin="t-habits"), log_path=path, timeout=5.0,
+                    notify=lambda text: None)
     assert result.exit_codes["entity"] == 0
+    assert not any(e.degraded for e in result.estimates)
     return path
 
 

@@ -135,7 +135,9 @@ def _launch_fleet(config, args: argparse.Namespace) -> int:
         result = launch_fleet(config, args.twins, log_path=args.log, port=args.port, timeout=args.timeout,
                               startup_timeout=args.startup_timeout, log_level=args.log_level, rate=args.rate,
                               progress=None if args.quiet else ProgressBar(), cloud_points=args.cloud_points,
-                              secure=args.secure, entities=args.entities)
+                              secure=args.secure, entities=args.entities,
+                              restarts=0 if args.no_restart else args.restarts,
+                              notify=lambda text: print(f"\ndtpf launch: {text}", file=sys.stderr, flush=True))
     except (LaunchError, ValueError) as error:
         print(f"dtpf launch: error: {error}", file=sys.stderr)
         return 1

@@ -22,7 +22,7 @@ from messages.bus import Inbox, Presence
 from messages.codec import MessageError, decode_for_key
 from messages.config import RunConfig
 from messages.models import Estimate, Layer, Status
-from scripts.launch import (EstimateTally, LaunchError, _describe_code, _stop, _wait_for_recorder,
+from scripts.launch import (DEFAULT_RESTARTS, EstimateTally, LaunchError, _describe_code, _stop, _wait_for_recorder,
                             default_log_path, open_router, rejected_by_layer, service_command)
 
 __all__ = ["launch_fleet", "FleetResult", "twin_configs", "entity_groups"]
@@ -65,6 +65,8 @@ class FleetResult:
     statuses: dict[tuple[int, str], Status] = field(default_factory=dict)
     exit_codes: dict[str, int | None] = field(default_factory=dict)
     failures: dict[str, str] = field(default_factory=dict)
+    #: What the launcher did when a shared service died, in words.
+    restarts: list[str] = field(default_factory=list)
     elapsed: float = 0.0
     #: Seconds from the first estimate to the last (the fleet's steady throughput window).
     stepping: float = 0.0
@@ -96,6 +98,7 @@ class FleetResult:
             f"{' (interrupted)' if self.interrupted else ''}",
             f"degraded steps  {sum(t.degraded for t in self.tallies.values())}",
             "rejected        " + (", ".join(f"{k} {v}" for k, v in sorted(self.rejected.items())) or "-"),
+            *(["restarts        " + "; ".join(self.restarts)] if self.restarts else []),
             f"throughput      {rate:.0f} twin-steps/s (first estimate to last)",
             f"time            {self.elapsed:.2f} s",
             f"log             {self.log_path}",
@@ -107,11 +110,13 @@ def launch_fleet(config: RunConfig, count: int, *, log_path: Path | None = None,
                  timeout: float = 2.0, startup_timeout: float = 20.0, log_level: str = "WARNING",
                  rate: float | None = None, progress=None, child_output=None, cloud_points: int | None = None,
                  secure=None, notify=None, entities: int | None = None,
-                 keep_estimates: bool = False) -> FleetResult:
+                 keep_estimates: bool = False, restarts: int = DEFAULT_RESTARTS) -> FleetResult:
     """Run ``count`` twins of ``config`` around an embedded Zenoh router (see the module's text).
 
     ``entities``: how many entity processes host the twins (default: one per CPU, at most one per twin).
     ``keep_estimates``: keep every twin's estimates (in ``tallies[twin].estimates``).
+    ``restarts``: how many times a dead shared information or system service is started again (the
+    twins run on with plain resampling meanwhile); a dead recorder ends the fleet with LaunchError.
     """
     twins = twin_configs(config, count)
     if config.live:
@@ -149,6 +154,7 @@ def launch_fleet(config: RunConfig, count: int, *, log_path: Path | None = None,
         per_step = timeout + (1.0 / rate if rate else 0.0)
         deadline = time.monotonic() + startup_timeout * max(1.0, count / 10) + per_step * (config.steps or 0) + 60.0
         entity_names = [f"entity-{index}" for index in range(1, len(groups) + 1)]
+        restarted = {"information": 0, "system": 0}
         while True:
             item = watch.get(timeout=0.1)
             taken = 0
@@ -164,9 +170,20 @@ def launch_fleet(config: RunConfig, count: int, *, log_path: Path | None = None,
             if all(children[name].poll() is not None for name in entity_names):
                 break
             for layer in ("recorder", "information", "system"):
-                if children[layer].poll() is not None:
-                    raise LaunchError(f"the shared {layer} service died "
-                                      f"({_describe_code(children[layer].returncode)})")
+                if children[layer].poll() is None:
+                    continue
+                code = children[layer].returncode
+                if layer == "recorder" or code == 2 or restarted[layer] >= restarts:
+                    raise LaunchError(f"the shared {layer} service died ({_describe_code(code)})"
+                                      + ("" if layer == "recorder" or code == 2 else "; no restarts left"))
+                # The twins run on with plain resampling meanwhile; the new service learns them from their
+                # entities' next statuses and serves them from the step they are at.
+                restarted[layer] += 1
+                result.restarts.append(f"the shared {layer} service died ({_describe_code(code)}) after "
+                                       f"{result.twin_steps} twin-steps; started again")
+                if notify is not None:
+                    notify(result.restarts[-1])
+                start_child(layer, layer, config, "--twins", f"{config.twin}-*")
             if time.monotonic() > deadline:
                 raise LaunchError("the fleet did not finish in time")
         for name, group in zip(entity_names, groups):

@@ -268,3 +268,42 @@ def test_a_flooded_twin_is_counted_against_itself_and_slows_no_other(processes, 
             last[m.twin_id, m.layer.value] = m
     assert last["z-flood", "information"].rejected > 0 and last["z-flood", "system"].rejected > 0
     assert all(last[c.twin, layer].rejected == 0 for c in calm for layer in ("information", "system"))
+
+
+def test_a_fleet_launch_restarts_a_killed_shared_service_and_every_twin_finishes(tmp_path):
+    import os
+    import threading
+
+    from scripts.fleet import launch_fleet
+
+    config = RunConfig(particles=200, steps=150, seed=8, twin="fr")
+    said: list[str] = []
+    killed: dict = {}
+    outcome: dict = {}
+
+    stepping = threading.Event()
+
+    def run():
+        outcome["result"] = launch_fleet(config, 3, log_path=tmp_path / "fleet.mcap", timeout=1.0, rate=40.0,
+                                         notify=said.append, progress=lambda done, total: done >= 60 and stepping.set())
+
+    launcher = threading.Thread(target=run)
+    launcher.start()
+    assert stepping.wait(timeout=90)  # 60 twin-steps in: kill the shared information service
+    for pid in os.listdir("/proc"):
+        try:
+            command = open(f"/proc/{pid}/cmdline", "rb").read()
+        except OSError:
+            continue
+        if b"information.service" in command and b"fr-*" in command and b"--twins" in command:
+            os.kill(int(pid), signal.SIGKILL)
+            killed["pid"] = int(pid)
+            break
+    launcher.join(timeout=120)
+    result = outcome["result"]
+    assert killed and not result.failures
+    assert result.twin_steps == 3 * 150  # every twin, every step
+    assert said and "the shared information service died (killed by SIGKILL)" in said[0]
+    assert "started again" in result.summary()
+    degraded = sum(t.degraded for t in result.tallies.values())
+    assert 0 < degraded < 3 * 150  # plain resampling while it was gone, preprocessing again after

@@ -37,7 +37,7 @@ from messages.config import RunConfig, RunInputError
 from messages.models import ServiceState, Status
 from messages.service import EXIT_GRACE, ExitWatchdog, ServiceShell, Tally, release_memory
 
-__all__ = ["serve_layer", "serve_one", "serve_fleet", "host_twins", "add_fleet_arguments", "ConfigWatch", "Learned", "FleetStats"]
+__all__ = ["serve_layer", "serve_one", "serve_fleet", "host_twins", "add_fleet_arguments", "ConfigWatch", "Learned"]
 
 #: Longest wait between two looks at the twins when nothing arrives.
 _IDLE = 0.2
@@ -149,18 +149,6 @@ class ConfigWatch:
         self.inbox.close()
 
 
-@dataclass
-class FleetStats:
-    """What a fleet service did: twins served and dropped, and why."""
-
-    served: int = 0
-    dropped: dict[str, int] | None = None
-
-    def drop(self, why: str) -> None:
-        self.dropped = self.dropped or {}
-        self.dropped[why] = self.dropped.get(why, 0) + 1
-
-
 class _Served:
     """One twin a fleet serves: its shell and its layer's work."""
 
@@ -168,17 +156,17 @@ class _Served:
         self.shell = shell
         self.work = work
         self.run_id = run_id
-        self.deadline: float | None = None
         self.entity_seen = False
 
 
 def serve_fleet(layer: str, pattern: str, zenoh_config, make_work, *, allow_models=(), forget_after: float = 30.0,
-                log: logging.Logger | None = None, on_change=None) -> FleetStats:
+                log: logging.Logger | None = None) -> None:
     """Serve every twin whose entity appears under ``pattern`` until SIGINT/SIGTERM.
 
     ``make_work(shell, config)`` builds the layer's work for a twin (it may
     raise ValueError or RunInputError: the twin is then refused and counted).
-    ``on_change(served)`` is told the set of twins served whenever it changes.
+    A twin whose work waits (its ``poll`` returned a deadline) is looked at again at the next sweep, a few
+    times a second, fine-grained enough for lockstep timeouts of seconds.
     """
     log = log or logging.getLogger(f"dtpf.{layer}")
     stop = threading.Event()
@@ -192,7 +180,6 @@ def serve_fleet(layer: str, pattern: str, zenoh_config, make_work, *, allow_mode
     watchdog = ExitWatchdog(log, grace=EXIT_GRACE)
     watchdog.install()
     doorbell = Doorbell()
-    stats = FleetStats()
     refusals = Tally()
 
     def refuse(reason: str, detail: str | None = None) -> None:
@@ -210,11 +197,8 @@ def serve_fleet(layer: str, pattern: str, zenoh_config, make_work, *, allow_mode
         entry = served.pop(twin)
         entry.shell.__exit__(None, None, None)
         watch.forget(twin)
-        stats.drop(why)
         trim["due"] = True  # the twin's buffers go back to the system at the next sweep
         log.info("twin %s: %s; its state is freed (%d twins served)", twin, why, len(served))
-        if on_change is not None:
-            on_change(set(served))
 
     def serve(config: RunConfig) -> None:
         if config.model is not None and config.model not in allow_models:
@@ -232,10 +216,7 @@ def serve_fleet(layer: str, pattern: str, zenoh_config, make_work, *, allow_mode
             return
         shell.running()
         served[config.twin] = _Served(shell, work, config.run_id)
-        stats.served += 1
         log.info("twin %s: serving run %s (%d twins served)", config.twin, config.run_id, len(served))
-        if on_change is not None:
-            on_change(set(served))
 
     try:
         rung: set[str] = set()
@@ -272,18 +253,14 @@ def serve_fleet(layer: str, pattern: str, zenoh_config, make_work, *, allow_mode
             for twin in rung:
                 entry = served.get(twin)
                 if entry is not None:
-                    entry.deadline = entry.work.poll(now)
-            deadlines = [entry.deadline for entry in served.values() if entry.deadline is not None] \
-                if len(served) < 64 else []
-            next_deadline = min(deadlines, default=None)
-            rung = doorbell.wait(_wait_time(next_deadline, time.monotonic()))
+                    entry.work.poll(now)
+            rung = doorbell.wait(_IDLE)
     finally:
         watchdog.arm(code=0)
         for twin in list(served):
             drop(twin, "the service stops")
         watch.close()
         session.close()
-    return stats
 
 
 def host_twins(layer: str, configs: list[RunConfig], zenoh_config, run) -> int:
@@ -326,7 +303,7 @@ def host_twins(layer: str, configs: list[RunConfig], zenoh_config, run) -> int:
         for shell, thread in zip(shells, threads):
             if thread.is_alive():
                 shell.tick(now)
-        threads[0].join(timeout=_IDLE) if threads[0].is_alive() else time.sleep(_IDLE)
+        time.sleep(_IDLE)
     code = max((c if isinstance(c, int) else 1 for c in codes.values()), default=1)
     watchdog.arm(code=code)
     session.close()

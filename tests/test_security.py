@@ -232,7 +232,7 @@ def test_a_secured_launch_gives_the_plain_numbers_and_a_log_that_verifies(tmp_pa
     recorded = (tmp_path / "secured.mcap").read_bytes()
     secrets = [line for path in (folder / "tls" / "keys").iterdir()
                for line in path.read_text().splitlines() if "PRIVATE KEY" not in line]
-    secrets += [line.split(":", 1)[1].encode().decode() for line in
+    secrets += [line.split(":", 1)[1] for line in
                 (folder / "usrpwd" / "passwords.txt").read_text().splitlines()]
     assert len(secrets) >= 7 and not [secret for secret in secrets if secret.encode() in recorded]
     secured, clean = (Counter(m.topic for m in each.messages) for each in (log, plain))

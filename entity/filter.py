@@ -21,7 +21,10 @@ One step k (DESIGN.md, "One filter step"):
    resampling goes on;
 4. estimate from the weighted set about to be resampled: posterior mean,
    variance and a 95% interval (mean +- 1.96 sd, per dimension);
-5. resample with the configured traditional scheme; weights become uniform.
+5. resample with the configured traditional scheme; weights become uniform;
+6. with a ``jitter`` (not the paper's; :mod:`entity.jitter`), move every
+   resampled particle by roughening or the regularised filter's kernel, with
+   numbers from ``stream(seed, twin, k, "jitter")``.
 
 Random numbers of step k come from ``stream(seed, twin, k, "entity")``:
 propagation first, then resampling. The propagation noise of step k + 1
@@ -38,6 +41,7 @@ from typing import Protocol
 
 import numpy as np
 
+from entity import jitter as jitters
 from entity import resampling
 from entity.models import StateSpaceModel
 from messages.arrays import check_particles, check_set
@@ -221,6 +225,9 @@ class ParticleFilter:
         Twin id, part of the random streams' key.
     preprocessor : Preprocessor, optional
         Runs before each resampling (the digital twin); None: plain resampling.
+    jitter : str
+        A move after each resampling (:data:`entity.jitter.JITTERS`): "none"
+        (default, the paper), "roughening" or "regularised".
     innovation : bool
         Also compute each step's normalised innovation (where the model gives
         ``observation_moments``): one more pass over the particles, so off by
@@ -234,7 +241,9 @@ class ParticleFilter:
     def __init__(self, model: StateSpaceModel, observations, n_particles: int, *,
                  resampler: str = "systematic", resample_below: float | None = None,
                  seed: int = 0, twin: str = "twin", preprocessor: Preprocessor | None = None,
-                 innovation: bool = False):
+                 innovation: bool = False, jitter: str = "none"):
+        if jitter not in jitters.JITTERS:
+            raise ValueError(f"unknown jitter {jitter!r}; expected one of {', '.join(jitters.JITTERS)}")
         if observations is None:
             z = np.empty((0, model.obs_dim))
         else:
@@ -259,6 +268,7 @@ class ParticleFilter:
         self.twin = twin
         self.preprocessor = preprocessor
         self.innovation = bool(innovation)
+        self.jitter = jitter
         self.live = observations is None
         self.k = 0
         #: log sum_i exp(log_weights_i) of the carried log-weights (log N after a resampling).
@@ -436,6 +446,9 @@ class ParticleFilter:
         if due:
             ancestors = self._ancestors(k, target_weights, rng)
             self.particles = self._gather(target_particles, ancestors)
+            if self.jitter != "none":
+                self.particles = jitters.apply(self.jitter, self.particles, target_particles, target_weights,
+                                               stream(self.seed, self.twin, k, "jitter"))
             self.log_weights.fill(0.0)
             self._log_total = float(np.log(self.n))
             self.parents = resampling.distinct(ancestors)

@@ -25,7 +25,7 @@ import numpy as np
 
 from entity.base import StateSpaceModel
 
-__all__ = ["StateSpaceModel", "GrowthModel", "MODELS", "get"]
+__all__ = ["StateSpaceModel", "GrowthModel", "DriftModel", "MODELS", "get"]
 
 
 @dataclass(frozen=True)
@@ -113,14 +113,20 @@ def _video_model() -> StateSpaceModel:
     return VideoTrackingModel()
 
 
+def _drift_model() -> StateSpaceModel:
+    return DriftModel()  # defined below the registry
+
+
 #: Registered models by name. ``ungm`` is the standard benchmark (25),
 #: ``ungm-printed`` the form printed in the paper's Eq. 35 (0.25), ``video``
-#: the tracking scenario of section 5 (:mod:`entity.tracking`). A value may be
+#: the tracking scenario of section 5 (:mod:`entity.tracking`), ``drift`` a slowly drifting constant
+#: where particles impoverish (:class:`DriftModel`, not in the paper). A value may be
 #: a zero-argument factory, built once by :func:`get`.
 MODELS: dict[str, StateSpaceModel] = {
     "ungm": GrowthModel(name="ungm", growth=25.0),
     "ungm-printed": GrowthModel(name="ungm-printed", growth=0.25),
     "video": _video_model,
+    "drift": _drift_model,
 }
 
 
@@ -133,3 +139,79 @@ def get(name: str) -> StateSpaceModel:
     if not isinstance(model, StateSpaceModel):
         model = MODELS[name] = model()
     return model
+
+
+@dataclass(frozen=True)
+class DriftModel(StateSpaceModel):
+    """An unknown, slowly drifting constant learned online: a scenario where particles impoverish.
+
+    x_k = x_(k-1) + u_k,   z_k = x_k + v_k,   u ~ N(0, process_var), v ~ N(0, observation_var),
+    x_1 ~ N(prior_mean, prior_var), each of the ``dim`` components independent.
+
+    The defaults: drift sd 0.001 per step, observation sd 0.01, prior sd 1.
+    The process noise is tiny against the prior and the observations are
+    precise, so after a few steps the posterior is far narrower than the
+    initial cloud: resampling leaves a few distinct values, and the process
+    noise is too small to spread them again (Gordon, Salmond and Smith 1993
+    introduced roughening for this case). The model is linear and Gaussian,
+    so :meth:`kalman` gives the exact posterior mean to measure a filter
+    against.
+    """
+
+    name: str = "drift"
+    process_var: float = 1e-6
+    observation_var: float = 1e-4
+    prior_mean: float = 0.0
+    prior_var: float = 1.0
+    dim: int = 1
+    obs_dim: int = 1
+
+    def __post_init__(self):
+        object.__setattr__(self, "obs_dim", self.dim)
+
+    def initial_particles(self, n, rng):
+        return self.prior_mean + math.sqrt(self.prior_var) * rng.standard_normal((n, self.dim))
+
+    def propagation_noise(self, n, k, rng):
+        return rng.standard_normal((n, self.dim))
+
+    def propagate(self, particles, k, rng, noise=None):
+        if noise is None:
+            noise = self.propagation_noise(particles.shape[0], k, rng)
+        return particles + math.sqrt(self.process_var) * noise
+
+    def log_likelihood(self, particles, observation, k):
+        z = np.asarray(observation, dtype=np.float64).reshape(-1)
+        residual = particles - z
+        return (-0.5 * np.sum(residual * residual, axis=1) / self.observation_var
+                - 0.5 * self.dim * math.log(2.0 * math.pi * self.observation_var))
+
+    def observation_moments(self, particles, k):
+        return particles, np.full(self.dim, self.observation_var)
+
+    def sample_observation(self, states, k, rng):
+        return states + math.sqrt(self.observation_var) * rng.standard_normal(states.shape)
+
+    def simulate(self, steps, rng):
+        if steps < 1:
+            raise ValueError(f"steps must be at least 1, got {steps}")
+        x = np.empty((steps, self.dim))
+        x[0] = self.prior_mean + math.sqrt(self.prior_var) * rng.standard_normal(self.dim)
+        for k in range(1, steps):
+            x[k] = x[k - 1] + math.sqrt(self.process_var) * rng.standard_normal(self.dim)
+        z = x + math.sqrt(self.observation_var) * rng.standard_normal((steps, self.dim))
+        return x, z
+
+    def kalman(self, observations) -> np.ndarray:
+        """(T, d) exact posterior means E[x_k | z_1..z_k] (the Kalman filter; the optimum of any filter)."""
+        z = np.asarray(observations, dtype=np.float64).reshape(len(observations), self.dim)
+        means = np.empty_like(z)
+        mean, var = np.full(self.dim, self.prior_mean), self.prior_var
+        for k in range(z.shape[0]):
+            if k:
+                var = var + self.process_var
+            gain = var / (var + self.observation_var)
+            mean = mean + gain * (z[k] - mean)
+            var = (1.0 - gain) * var
+            means[k] = mean
+        return means

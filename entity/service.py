@@ -147,7 +147,8 @@ def run_twin(shell: ServiceShell, config: RunConfig, model, data, args: argparse
     # Without truth the filter is judged by how it predicts its data: the innovation too.
     pf = ParticleFilter(model, None if data is None else data.observations, config.particles,
                         resampler=config.resampler, resample_below=config.resample_below, seed=config.seed,
-                        twin=config.twin, preprocessor=twin, innovation=data is None or data.truth is None)
+                        twin=config.twin, preprocessor=twin, innovation=data is None or data.truth is None,
+                        jitter=config.jitter)
     if twin is not None:
         twin.while_waiting = pf.work_ahead
     pf.warm_up()

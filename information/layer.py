@@ -7,7 +7,11 @@ drive this object, so both compute the same numbers::
 
     layer = InformationLayer(model, ps=0.81, seed=7, twin="ungm-1")
     out = layer.process(step, particles, weights, observation)
-    layer.set_ps(decision.ps, decision.applies_from_step)
+    layer.set_ps(decision.ps, decision.applies_from_step, decision.preprocess)
+
+The system layer may turn the preprocessing off for a step (its decision's
+``preprocess`` is False): the entity's set then goes back as it came, and the
+entity resamples it plainly.
 """
 from __future__ import annotations
 
@@ -46,22 +50,31 @@ class InformationLayer:
         Gives the observation likelihood for the ``"likelihood"`` weight rule.
     ps : float
         PS in force until the system layer says otherwise.
-    threshold_rule, weight_rule :
+    threshold_rule, weight_rule, move_rule :
         Options of :func:`information.rules.preprocess`.
     seed, twin :
         Key of the random streams: step k draws from
         ``stream(seed, twin, k, "information")``.
+    preprocess : bool
+        Whether the preprocessing runs before the system layer's first
+        decision (False for a policy that starts off, the guard).
     """
 
     def __init__(self, model: StateSpaceModel, *, ps: float, threshold_rule: str | float = "neff",
-                 weight_rule: str = "inherit", seed: int = 0, twin: str = "twin"):
+                 weight_rule: str = "inherit", seed: int = 0, twin: str = "twin", move_rule: str = "paper",
+                 preprocess: bool = True):
         self.model = model
         self.ps = check_probability(ps, "PS")
-        self.pending: list[tuple[int, float]] = []
+        #: Whether the preprocessing runs (the system layer's latest decision in force).
+        self.enabled = bool(preprocess)
+        self.pending: list[tuple[int, float, bool]] = []
         self.threshold_rule = threshold_rule
         if weight_rule not in rules.WEIGHT_RULES:
             raise ValueError(f"unknown weight rule {weight_rule!r}; expected one of {', '.join(rules.WEIGHT_RULES)}")
         self.weight_rule = weight_rule
+        if move_rule not in rules.MOVE_RULES:
+            raise ValueError(f"unknown move rule {move_rule!r}; expected one of {', '.join(rules.MOVE_RULES)}")
+        self.move_rule = move_rule
         self.seed = seed
         self.twin = twin
         self._ahead: tuple[int, np.random.Generator] | None = None
@@ -79,8 +92,9 @@ class InformationLayer:
         summarise(particles, weights, self.threshold_rule, None)
         stream(self.seed, self.twin, 0, "information")  # the compiled SeedSequence (messages._seedseq)
 
-    def set_ps(self, ps: float, applies_from_step: int) -> None:
-        """Schedule a new PS from the system layer, in force from ``applies_from_step``.
+    def set_ps(self, ps: float, applies_from_step: int, preprocess: bool = True) -> None:
+        """Schedule a new PS from the system layer, in force from ``applies_from_step``;
+        ``preprocess=False`` turns the preprocessing off from that step (until a later command turns it on).
 
         A later command for the same step replaces the earlier one; at most
         MAX_PENDING steps wait (the farthest is dropped), so a flood of commands
@@ -88,14 +102,14 @@ class InformationLayer:
         """
         step, ps = int(applies_from_step), check_probability(ps, "PS")
         self.pending = [item for item in self.pending if item[0] != step]
-        self.pending.append((step, ps))
+        self.pending.append((step, ps, bool(preprocess)))
         self.pending.sort(key=lambda item: item[0])
         del self.pending[MAX_PENDING:]
 
     def ps_for(self, step: int) -> float:
         """The PS in force at ``step``: the latest scheduled one that applies by then."""
         while self.pending and self.pending[0][0] <= step:
-            self.ps = self.pending.pop(0)[1]
+            _, self.ps, self.enabled = self.pending.pop(0)
         return self.ps
 
     def prepare(self, step: int) -> None:
@@ -122,6 +136,9 @@ class InformationLayer:
         :func:`information.rules.preprocess`.
         """
         ps = self.ps_for(step)
+        if not self.enabled:
+            self._ahead = None  # a stream made ahead for this step is not used
+            return rules.unprocessed(particles, weights, ps, threshold_rule=self.threshold_rule, checked=checked)
         z = np.asarray(observation, dtype=np.float64)
         log_likelihood = None
         if self.weight_rule == "likelihood":
@@ -129,7 +146,7 @@ class InformationLayer:
                 return self.model.log_likelihood(x, z, step)
         return rules.preprocess(particles, weights, ps, self._stream(step),
                                 threshold_rule=self.threshold_rule, weight_rule=self.weight_rule,
-                                log_likelihood=log_likelihood, checked=checked)
+                                log_likelihood=log_likelihood, checked=checked, move_rule=self.move_rule)
 
     def mirror(self, particles, weights, parents: int | None = None,
                threshold: float | None = None, *, checked: bool = False) -> WeightSummary:

@@ -24,6 +24,23 @@ moved towards particles with large weights::
    d-dimensional state applies the rule to the whole particle vector with
    one (x_m, r, u) per particle.
 
+The move of step 2-3 is the paper's (``move_rule="paper"``, the default of
+the paper's experiments). It moves a particle by up to its own coordinates,
+so its result depends on where the origin of the state space is. dtpf also
+offers a rule that is not the paper's, named so nobody confuses the two:
+
+- ``move_rule="relative"``: the same partner, r, u and factor
+  f = (2 r - 1) (r if u <= PS else 1) of Eq. 33-34, applied to the
+  *difference* to the partner, capped per component at the weighted spread
+  sigma of the set (the weighted standard deviation of each component)::
+
+      x_tilde = x_m + f c (x_l - x_m),   c = min(1, sigma / |x_l - x_m|)
+
+  so |x_tilde - x_m| <= min(|x_l - x_m|, sigma) component-wise: a small
+  particle lands near its partner, at most one spread away, whatever the
+  origin. Translating every particle translates the result; scaling a
+  component scales it.
+
 Interpretations the paper leaves open (see DESIGN.md), each an option:
 
 - ``threshold``: ``"neff"`` (default; the paper: "W is usually selected as
@@ -50,6 +67,9 @@ from messages.arrays import check_probability, check_set
 __all__ = [
     "THRESHOLD_RULES",
     "WEIGHT_RULES",
+    "MOVE_RULES",
+    "apply_relative",
+    "spread",
     "PreprocessReport",
     "PreprocessResult",
     "threshold",
@@ -57,10 +77,13 @@ __all__ = [
     "kth_largest",
     "draws",
     "preprocess",
+    "unprocessed",
 ]
 
 THRESHOLD_RULES = ("neff", "inverse-n")
 WEIGHT_RULES = ("inherit", "likelihood")
+#: How a small particle is moved: the paper's Eq. 29-30, or the translation-invariant rule (module docstring).
+MOVE_RULES = ("paper", "relative")
 
 LogLikelihood = Callable[[np.ndarray], np.ndarray]
 
@@ -274,6 +297,42 @@ def apply_rules(x_m: np.ndarray, x_l: np.ndarray, r: np.ndarray, u: np.ndarray, 
     return x_m + factors[:, None] * x_l
 
 
+def spread(particles: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """(d,) weighted standard deviation of each component of the set (sigma of the relative rule)."""
+    mean = weights @ particles
+    centred = particles - mean
+    return np.sqrt(np.maximum(weights @ (centred * centred), 0.0))
+
+
+def apply_relative(x_m: np.ndarray, x_l: np.ndarray, r: np.ndarray, u: np.ndarray, ps: float,
+                   sigma: np.ndarray) -> np.ndarray:
+    """The relative rule for given random numbers: x_m + f c (x_l - x_m), c = min(1, sigma / |x_l - x_m|).
+
+    f is the factor of Eq. 33-34 (the paper's, from r, u and PS); ``sigma``
+    is the (d,) weighted spread of the set (:func:`spread`). Translation
+    invariant: it reads positions only through x_l - x_m.
+    """
+    factors = _factors(np.asarray(r, dtype=np.float64), np.asarray(u, dtype=np.float64), float(ps))
+    diff = x_l - x_m
+    size = np.abs(diff)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        cap = np.where(size > sigma, sigma / size, 1.0)
+    return x_m + factors[:, None] * cap * diff
+
+
+def _move_relative(x: np.ndarray, w: np.ndarray, limit: float, ps: float, rng: np.random.Generator):
+    """(new particles or None, W, M, N - M, mixed) of the relative rule: the same split and draws as
+    the paper's rule (:func:`draws`, after the seed words of :func:`_seed`)."""
+    small = np.flatnonzero(w <= limit)
+    large = np.flatnonzero(w > limit)
+    if large.size == 0 or small.size == 0:
+        return None, float(limit), int(large.size), 0, 0
+    partners, r, u = draws(rng, small.size, large.size)
+    out = x.copy()
+    out[small] = apply_relative(x[large[partners]], x[small], r, u, ps, spread(x, w))
+    return out, float(limit), int(large.size), int(small.size), int(np.count_nonzero(u <= ps))
+
+
 #: Below this many particles :func:`preprocess` makes one compiled call (numba's np.partition selects W);
 #: from it on, numpy's partition or the radix select (information.select) is faster than that.
 SMALL_SET = 1 << 12
@@ -296,6 +355,22 @@ def _preprocess_small(x, w, threshold_rule, ps, rng):
     return out, float(limit), int(n_large), int(n_small), int(n_mixed)
 
 
+def unprocessed(particles, weights, ps: float, *, threshold_rule: str | float = "neff",
+                checked: bool = False) -> PreprocessResult:
+    """The set as it is, when the system layer has turned preprocessing off for a step.
+
+    The report gives W and M as :func:`preprocess` would (the mirror reads W)
+    and no processed particle; particles and weights are read-only views of
+    the inputs, so the entity resamples exactly the set it sent.
+    """
+    x, w = check_set(particles, weights, checked=checked)
+    ps = check_probability(ps, "PS")
+    limit, _ = _threshold(w, threshold_rule)
+    x, w = x.view(), w.view()
+    x.flags.writeable = w.flags.writeable = False
+    return PreprocessResult(x, w, PreprocessReport(float(limit), int(np.count_nonzero(w > limit)), 0, 0, 0, ps))
+
+
 def preprocess(
     particles,
     weights,
@@ -306,6 +381,7 @@ def preprocess(
     weight_rule: Literal["inherit", "likelihood"] = "inherit",
     log_likelihood: LogLikelihood | None = None,
     checked: bool = False,
+    move_rule: str = "paper",
 ) -> PreprocessResult:
     """Move small-weight particles towards large-weight ones (Eq. 28-30).
 
@@ -329,6 +405,9 @@ def preprocess(
         The arrays passed :func:`~messages.arrays.check_weights` and
         :func:`~messages.arrays.check_particles` already (a decoded message):
         only their dtype, rank and lengths are checked again.
+    move_rule : "paper" or "relative"
+        Eq. 29-30 as printed (default), or the translation-invariant rule
+        of the module docstring; both use the same split and random numbers.
 
     Returns
     -------
@@ -342,8 +421,13 @@ def preprocess(
         raise ValueError(f"unknown weight rule {weight_rule!r}; expected one of {', '.join(WEIGHT_RULES)}")
     if weight_rule == "likelihood" and log_likelihood is None:
         raise ValueError("weight rule 'likelihood' needs the observation's log_likelihood")
+    if move_rule not in MOVE_RULES:
+        raise ValueError(f"unknown move rule {move_rule!r}; expected one of {', '.join(MOVE_RULES)}")
 
-    if w.size < SMALL_SET and type(rng.bit_generator) is np.random.PCG64:
+    if move_rule == "relative":
+        limit, _ = _threshold(w, threshold_rule)
+        new_particles, limit, n_large, n_small, n_mixed = _move_relative(x, w, limit, ps, rng)
+    elif w.size < SMALL_SET and type(rng.bit_generator) is np.random.PCG64:
         new_particles, limit, n_large, n_small, n_mixed = _preprocess_small(x, w, threshold_rule, ps, rng)
     else:
         limit, capacity = _threshold(w, threshold_rule)

@@ -19,6 +19,7 @@ import zenoh
 from entity import sources
 from information.layer import InformationLayer
 from messages.admission import RunShape
+from messages import names
 from messages.bus import add_zenoh_arguments
 from messages.fleet import add_fleet_arguments, serve_layer
 from messages.config import RunConfig, add_run_arguments
@@ -43,7 +44,7 @@ class PSInbox:
         while (item := self.inbox.get(timeout=0)) is not None:
             command = self.shell.receive(item, PSCommand)
             if command is not None:
-                self.layer.set_ps(command.ps, command.applies_from_step)
+                self.layer.set_ps(command.ps, command.applies_from_step, command.preprocess)
                 self.latest_step = max(self.latest_step, command.step)
                 got = True
         return got
@@ -61,7 +62,9 @@ class TwinInformation:
         self.shell = shell
         self.timeout = timeout
         self.layer = InformationLayer(model, ps=config.ps, threshold_rule=config.threshold,
-                                      weight_rule=config.weight_rule, seed=config.seed, twin=config.twin)
+                                      weight_rule=config.weight_rule, seed=config.seed, twin=config.twin,
+                                      move_rule=config.move_rule,
+                                      preprocess=config.policy not in names.POLICIES_STARTING_OFF)
         shell.expect(RunShape.of(config, model))
         self.particle_sets = shell.inbox("entity", "particles")
         self.commands = PSInbox(shell, self.layer)

@@ -35,7 +35,8 @@ class RunConfig(BaseModel):
 
     scenario: str = Field("ungm", description="State-space model by name: 'ungm' (Eq. 35 with 25, the "
                                                 "standard benchmark), 'ungm-printed' (Eq. 35 as printed, "
-                                                "0.25), 'video', or a name an installed package registers "
+                                                "0.25), 'video', 'drift' (a slowly drifting constant), or a "
+                                                "name an installed package registers "
                                                 "in the entry-point group 'dtpf.models'.")
     model: str | None = Field(None, max_length=4096, description="The user's own model instead of a scenario: "
                               "'package.module:NAME' or 'path/to/file.py:NAME' (a StateSpaceModel instance, "
@@ -58,6 +59,14 @@ class RunConfig(BaseModel):
                                    "largest weight), 'inverse-n' (1/N) or a number.")
     weight_rule: Literal[names.WEIGHT_RULES] = Field("inherit", description="Weights of processed "
                                                           "particles: keep them, or re-evaluate the likelihood.")
+    move_rule: Literal[names.MOVE_RULES] = Field("paper", description="How small particles are moved: "
+                                                 "'paper' (Eq. 29-30 as printed) or 'relative' (a fraction of "
+                                                 "x_l - x_m, at most the set's weighted spread: translation "
+                                                 "invariant; not the paper's).")
+    jitter: Literal[names.JITTERS] = Field("none", description="After resampling, the entity moves each "
+                                           "particle by: 'none' (the paper), 'roughening' (Gordon, Salmond and "
+                                           "Smith 1993) or 'regularised' (the kernel of the regularised particle "
+                                           "filter, Musso, Oudjane and Le Gland 2001).")
     policy: str = Field("fixed", description="PS policy of the system layer.")
     ps: float = Field(0.81, ge=0.0, le=1.0, description="PS of the fixed policy, and the initial PS.")
     ps_rate: float = Field(0.25, gt=0.0, le=1.0, description="Largest change of PS per step that the "
@@ -180,7 +189,8 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     group = parser.add_argument_group("scenario and filter")
     group.add_argument("--scenario", default=None, choices=names.scenario_names(),
                        help="state-space model by name: 'ungm' is Eq. 35 with 25 (the standard benchmark), "
-                            "'ungm-printed' Eq. 35 as printed with 0.25, 'video' the tracking scenario; "
+                            "'ungm-printed' Eq. 35 as printed with 0.25, 'video' the tracking scenario, 'drift' a slowly drifting "
+                            "constant seen precisely (where particles impoverish); "
                             "installed packages add names through the entry-point group 'dtpf.models' "
                             f"(default: {defaults.scenario})")
     group.add_argument("--model", default=None, metavar="REF",
@@ -198,6 +208,10 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
                             f"of an observation file; live: until the sensor ends its stream)")
     group.add_argument("--resampler", default=None, choices=sorted(names.RESAMPLERS),
                        help=f"traditional resampling run after preprocessing (default: {defaults.resampler})")
+    group.add_argument("--jitter", default=None, choices=names.JITTERS,
+                       help="after resampling, move each particle: 'roughening' (Gordon, Salmond and Smith 1993), "
+                            "'regularised' (the regularised filter's kernel, Musso, Oudjane and Le Gland 2001), "
+                            f"cures of particle impoverishment (default: {defaults.jitter}, the paper)")
     group.add_argument("--resample-below", type=float, default=None, metavar="FRACTION",
                        help="resample only when ESS < FRACTION * N (default: every step, as the paper)")
     group.add_argument("--seed", type=int, default=None, help=f"root seed (default: {defaults.seed})")
@@ -210,6 +224,9 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
                        help=f"W of Eq. 28: 'neff', 'inverse-n' or a number (default: {defaults.threshold})")
     group.add_argument("--weight-rule", default=None, choices=names.WEIGHT_RULES,
                        help=f"weights of processed particles (default: {defaults.weight_rule})")
+    group.add_argument("--move-rule", default=None, choices=names.MOVE_RULES,
+                       help="how small particles are moved: 'paper' (Eq. 29-30), 'relative' (translation invariant, "
+                            f"not the paper's; see docs/system-layer.md) (default: {defaults.move_rule})")
     group.add_argument("--policy", default=None, choices=sorted(names.POLICIES),
                        help=f"PS policy of the system layer (default: {defaults.policy})")
     group.add_argument("--ps", type=float, default=None,
@@ -220,7 +237,7 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
 
 #: The RunConfig fields the run flags set (argparse dest = field name).
 _FLAG_FIELDS = ("scenario", "model", "observations", "particles", "steps", "resampler", "resample_below",
-                "preprocess", "threshold", "weight_rule", "policy", "ps", "ps_rate", "seed", "twin", "run_id")
+                "preprocess", "threshold", "weight_rule", "move_rule", "jitter", "policy", "ps", "ps_rate", "seed", "twin", "run_id")
 
 
 def read_config_file(path) -> dict:

@@ -400,6 +400,9 @@ class PSCommand(Message):
     applies_from_step: Count = Field(description="First filter step that uses this PS (>= step).")
     policy: str = Field(min_length=1, description="Name of the policy that chose the PS.")
     reason: str = Field(description="Why the PS was chosen or changed, in words.")
+    preprocess: bool = Field(default=True, description="Whether the information layer preprocesses at all "
+                             "from applies_from_step on; false: the entity's set is resampled as it is "
+                             "(the system layer's decision 'off').")
     predicted_ess_ratio: float | None = Field(
         default=None, ge=0.0, description="ESS / N the policy predicts for the next step.")
     predicted_distinct_ratio: float | None = Field(

@@ -12,11 +12,12 @@ from __future__ import annotations
 
 import importlib.metadata
 
-__all__ = ["SCENARIOS", "MODEL_ENTRY_POINTS", "CANNOT_SAMPLE", "RESAMPLERS", "THRESHOLD_RULES", "WEIGHT_RULES",
-           "POLICIES", "SIMULATING_POLICIES", "scenario_names"]
+__all__ = ["SCENARIOS", "MODEL_ENTRY_POINTS", "CANNOT_SAMPLE", "RESAMPLERS", "THRESHOLD_RULES", "WEIGHT_RULES", "MOVE_RULES", "JITTERS",
+           "POLICIES", "SIMULATING_POLICIES", "POLICIES_STARTING_OFF", "scenario_names"]
 
-#: Built-in scenarios (entity.models): Eq. 35 with 25, Eq. 35 as printed (0.25), the tracking video.
-SCENARIOS = ("ungm", "ungm-printed", "video")
+#: Built-in scenarios (entity.models): Eq. 35 with 25, Eq. 35 as printed (0.25), the tracking video, and a
+#: slowly drifting constant with precise observations (where particles impoverish; not in the paper).
+SCENARIOS = ("ungm", "ungm-printed", "video", "drift")
 #: The entry-point group where an installed package registers scenario names of its own.
 MODEL_ENTRY_POINTS = "dtpf.models"
 #: Built-in scenarios whose model cannot draw observations (no simulating policy with them).
@@ -27,9 +28,16 @@ RESAMPLERS = ("multinomial", "residual", "stratified", "systematic")
 THRESHOLD_RULES = ("neff", "inverse-n")
 #: Weights of processed particles (information.rules).
 WEIGHT_RULES = ("inherit", "likelihood")
+#: How small particles are moved (information.rules): the paper's Eq. 29-30, or the translation-invariant rule.
+MOVE_RULES = ("paper", "relative")
+#: What the entity does to the particles after resampling (entity.jitter): nothing (the paper), roughening
+#: (Gordon, Salmond and Smith 1993) or the regularised filter's kernel (Musso, Oudjane and Le Gland 2001).
+JITTERS = ("none", "roughening", "regularised")
 #: PS policies of the system layer (system.policy), and those that simulate observations.
-POLICIES = ("fixed", "predictive", "rule")
-SIMULATING_POLICIES = frozenset({"predictive", "rule"})
+POLICIES = ("fixed", "guard", "predictive", "rule")
+SIMULATING_POLICIES = frozenset({"guard", "predictive", "rule"})
+#: Policies whose first step is not preprocessed (the information layer starts with preprocessing off).
+POLICIES_STARTING_OFF = frozenset({"guard"})
 
 
 def scenario_names() -> list[str]:

@@ -21,7 +21,7 @@ from numpy.random.bit_generator import ISeedSequence
 
 #: Layers (and purposes) that draw random numbers. A closed set, so a typo
 #: fails loudly instead of silently opening a new, unrelated stream.
-LAYERS = ("scenario", "entity", "information", "system")
+LAYERS = ("scenario", "entity", "information", "system", "jitter")
 
 
 @functools.lru_cache(maxsize=64)

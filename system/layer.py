@@ -67,7 +67,8 @@ class SystemLayer:
         if policy.simulates and model is None:
             model = model_ref.resolve(config.model_ref)
         predictor = Predictor(model, resampler=config.resampler,
-                              threshold_rule=config.threshold, weight_rule=config.weight_rule) \
+                              threshold_rule=config.threshold, weight_rule=config.weight_rule,
+                              move_rule=config.move_rule) \
             if policy.simulates else Predictor()
         return cls(policy, predictor, seed=config.seed, twin=twin or config.twin, keep=keep)
 

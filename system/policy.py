@@ -30,6 +30,14 @@ Policies (:data:`POLICIES`):
   only if it beats the current PS by more than ``confidence`` standard
   errors of the paired difference over the simulated scenarios; otherwise
   PS stays.
+- ``guard``: decides whether to preprocess at all. Each step it tries, on the
+  same simulated scenarios, "off" (the set resampled as it is) and PS, and
+  turns the preprocessing on for the next step only if PS is predicted to
+  lower the error against off with one-sided confidence 95% (the paired
+  mean difference below -t SE, t = 1.895, the 95% quantile of Student's t
+  with S - 1 = 7 degrees of freedom for the S = 8 scenarios); otherwise
+  off. With no particle set to simulate it decides off. It starts off: the
+  first step is never preprocessed.
 
 A policy that needs the twin's simulation sets :attr:`PSPolicy.simulates`;
 the system layer then gives its predictor the particle set of each step.
@@ -45,7 +53,7 @@ import numpy as np
 from messages.arrays import check_probability
 from system.predict import Forecast
 
-__all__ = ["PSDecision", "PSPolicy", "FixedPS", "RulePS", "PredictivePS", "POLICIES", "get", "limit"]
+__all__ = ["PSDecision", "PSPolicy", "FixedPS", "RulePS", "PredictivePS", "GuardPS", "POLICIES", "get", "limit"]
 
 #: PS of the paper's experiments (section 4.1).
 PAPER_PS = 0.81
@@ -76,10 +84,13 @@ class PSDecision:
     policy: str
     reason: str
     predicted: dict[str, float] = field(default_factory=dict)
+    #: False: no preprocessing from ``applies_from_step`` on (the decision "off"); PS is kept for later.
+    preprocess: bool = True
 
     def command_fields(self) -> dict:
         """The fields of the :class:`~messages.models.PSCommand` that carries this decision."""
-        fields = dict(ps=self.ps, applies_from_step=self.applies_from_step, policy=self.policy, reason=self.reason)
+        fields = dict(ps=self.ps, applies_from_step=self.applies_from_step, policy=self.policy, reason=self.reason,
+                      preprocess=self.preprocess)
         for name, command_field in COMMAND_FIELDS.items():
             fields[command_field] = self.predicted.get(name)
         return fields
@@ -109,6 +120,9 @@ class PSPolicy(ABC):
     @abstractmethod
     def initial_ps(self) -> float:
         """PS in force before the first decision."""
+
+    #: Whether the preprocessing runs before the first decision.
+    initial_preprocess: bool = True
 
     @abstractmethod
     def decide(self, step: int, forecast: Forecast) -> PSDecision:
@@ -284,8 +298,59 @@ class PredictivePS(_Adaptive):
         return PSDecision(new, step + 1, self.name, reason, _figures(forecast, error=chosen.error))
 
 
+class GuardPS(PSPolicy):
+    """Preprocess only where the twin's simulation predicts it helps (see the module docstring).
+
+    Parameters
+    ----------
+    ps : float
+        The PS used when the preprocessing is on.
+    max_change : float, optional
+        Accepted and unused (PS does not change).
+    confidence : float
+        The preprocessing is turned on only if its predicted error is lower
+        than that of off by more than ``confidence`` standard errors of the
+        paired difference (default 1.895: one-sided 95% for a t with 7
+        degrees of freedom, S = 8 scenarios).
+    """
+
+    name = "guard"
+    simulates = True
+    initial_preprocess = False
+    #: One-sided 95% quantile of Student's t with 7 degrees of freedom.
+    T95_7 = 1.895
+
+    def __init__(self, ps: float = PAPER_PS, *, max_change: float | None = None, confidence: float = T95_7):
+        self.ps = check_probability(ps, "PS")
+        if not float(confidence) >= 0.0:
+            raise ValueError(f"confidence must be non-negative, got {confidence!r}")
+        self.confidence = float(confidence)
+
+    @property
+    def initial_ps(self) -> float:
+        return self.ps
+
+    def decide(self, step: int, forecast: Forecast) -> PSDecision:
+        if forecast.simulation is None:
+            return PSDecision(self.ps, step + 1, self.name, "guard: no particle set to simulate: off",
+                              _figures(forecast), preprocess=False)
+        off, on = forecast.what_if([None, self.ps])
+        diff = on.errors - off.errors
+        se = float(diff.std(ddof=1)) / math.sqrt(diff.size) if diff.size > 1 else 0.0
+        gain = -float(diff.mean())
+        preprocess = gain > self.confidence * se
+        verdict = (f"PS {self.ps:g} predicted better by {gain:.3g} > {self.confidence:g} SE" if preprocess else
+                   f"PS {self.ps:g} not predicted better beyond {self.confidence:g} SE")
+        reason = (f"guard: predicted error off {off.error:.4g}, PS {self.ps:g} {on.error:.4g} over {diff.size} "
+                  f"simulated steps (SE of the difference {se:.2g}); {verdict}: {'on' if preprocess else 'off'}")
+        chosen = on if preprocess else off
+        return PSDecision(self.ps, step + 1, self.name, reason, _figures(forecast, error=chosen.error),
+                          preprocess=preprocess)
+
+
 #: Policy classes by name.
-POLICIES: dict[str, type[PSPolicy]] = {"fixed": FixedPS, "rule": RulePS, "predictive": PredictivePS}
+POLICIES: dict[str, type[PSPolicy]] = {"fixed": FixedPS, "rule": RulePS, "predictive": PredictivePS,
+                                       "guard": GuardPS}
 
 
 def get(name: str, **options) -> PSPolicy:

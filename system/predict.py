@@ -29,8 +29,9 @@ detection of the weights distribution" and "the simulation of the results"
    is when weights collapse).
 
 The simulation also answers "what if PS were c at step k + 1?"
-(:meth:`Forecast.what_if`): for each scenario it applies the preprocessing
-rules (Eq. 28-30) with PS = c to the simulated weighted set, scores the
+(:meth:`Forecast.what_if`; c = None: "what if the preprocessing were off?"):
+for each scenario it applies the preprocessing rules (Eq. 28-30, or the
+run's move rule) with PS = c to the simulated weighted set (none for off), scores the
 weighted mean against the scenario's simulated true state, then resamples,
 propagates to k + 2 and scores the next estimate against the scenario's
 state there. Every candidate sees the same random numbers (common random
@@ -100,8 +101,8 @@ class Outcome:
 
     Attributes
     ----------
-    ps : float
-        The candidate.
+    ps : float or None
+        The candidate; None: no preprocessing (the decision "off").
     error : float
         Mean over the S scenarios of the squared error of the estimate at
         k + 1 (after preprocessing with ``ps``) plus that at k + 2 (the
@@ -112,7 +113,7 @@ class Outcome:
         Mean ESS/M at k + 2.
     """
 
-    ps: float
+    ps: float | None
     error: float
     errors: np.ndarray = field(repr=False, compare=False)
     ess_ratio: float
@@ -178,12 +179,12 @@ class _Simulation:
         """The outcome of each candidate, computed together (same random numbers for all)."""
         todo = [ps for ps in dict.fromkeys(ps_values) if ps not in self._outcomes]
         if todo:
-            errors, ess = self._run(np.array(todo))
+            errors, ess = self._run(todo)
             for j, ps in enumerate(todo):
                 self._outcomes[ps] = Outcome(ps, float(errors[:, j].mean()), errors[:, j], float(ess[:, j].mean()))
         return [self._outcomes[ps] for ps in ps_values]
 
-    def _run(self, candidates: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _run(self, candidates: list) -> tuple[np.ndarray, np.ndarray]:
         # The rules' own random numbers (partner, r, u per small particle; rules.draws) are
         # drawn once per scenario and serve every candidate (rules.apply_rules), so candidates
         # differ only in the branch of Eq. 30 that u <= PS picks. Resampling and propagation to
@@ -219,14 +220,27 @@ class _Simulation:
             with np.errstate(divide="ignore"):
                 log_w = np.log(self.weights)
             old = self._log_likelihoods(np.broadcast_to(x, (s, m, d)), self.z1, k + 1)
-        errors = np.empty((s, candidates.size))
-        ess = np.empty((s, candidates.size))
+        if p.move_rule == "relative":  # each small particle's cap: the spread of its scenario's weighted set
+            sigma = np.stack([rules.spread(x, w) for w in self.weights])[small // m]
+        errors = np.empty((s, len(candidates)))
+        ess = np.empty((s, len(candidates)))
         for j, ps in enumerate(candidates):
             moved = flat.copy()
-            moved[small] = rules.apply_rules(flat[partner], flat[small], r, u, float(ps))
+            if ps is None:  # off: the set as it is, resampled plainly
+                pass
+            elif p.move_rule == "relative":
+                moved[small] = rules.apply_relative(flat[partner], flat[small], r, u, float(ps), sigma)
+            else:
+                moved[small] = rules.apply_rules(flat[partner], flat[small], r, u, float(ps))
             moved = moved.reshape(s, m, d)
             if inherit:
                 weights, ancestors = self.weights, shared_ancestors
+            elif ps is None:
+                weights = self.weights
+                ancestors = np.empty((s, m), dtype=np.int64)
+                for i in range(s):
+                    rng.bit_generator.state = resample_states[i]
+                    ancestors[i] = self.resample(weights[i], rng)
             else:
                 delta = np.where(is_small, self._log_likelihoods(moved, self.z1, k + 1) - old, 0.0)
                 weights = _normalise_rows(np.where(np.isneginf(log_w), -np.inf, log_w + delta))
@@ -302,10 +316,11 @@ class Forecast:
         return self.predicted_distinct_ratio if self.predicted_distinct_ratio is not None else self.distinct_ratio
 
     def what_if(self, ps_values) -> list[Outcome]:
-        """The predicted :class:`Outcome` of each candidate PS (ValueError without a simulation)."""
+        """The predicted :class:`Outcome` of each candidate PS, None meaning no preprocessing
+        (ValueError without a simulation)."""
         if self.simulation is None:
             raise ValueError(f"step {self.step}: no simulation to try PS values on (no particle set)")
-        return self.simulation.outcomes([float(ps) for ps in ps_values])
+        return self.simulation.outcomes([None if ps is None else float(ps) for ps in ps_values])
 
 
 class Predictor:
@@ -316,7 +331,7 @@ class Predictor:
     model : StateSpaceModel or None
         The scenario's model; None: no simulation, only the figures of the
         weight-state history.
-    resampler, threshold_rule, weight_rule :
+    resampler, threshold_rule, weight_rule, move_rule :
         The run's traditional resampler and preprocessing options, which the
         simulation replays.
     particles : int
@@ -330,10 +345,12 @@ class Predictor:
 
     def __init__(self, model: StateSpaceModel | None = None, *, resampler: str = "systematic",
                  threshold_rule: str | float = "neff", weight_rule: str = "inherit", particles: int = 1000,
-                 scenarios: int = 8, window: int = 5):
+                 scenarios: int = 8, window: int = 5, move_rule: str = "paper"):
         resampling.get(resampler)
         if weight_rule not in rules.WEIGHT_RULES:
             raise ValueError(f"unknown weight rule {weight_rule!r}; expected one of {', '.join(rules.WEIGHT_RULES)}")
+        if move_rule not in rules.MOVE_RULES:
+            raise ValueError(f"unknown move rule {move_rule!r}; expected one of {', '.join(rules.MOVE_RULES)}")
         if int(particles) < 2:
             raise ValueError(f"particles must be at least 2, got {particles!r}")
         if int(scenarios) < 2:
@@ -344,6 +361,7 @@ class Predictor:
         self.resampler = resampler
         self.threshold_rule = threshold_rule
         self.weight_rule = weight_rule
+        self.move_rule = move_rule
         self.particles = int(particles)
         self.scenarios = int(scenarios)
         self.window = int(window)

@@ -146,7 +146,8 @@ def verify_twin(by_topic: dict[str, list], twin: str, problem: str | None = None
     model = load_model_of(config, model_override)
     system = SystemLayer.from_config(config, twin, model=model)
     information = InformationLayer(model, ps=system.policy.initial_ps, threshold_rule=config.threshold,
-                                   weight_rule=config.weight_rule, seed=config.seed, twin=twin)
+                                   weight_rule=config.weight_rule, seed=config.seed, twin=twin,
+                                   move_rule=config.move_rule, preprocess=system.policy.initial_preprocess)
     for step in sorted(particle_sets):
         source: ParticleSet = particle_sets[step]
         out = information.process(step, source.particles, source.weights, source.observation, source.parents)
@@ -167,7 +168,7 @@ def verify_twin(by_topic: dict[str, list], twin: str, problem: str | None = None
         snapshot = Snapshot.of(out.preprocessed.particles, out.preprocessed.weights, source.observation) \
             if system.needs_particles else None
         decision = system.observe(step, out.summary, snapshot)
-        information.set_ps(decision.ps, decision.applies_from_step)
+        information.set_ps(decision.ps, decision.applies_from_step, decision.preprocess)
         if step in commands:
             mismatch = _compare_fields(step, f"dtpf/{twin}/system/ps", commands[step], decision.command_fields())
             if mismatch is not None:

@@ -1,0 +1,273 @@
+"""Issue 17: the decision "off", the guard policy, the relative move rule and the jitters."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from entity import jitter, models
+from entity.filter import ParticleFilter
+from information import rules
+from information.layer import InformationLayer
+from information.mirror import summarise
+from messages.codec import decode_for_key, encode
+from messages.config import RunConfig
+from messages.models import PSCommand
+from scripts.inprocess import run
+from system import policy as ps_policy
+from system.predict import Forecast, Predictor, Snapshot
+
+Z = 5.0
+
+
+def weighted_set(n=2000, d=2, seed=0, offset=0.0):
+    rng = np.random.default_rng(seed)
+    w = np.exp(rng.normal(scale=1.5, size=n))
+    return rng.normal(scale=3.0, size=(n, d)) + offset, w / w.sum()
+
+
+# --- the relative move rule -----------------------------------------------------
+
+
+@pytest.mark.parametrize("ps", [0.0, 0.81, 1.0])
+def test_relative_rule_translates_with_the_state(ps):
+    """Translating every particle (and so the observation) by c translates the result by c."""
+    x, w = weighted_set(seed=1)
+    shift = np.array([1e3, -250.0])
+    a = rules.preprocess(x, w, ps, np.random.default_rng(2), move_rule="relative")
+    b = rules.preprocess(x + shift, w, ps, np.random.default_rng(2), move_rule="relative")
+    np.testing.assert_allclose(b.particles - shift, a.particles, rtol=0, atol=1e-9)
+    assert a.report == b.report
+    # The paper's rule is not invariant: the same shift moves its small particles elsewhere.
+    p = rules.preprocess(x, w, ps, np.random.default_rng(2))
+    q = rules.preprocess(x + shift, w, ps, np.random.default_rng(2))
+    assert np.max(np.abs(q.particles - shift - p.particles)) > 1.0
+
+
+def test_relative_rule_keeps_large_particles_and_lands_within_a_spread_of_the_partner():
+    x, w = weighted_set(seed=3)
+    result = rules.preprocess(x, w, 0.81, np.random.default_rng(4), move_rule="relative")
+    limit = result.report.threshold
+    large, small = np.flatnonzero(w > limit), np.flatnonzero(w <= limit)
+    np.testing.assert_array_equal(result.particles[large], x[large])
+    partners, r, u = rules.draws(np.random.default_rng(4), small.size, large.size)
+    x_m = x[large[partners]]
+    sigma = rules.spread(x, w)
+    distance = np.abs(result.particles[small] - x_m)
+    assert np.all(distance <= np.minimum(np.abs(x[small] - x_m), sigma) * (1 + 1e-12))
+    # The factor f of Eq. 33-34 is (2r - 1) r or 2r - 1: the signed distance is f c (x_l - x_m).
+    np.testing.assert_allclose(result.particles[small],
+                               rules.apply_relative(x_m, x[small], r, u, 0.81, sigma), rtol=0, atol=0)
+    assert result.report.n_mixed == int(np.sum(u <= 0.81))
+
+
+def test_relative_rule_scales_with_the_state():
+    x, w = weighted_set(seed=5)
+    a = rules.preprocess(x, w, 0.5, np.random.default_rng(6), move_rule="relative")
+    b = rules.preprocess(7.0 * x, w, 0.5, np.random.default_rng(6), move_rule="relative")
+    np.testing.assert_allclose(b.particles, 7.0 * a.particles, rtol=1e-12, atol=1e-12)
+
+
+def test_relative_rule_moves_the_mean_distance_the_factor_says():
+    """Uncapped (sigma large), E|x_tilde - x_m| / |x_l - x_m| = E|f|: PS = 1 gives E|(2r-1) r| = 1/4,
+    PS = 0 gives E|2r - 1| = 1/2; the standard error comes from the variance of |f|."""
+    rng = np.random.default_rng(7)
+    n = 100_000
+    x_m, x_l = rng.normal(size=(n, 1)), rng.normal(size=(n, 1))
+    r, u = rng.random(n), rng.random(n)
+    for ps, mean, second in ((1.0, 0.25, 2.0 / 15.0), (0.0, 0.5, 1.0 / 3.0)):
+        ratio = np.abs(rules.apply_relative(x_m, x_l, r, u, ps, np.array([1e9])) - x_m)[:, 0] / np.abs(x_l - x_m)[:, 0]
+        se = math.sqrt((second - mean ** 2) / n)
+        assert abs(ratio.mean() - mean) <= Z * se
+
+
+def test_unknown_move_rule_is_refused():
+    x, w = weighted_set(n=20)
+    with pytest.raises(ValueError, match="move rule 'sideways'"):
+        rules.preprocess(x, w, 0.5, np.random.default_rng(0), move_rule="sideways")
+    with pytest.raises(ValueError, match="move_rule"):
+        RunConfig(move_rule="sideways")
+
+
+# --- the decision "off" ---------------------------------------------------------
+
+
+def test_off_gives_the_set_back_unchanged_and_reports_no_processed_particle():
+    x, w = weighted_set(seed=8)
+    layer = InformationLayer(models.get("ungm"), ps=0.81, seed=1, twin="t")
+    on = layer.preprocess(1, x, w, [0.0])
+    layer.set_ps(0.81, 2, preprocess=False)
+    off = layer.preprocess(2, x, w, [0.0])
+    assert on.report.n_processed > 0
+    np.testing.assert_array_equal(off.particles, x)
+    np.testing.assert_array_equal(off.weights, w)
+    assert (off.report.n_processed, off.report.n_mixed, off.report.n_plain) == (0, 0, 0)
+    assert off.report.threshold == on.report.threshold and off.report.n_large == on.report.n_large
+    layer.set_ps(0.5, 3)  # on again, with a new PS
+    again = layer.preprocess(3, x, w, [0.0])
+    assert again.report.n_processed > 0 and again.report.ps == 0.5
+
+
+def test_a_run_always_off_is_the_plain_filter_number_for_number():
+    """The guard with an impossible confidence never turns the preprocessing on: the entity then
+    resamples exactly the set it sent, as the plain filter does."""
+    config = RunConfig(particles=100, steps=30, seed=5, policy="guard")
+    plain = run(config.model_copy(update={"preprocess": False}))
+
+    class Never(ps_policy.GuardPS):
+        def __init__(self, **options):
+            super().__init__(**{**options, "confidence": math.inf})
+
+    saved = ps_policy.POLICIES["guard"]
+    ps_policy.POLICIES["guard"] = Never
+    try:
+        guarded = run(config)
+    finally:
+        ps_policy.POLICIES["guard"] = saved
+    assert all(s.report.n_processed == 0 for s in guarded.steps)
+    np.testing.assert_array_equal(guarded.means, plain.means)
+
+
+def test_the_off_decision_round_trips_as_a_message():
+    decision = ps_policy.PSDecision(0.81, 5, "guard", "guard: ...: off", {"error": 1.5}, preprocess=False)
+    command = PSCommand(run_id="r", twin_id="t", step=4, **decision.command_fields())
+    back = decode_for_key("dtpf/t/system/ps", encode(command))
+    assert back.preprocess is False and back.predicted_error == 1.5
+    assert PSCommand(run_id="r", twin_id="t", step=4, ps=0.5, applies_from_step=5, policy="fixed",
+                     reason="").preprocess is True  # a command of an older log, without the field: on
+
+
+# --- the guard policy -----------------------------------------------------------
+
+
+def guard_forecast(sd_particles: float, seed: int = 0, n: int = 1000, move_rule: str = "paper"):
+    """A forecast of the random-walk drift model from N particles ~ N(0, sd^2) with skewed weights."""
+    rng = np.random.default_rng(seed)
+    x = rng.normal(0.0, sd_particles, size=(n, 1))
+    w = rng.random(n) ** 4
+    w /= w.sum()
+    model = models.DriftModel(process_var=0.01, observation_var=1.0)
+    predictor = Predictor(model, move_rule=move_rule)
+    return predictor.forecast(1, summarise(x, w), Snapshot.of(x, w, [0.0]), np.random.default_rng(seed + 1))
+
+
+def test_guard_compares_off_and_on_on_the_same_numbers():
+    forecast = guard_forecast(3.0, move_rule="relative")
+    off, on = forecast.what_if([None, 0.81])
+    again_on, again_off = guard_forecast(3.0, move_rule="relative").what_if([0.81, None])
+    assert (off.error, on.error) == (again_off.error, again_on.error)
+    assert off.ps is None and off.error != on.error
+
+
+def test_guard_decides_off_without_a_simulation_and_when_the_gain_is_within_the_noise():
+    guard = ps_policy.GuardPS(ps=0.81)
+    assert guard.initial_preprocess is False
+    bare = Forecast(step=3, n=10, ess_ratio=0.5, ess_trend=0.0, distinct_ratio=0.5)
+    decision = guard.decide(3, bare)
+    assert decision.preprocess is False and decision.applies_from_step == 4 and "no particle set" in decision.reason
+    forecast = guard_forecast(3.0)
+    off, on = forecast.what_if([None, 0.81])
+    diff = on.errors - off.errors
+    se = diff.std(ddof=1) / math.sqrt(diff.size)
+    decision = guard.decide(1, forecast)
+    assert decision.preprocess == bool(-diff.mean() > guard.confidence * se)
+    assert decision.reason.startswith("guard: ") and decision.reason.endswith("on" if decision.preprocess else "off")
+    # Confidence 0 turns it on exactly when the mean predicted gain is positive; infinite confidence never.
+    assert ps_policy.GuardPS(confidence=0.0).decide(1, forecast).preprocess == bool(diff.mean() < 0)
+    assert ps_policy.GuardPS(confidence=math.inf).decide(1, forecast).preprocess is False
+
+
+class Scripted:
+    """A simulation whose predicted errors per scenario are given: off, and PS."""
+
+    def __init__(self, off, on):
+        self.errors = {None: np.asarray(off, dtype=float), 0.81: np.asarray(on, dtype=float)}
+
+    def outcomes(self, ps_values):
+        from system.predict import Outcome
+        return [Outcome(ps, float(self.errors[ps].mean()), self.errors[ps], 0.5) for ps in ps_values]
+
+
+@pytest.mark.parametrize("gain, noise, expected", [(1.0, 0.1, True), (1.0, 10.0, False), (-1.0, 0.1, False)])
+def test_guard_turns_preprocessing_on_only_for_a_gain_beyond_its_confidence(gain, noise, expected):
+    """Paired errors over 8 scenarios: PS better by ``gain`` with scenario-to-scenario ``noise``."""
+    off = np.full(8, 5.0)
+    on = off - gain + noise * np.array([1, -1, 1, -1, 1, -1, 1, -1.0])
+    forecast = Forecast(step=2, n=100, ess_ratio=0.5, ess_trend=0.0, distinct_ratio=0.5,
+                        simulation=Scripted(off, on))
+    decision = ps_policy.GuardPS(ps=0.81).decide(2, forecast)
+    se = np.std(on - off, ddof=1) / math.sqrt(8)
+    assert (gain > ps_policy.GuardPS.T95_7 * se) == expected  # the case is what its name says
+    assert decision.preprocess is expected
+    assert decision.predicted["error"] == pytest.approx((on if expected else off).mean())
+    assert decision.ps == 0.81 and decision.applies_from_step == 3
+
+
+# --- jitters --------------------------------------------------------------------
+
+
+def test_roughening_adds_the_documented_variance():
+    rng = np.random.default_rng(9)
+    n, d = 20_000, 2
+    x = rng.uniform(-1.0, 1.0, size=(n, d)) * np.array([1.0, 10.0])
+    moved = jitter.roughening(x, np.random.default_rng(10))
+    sigma = jitter.ROUGHENING_K * np.ptp(x, axis=0) * n ** (-1.0 / d)
+    noise = moved - x
+    # The sample variance of n normals has relative standard error sqrt(2 / n).
+    np.testing.assert_array_less(np.abs(noise.var(axis=0) / sigma ** 2 - 1.0), Z * math.sqrt(2.0 / n))
+    assert np.all(np.abs(noise.mean(axis=0)) <= Z * sigma / math.sqrt(n))
+
+
+def test_regularised_kernel_has_the_covariance_of_the_set_times_h_squared():
+    rng = np.random.default_rng(11)
+    n = 20_000
+    cov = np.array([[4.0, 1.5], [1.5, 1.0]])
+    x = rng.multivariate_normal([5.0, -3.0], cov, size=n)
+    w = np.full(n, 1.0 / n)
+    noise = jitter.regularised(x, x, w, np.random.default_rng(12)) - x
+    h = jitter.bandwidth(n, 2)
+    assert h == pytest.approx((4.0 / (n * 4.0)) ** (1.0 / 6.0))
+    sample = np.cov(noise.T) / h ** 2
+    expected = np.cov(x.T, bias=True)
+    # Each entry of a sample covariance has standard error about sqrt((s_ii s_jj + s_ij^2) / n).
+    se = np.sqrt((np.outer(np.diag(expected), np.diag(expected)) + expected ** 2) / n)
+    assert np.all(np.abs(sample - expected) <= Z * se)
+
+
+def test_jitters_translate_with_the_state_and_leave_a_collapsed_direction_alone():
+    rng = np.random.default_rng(13)
+    x = rng.normal(size=(500, 2))
+    x[:, 1] = 3.0  # every particle at the same second component
+    w = np.full(500, 1.0 / 500)
+    for name in ("roughening", "regularised"):
+        a = jitter.apply(name, x, x, w, np.random.default_rng(14))
+        b = jitter.apply(name, x + 100.0, x + 100.0, w, np.random.default_rng(14))
+        np.testing.assert_allclose(b - 100.0, a, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(a[:, 1], 3.0, rtol=0, atol=1e-12)
+        assert np.std(a[:, 0] - x[:, 0]) > 0
+
+
+def test_a_filter_with_jitter_draws_only_from_its_own_stream():
+    model = models.DriftModel()
+    truth, z = model.simulate(20, np.random.default_rng(0))
+    plain = [s for s in ParticleFilter(model, z, 200, seed=3, twin="t")]
+    rough = [s for s in ParticleFilter(model, z, 200, seed=3, twin="t", jitter="roughening")]
+    # Step 1 starts from the prior, identical; the resampling of step 1 uses the same ancestors.
+    np.testing.assert_array_equal(plain[0].particles, rough[0].particles)
+    np.testing.assert_array_equal(plain[0].ancestors, rough[0].ancestors)
+    # From step 2 on the particles differ by the jitter the first resampling got.
+    assert not np.array_equal(plain[1].particles, rough[1].particles)
+    with pytest.raises(ValueError, match="unknown jitter 'shake'"):
+        ParticleFilter(model, z, 10, jitter="shake")
+
+
+def test_drift_model_kalman_is_the_exact_posterior_mean():
+    """For the linear Gaussian drift model a large particle filter converges to the Kalman mean."""
+    model = models.DriftModel(process_var=0.01, observation_var=0.25)
+    truth, z = model.simulate(10, np.random.default_rng(1))
+    kalman = model.kalman(z)
+    pf = [s.mean[0] for s in ParticleFilter(model, z, 200_000, seed=2, twin="t")]
+    # Posterior sd at step k is below 0.5; Monte Carlo error of the mean with 2e5 particles (ESS
+    # above 5e4 here) is below 0.5 / sqrt(5e4) = 0.0022 per step.
+    assert np.max(np.abs(np.array(pf) - kalman[:, 0])) <= Z * 0.0022

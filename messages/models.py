@@ -415,6 +415,10 @@ class PSCommand(Message):
     surprise: float | None = Field(
         default=None, description="How much less likely this step's observation was than a typical one under "
                                   "the system layer's forecast, in nats (about 0 when typical).")
+    evidence: float | None = Field(
+        default=None, description="By how much preprocessing predicted the real observations of the last steps "
+                                  "better than no preprocessing: the summed difference of predictive "
+                                  "log-likelihoods, in nats (guard-observed policy).")
 
     @model_validator(mode="after")
     def _check_step(self) -> "PSCommand":

@@ -33,11 +33,11 @@ MOVE_RULES = ("paper", "relative")
 #: What the entity does to the particles after resampling (entity.jitter): nothing (the paper), roughening
 #: (Gordon, Salmond and Smith 1993) or the regularised filter's kernel (Musso, Oudjane and Le Gland 2001).
 JITTERS = ("none", "roughening", "regularised")
-#: PS policies of the system layer (system.policy), and those that simulate observations.
-POLICIES = ("fixed", "guard", "predictive", "rule")
+#: PS policies of the system layer (system.policy), and those that simulate observations (sample_observation).
+POLICIES = ("fixed", "guard", "guard-observed", "predictive", "rule")
 SIMULATING_POLICIES = frozenset({"guard", "predictive", "rule"})
 #: Policies whose first step is not preprocessed (the information layer starts with preprocessing off).
-POLICIES_STARTING_OFF = frozenset({"guard"})
+POLICIES_STARTING_OFF = frozenset({"guard", "guard-observed"})
 
 
 def scenario_names() -> list[str]:

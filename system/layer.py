@@ -63,12 +63,15 @@ class SystemLayer:
         from entity import model_ref
         from system import policy as ps_policy
 
+        from system.evidence import Evidence
+
         policy = ps_policy.get(config.policy, ps=config.ps, max_change=config.ps_rate)
         if policy.simulates and model is None:
             model = model_ref.resolve(config.model_ref)
-        predictor = Predictor(model, resampler=config.resampler,
-                              threshold_rule=config.threshold, weight_rule=config.weight_rule,
-                              move_rule=config.move_rule) \
+        options = dict(threshold_rule=config.threshold, weight_rule=config.weight_rule, move_rule=config.move_rule)
+        evidence = Evidence(model, config.ps, **options) if policy.uses_evidence else None
+        predictor = Predictor(model, resampler=config.resampler, **options,
+                              scenario_simulation=policy.samples_observations, evidence=evidence) \
             if policy.simulates else Predictor()
         return cls(policy, predictor, seed=config.seed, twin=twin or config.twin, keep=keep)
 

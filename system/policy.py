@@ -38,6 +38,12 @@ Policies (:data:`POLICIES`):
   with S - 1 = 7 degrees of freedom for the S = 8 scenarios); otherwise
   off. With no particle set to simulate it decides off. It starts off: the
   first step is never preprocessed.
+- ``guard-observed``: decides the same, from the real observations instead
+  of simulated ones (:mod:`system.evidence`): on while, over the last 20
+  steps, preprocessing predicted them better than not by a log Bayes factor
+  above log 19 (odds of 19 to 1). It starts off; the first difference comes
+  at step 3 (each takes two steps), and until 20 are in, the sum is over
+  those there are. It needs no ``sample_observation``.
 
 A policy that needs the twin's simulation sets :attr:`PSPolicy.simulates`;
 the system layer then gives its predictor the particle set of each step.
@@ -53,7 +59,8 @@ import numpy as np
 from messages.arrays import check_probability
 from system.predict import Forecast
 
-__all__ = ["PSDecision", "PSPolicy", "FixedPS", "RulePS", "PredictivePS", "GuardPS", "POLICIES", "get", "limit"]
+__all__ = ["PSDecision", "PSPolicy", "FixedPS", "RulePS", "PredictivePS", "GuardPS", "GuardObservedPS", "POLICIES",
+           "get", "limit"]
 
 #: PS of the paper's experiments (section 4.1).
 PAPER_PS = 0.81
@@ -66,6 +73,7 @@ COMMAND_FIELDS = {
     "distinct_ratio": "predicted_distinct_ratio",
     "spread": "predicted_spread",
     "error": "predicted_error",
+    "evidence": "evidence",
     "surprise": "surprise",
 }
 
@@ -121,6 +129,10 @@ class PSPolicy(ABC):
     def initial_ps(self) -> float:
         """PS in force before the first decision."""
 
+    #: True if the simulation draws observations (``sample_observation``: the what-if).
+    samples_observations: bool = False
+    #: True if :meth:`decide` reads the evidence of the real observations (:mod:`system.evidence`).
+    uses_evidence: bool = False
     #: Whether the preprocessing runs before the first decision.
     initial_preprocess: bool = True
 
@@ -147,6 +159,7 @@ class FixedPS(PSPolicy):
 
 class _Adaptive(PSPolicy):
     simulates = True
+    samples_observations = True
 
     def __init__(self, ps: float, max_change: float):
         self.ps = check_probability(ps, "PS")
@@ -316,6 +329,7 @@ class GuardPS(PSPolicy):
 
     name = "guard"
     simulates = True
+    samples_observations = True
     initial_preprocess = False
     #: One-sided 95% quantile of Student's t with 7 degrees of freedom.
     T95_7 = 1.895
@@ -348,9 +362,51 @@ class GuardPS(PSPolicy):
                           preprocess=preprocess)
 
 
+class GuardObservedPS(PSPolicy):
+    """Preprocess only while the real observations favour it (see the module docstring).
+
+    Parameters
+    ----------
+    ps : float
+        The PS used when the preprocessing is on (and by the evidence's *on* arm).
+    max_change : float, optional
+        Accepted and unused.
+    log_odds : float
+        On when the windowed log Bayes factor of on against off exceeds this
+        (default log 19: odds of 19 to 1).
+    """
+
+    name = "guard-observed"
+    simulates = True
+    uses_evidence = True
+    initial_preprocess = False
+
+    def __init__(self, ps: float = PAPER_PS, *, max_change: float | None = None, log_odds: float = math.log(19.0)):
+        self.ps = check_probability(ps, "PS")
+        if not float(log_odds) >= 0.0:
+            raise ValueError(f"log_odds must be non-negative, got {log_odds!r}")
+        self.log_odds = float(log_odds)
+
+    @property
+    def initial_ps(self) -> float:
+        return self.ps
+
+    def decide(self, step: int, forecast: Forecast) -> PSDecision:
+        figures = _figures(forecast, evidence=forecast.evidence)
+        if forecast.evidence is None:
+            return PSDecision(self.ps, step + 1, self.name, "guard-observed: no particle set: off", figures,
+                              preprocess=False)
+        steps, total = forecast.evidence_steps, forecast.evidence
+        preprocess = total > self.log_odds
+        reason = (f"guard-observed: the last {steps} observations favour PS {self.ps:g} over off by "
+                  f"{total:.3g} nats ({'>' if preprocess else '<='} log odds {self.log_odds:.3g}): "
+                  f"{'on' if preprocess else 'off'}")
+        return PSDecision(self.ps, step + 1, self.name, reason, figures, preprocess=preprocess)
+
+
 #: Policy classes by name.
 POLICIES: dict[str, type[PSPolicy]] = {"fixed": FixedPS, "rule": RulePS, "predictive": PredictivePS,
-                                       "guard": GuardPS}
+                                       "guard": GuardPS, "guard-observed": GuardObservedPS}
 
 
 def get(name: str, **options) -> PSPolicy:

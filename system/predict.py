@@ -289,6 +289,10 @@ class Forecast:
         ancestors / N the resampling of k + 1 keeps, and of the posterior
         standard deviation at k + 1 (root of the summed variances). None
         without a simulation.
+    evidence : float or None
+        With a predictor that gathers :mod:`system.evidence`: the sum of the
+        last ``evidence_steps`` differences of predictive log-likelihood of
+        the real observations, preprocessing on minus off (nats).
     """
 
     step: int
@@ -302,6 +306,8 @@ class Forecast:
     predicted_distinct_ratio: float | None = None
     predicted_spread: float | None = None
     simulation: _Simulation | None = field(default=None, repr=False, compare=False)
+    evidence: float | None = None
+    evidence_steps: int = 0
 
     @property
     def next_ess_ratio(self) -> float:
@@ -341,11 +347,17 @@ class Predictor:
         S, simulated next states and observations per step.
     window : int
         Steps in the ESS/N trend.
+    scenario_simulation : bool
+        Run the what-if simulation (needs ``sample_observation``); False
+        for a policy that reads only the evidence.
+    evidence : system.evidence.Evidence, optional
+        Gathers the on-against-off evidence of the real observations each step.
     """
 
     def __init__(self, model: StateSpaceModel | None = None, *, resampler: str = "systematic",
                  threshold_rule: str | float = "neff", weight_rule: str = "inherit", particles: int = 1000,
-                 scenarios: int = 8, window: int = 5, move_rule: str = "paper"):
+                 scenarios: int = 8, window: int = 5, move_rule: str = "paper", scenario_simulation: bool = True,
+                 evidence=None):
         resampling.get(resampler)
         if weight_rule not in rules.WEIGHT_RULES:
             raise ValueError(f"unknown weight rule {weight_rule!r}; expected one of {', '.join(rules.WEIGHT_RULES)}")
@@ -365,6 +377,8 @@ class Predictor:
         self.particles = int(particles)
         self.scenarios = int(scenarios)
         self.window = int(window)
+        self.scenario_simulation = bool(scenario_simulation)
+        self.evidence = evidence
         self.history: deque[tuple[int, float]] = deque(maxlen=self.window)
         self._last: _Simulation | None = None
 
@@ -401,7 +415,12 @@ class Predictor:
             raise ValueError("the simulation needs a random generator (rng)")
         if previous is not None and previous.step == step - 1:
             figures["log_predictive"], figures["surprise"] = previous.score(snapshot.observation)
-        simulation = self._last = _Simulation(self, int(step), snapshot, rng)
-        return Forecast(**figures, predicted_ess_ratio=float(simulation.ess.mean()) / simulation.m,
-                        predicted_distinct_ratio=float(simulation.distinct.mean()) / simulation.m,
-                        predicted_spread=float(simulation.spread.mean()), simulation=simulation)
+        if self.scenario_simulation:
+            simulation = self._last = _Simulation(self, int(step), snapshot, rng)
+            figures.update(predicted_ess_ratio=float(simulation.ess.mean()) / simulation.m,
+                           predicted_distinct_ratio=float(simulation.distinct.mean()) / simulation.m,
+                           predicted_spread=float(simulation.spread.mean()), simulation=simulation)
+        if self.evidence is not None:  # after the simulation's draws, so they do not change
+            self.evidence.observe(step, snapshot.particles, snapshot.weights, snapshot.observation, rng)
+            figures.update(evidence=self.evidence.total, evidence_steps=len(self.evidence.differences))
+        return Forecast(**figures)

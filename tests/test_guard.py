@@ -271,3 +271,129 @@ def test_drift_model_kalman_is_the_exact_posterior_mean():
     # Posterior sd at step k is below 0.5; Monte Carlo error of the mean with 2e5 particles (ESS
     # above 5e4 here) is below 0.5 / sqrt(5e4) = 0.0022 per step.
     assert np.max(np.abs(np.array(pf) - kalman[:, 0])) <= Z * 0.0022
+
+
+# --- the evidence of the real observations (guard-observed) ---------------------
+
+
+def evidence_run(centre: float, move_rule: str = "paper", steps: int = 6, seed: int = 0):
+    """Feed Evidence a set collapsed near ``centre`` while the truth stays at 0 (drift model, z ~ N(0, 0.01^2))."""
+    from system.evidence import Evidence
+    model = models.DriftModel()
+    evidence = Evidence(model, 0.0, move_rule=move_rule, weight_rule="likelihood", window=20)
+    rng = np.random.default_rng(seed)
+    out = []
+    for k in range(1, steps + 1):
+        x = centre + 0.01 * rng.standard_normal((500, 1))
+        w = np.full(500, 1.0 / 500)
+        z = 0.01 * rng.standard_normal(1)
+        out.append(evidence.observe(k, x, w, z, np.random.default_rng([seed, k])))
+    return evidence, out
+
+
+def test_evidence_scores_each_pair_of_arms_with_the_next_real_observation():
+    evidence, out = evidence_run(0.0)
+    assert out[:2] == [None, None]  # step 1 draws the start, step 2 makes the first arms, step 3 scores them
+    assert all(d is not None and math.isfinite(d) for d in out[2:])
+    assert len(evidence.differences) == 4 and evidence.total == pytest.approx(sum(out[2:]))
+    again, repeat = evidence_run(0.0)
+    assert repeat == out  # the generators given are the only source of randomness
+
+
+def test_evidence_favours_preprocessing_when_the_set_sits_away_from_the_observations():
+    """A set at 0.1 (10 observation sds off) under the paper's rule, which scatters small particles by up
+    to their own coordinate (0.1) around large ones: some land near 0, the on arm predicts z ~ 0 far
+    better. Centred at 0, the scatter is within the set's own width and gains almost nothing."""
+    far, far_out = evidence_run(0.1)
+    near, near_out = evidence_run(0.0)
+    assert all(d > 1.0 for d in far_out[2:])
+    assert far.total > 4 * abs(near.total)
+
+
+def test_evidence_is_zero_when_the_preprocessing_moves_nothing():
+    from system.evidence import Evidence
+    model = models.DriftModel(observation_var=1e12)  # flat likelihood: equal weights, W = 0, nothing small
+    evidence = Evidence(model, 0.81)
+    rng = np.random.default_rng(3)
+    for k in range(1, 6):
+        x = rng.standard_normal((200, 1))
+        evidence.observe(k, x, np.full(200, 1 / 200), [0.0], np.random.default_rng(k))
+    assert list(evidence.differences) == [0.0, 0.0, 0.0]
+
+
+def test_guard_observed_turns_on_with_evidence_above_log_19_and_runs_where_nothing_can_be_sampled():
+    policy = ps_policy.GuardObservedPS(ps=0.5)
+    base = dict(step=7, n=10, ess_ratio=0.5, ess_trend=0.0, distinct_ratio=0.5)
+    assert policy.decide(7, Forecast(**base, evidence=math.log(19) + 0.01, evidence_steps=20)).preprocess
+    off = policy.decide(7, Forecast(**base, evidence=math.log(19) - 0.01, evidence_steps=20))
+    assert not off.preprocess and off.predicted["evidence"] == pytest.approx(math.log(19) - 0.01)
+    assert not policy.decide(7, Forecast(**base)).preprocess
+    # It needs no sample_observation: the video scenario accepts it, as it refuses the what-if guard.
+    RunConfig(scenario="video", policy="guard-observed")
+    with pytest.raises(ValueError, match="simulates observations"):
+        RunConfig(scenario="video", policy="guard")
+
+
+# --- over Zenoh, in the log, through dtpf verify ----------------------------------
+
+
+@pytest.fixture(scope="module")
+def guarded_log(tmp_path_factory):
+    """A launched guard-observed run on the drift scenario that turns the preprocessing on for
+    steps 23-26 only (decisions of steps 22-25; found in process, seed 2) and off everywhere else."""
+    from scripts.launch import launch
+    config = RunConfig(scenario="drift", policy="guard-observed", particles=100, steps=40, seed=2, twin="t-guard")
+    path = tmp_path_factory.mktemp("guard") / "guard.mcap"
+    result = launch(config, log_path=path, timeout=5.0)
+    assert result.exit_codes["entity"] == 0
+    return config, result, path
+
+
+def test_the_off_decision_travels_over_zenoh_is_recorded_and_verifies(guarded_log):
+    from messages.logfile import read_log
+    from messages.models import ParticleSet
+    from scripts.logs.verify import verify
+
+    config, result, path = guarded_log
+    log = read_log(path)
+    messages = [(m.topic, decode_for_key(m.topic, m.data)) for m in log.messages]
+    commands = {m.step: m for topic, m in messages if isinstance(m, PSCommand)}
+    entity = {m.step: m for topic, m in messages if topic.endswith("entity/particles")}
+    preprocessed = {m.step: m for topic, m in messages if topic.endswith("information/preprocessed")}
+    assert sorted(commands) == list(range(1, 41))
+    on = sorted(k for k, c in commands.items() if c.preprocess)
+    assert on == [22, 23, 24, 25]
+    assert all(commands[k].reason.endswith(": off") for k in commands if k not in on)
+    assert all(c.evidence is not None for k, c in commands.items() if k >= 3)
+    for k in range(2, 41):  # the decision of step k - 1 is in force at step k
+        processed = preprocessed[k].n_processed
+        if commands[k - 1].preprocess:  # every small particle moved (none are small when ESS rounds to N)
+            assert processed == config.particles - preprocessed[k].n_large
+        else:
+            assert processed == 0
+            np.testing.assert_array_equal(preprocessed[k].particles, entity[k].particles)
+    assert sum(preprocessed[k].n_processed for k in range(23, 27)) > 0
+    assert preprocessed[1].n_processed == 0  # the guard starts off
+    reference = run(config)
+    np.testing.assert_array_equal([e.mean for e in result.estimates], reference.means)
+    verification = verify(log)
+    assert verification.ok, str(verification.mismatch)
+    assert verification.checked == list(range(1, 41))
+
+
+def test_verify_notices_a_flipped_off_decision(guarded_log, tmp_path):
+    import dataclasses
+    from messages.logfile import read_log, write_log
+    from scripts.logs.verify import verify
+
+    _, _, path = guarded_log
+    log = read_log(path)
+    for i, item in enumerate(log.messages):
+        if item.topic.endswith("system/ps"):
+            message = decode_for_key(item.topic, item.data)
+            if message.step == 30:
+                flipped = message.model_copy(update={"preprocess": True})
+                log.messages[i] = dataclasses.replace(item, data=encode(flipped))
+    write_log(log, tmp_path / "flipped.mcap")
+    mismatch = verify(read_log(tmp_path / "flipped.mcap")).mismatch
+    assert (mismatch.step, mismatch.field) == (30, "preprocess")

@@ -150,4 +150,9 @@ def test_the_contract_names_what_the_layers_implement():
     assert set(names.THRESHOLD_RULES) == set(rules.THRESHOLD_RULES)
     assert set(names.WEIGHT_RULES) == set(rules.WEIGHT_RULES)
     assert set(names.POLICIES) == set(policy.POLICIES)
-    assert names.SIMULATING_POLICIES == {name for name, cls in policy.POLICIES.items() if cls.simulates}
+    assert names.SIMULATING_POLICIES == {name for name, cls in policy.POLICIES.items() if cls.samples_observations}
+    assert names.POLICIES_STARTING_OFF == {name for name, cls in policy.POLICIES.items()
+                                           if not cls.initial_preprocess}
+    assert set(names.MOVE_RULES) == set(rules.MOVE_RULES)
+    from entity import jitter
+    assert set(names.JITTERS) == set(jitter.JITTERS)

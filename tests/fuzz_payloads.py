@@ -277,7 +277,7 @@ def ps_commands(draw) -> PSCommand:
         predicted_ess_ratio=draw(optional(non_negative_floats)),
         predicted_distinct_ratio=draw(optional(unit_floats)),
         predicted_spread=draw(optional(non_negative_floats)), predicted_error=draw(optional(non_negative_floats)),
-        surprise=draw(optional(finite_floats)))
+        surprise=draw(optional(finite_floats)), preprocess=draw(st.booleans()), evidence=draw(optional(finite_floats)))
 
 
 @st.composite
@@ -469,7 +469,8 @@ def _seeded_ps_command(v: Seeded) -> PSCommand:
     return PSCommand(**header, layer=Layer.SYSTEM, ps=v.unit(), applies_from_step=v.count(header["step"]),
                      policy=v.text(1), reason=v.text(), predicted_ess_ratio=v.maybe(v.non_negative),
                      predicted_distinct_ratio=v.maybe(v.unit), predicted_spread=v.maybe(v.non_negative),
-                     predicted_error=v.maybe(v.non_negative), surprise=v.maybe(v.float))
+                     predicted_error=v.maybe(v.non_negative), surprise=v.maybe(v.float),
+                     preprocess=v.unit() < 0.5, evidence=v.maybe(v.float))
 
 
 def _seeded_estimate(v: Seeded) -> Estimate:

@@ -397,3 +397,32 @@ def test_verify_notices_a_flipped_off_decision(guarded_log, tmp_path):
     write_log(log, tmp_path / "flipped.mcap")
     mismatch = verify(read_log(tmp_path / "flipped.mcap")).mismatch
     assert (mismatch.step, mismatch.field) == (30, "preprocess")
+
+
+def test_the_evaluation_quick_form_prints_every_variant_of_every_scenario(capsys):
+    """``python -m scripts.paper.evaluate_guard --quick``, in one process: a table per scenario with every
+    variant that can run there, finite errors, and a verdict per scenario."""
+    from scripts.paper import evaluate_guard
+
+    assert evaluate_guard.main(["--quick", "--workers", "1"]) == 0
+    out = capsys.readouterr().out
+    for scenario in evaluate_guard.SCENARIOS:
+        block = out.split(f"**{scenario}, N = 50**")[1].split("**")[0]
+        rows = {line.split("|")[1].strip(): line for line in block.splitlines() if line.startswith("| ")}
+        expected = {label for label in evaluate_guard.VARIANTS if evaluate_guard.runs_on(scenario, label)}
+        assert expected <= set(rows), scenario
+        errors = [float(rows[label].split("|")[2].split("±")[0]) for label in expected]
+        assert all(math.isfinite(e) and e >= 0 for e in errors)
+        assert f"- {scenario}, N = 50: best guard " in out
+    assert "guard, paper rule" not in out.split("**video, N = 50**")[1].split("Verdicts")[0]
+    # A translation-invariant variant errs the same on drift and on drift shifted by 100; the paper's rule not.
+    drift = out.split("**drift, N = 50**")[1].split("**")[0]
+    shifted = out.split("**drift+100, N = 50**")[1].split("**")[0]
+
+    def error(block, label):
+        line = next(l for l in block.splitlines() if l.startswith(f"| {label} |"))
+        return float(line.split("|")[2].split("±")[0])
+
+    for label in ("systematic", "DT relative rule, PS 0", "regularised"):
+        assert error(drift, label) == pytest.approx(error(shifted, label), rel=1e-6)
+    assert error(shifted, "DT paper rule, PS 0.81") > 100 * error(drift, "DT paper rule, PS 0.81")

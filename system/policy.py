@@ -311,7 +311,27 @@ class PredictivePS(_Adaptive):
         return PSDecision(new, step + 1, self.name, reason, _figures(forecast, error=chosen.error))
 
 
-class GuardPS(PSPolicy):
+def _non_negative(value: float, name: str) -> float:
+    if not float(value) >= 0.0:
+        raise ValueError(f"{name} must be non-negative, got {value!r}")
+    return float(value)
+
+
+class _Guard(PSPolicy):
+    """A policy that decides only whether to preprocess, with a fixed PS; it starts off."""
+
+    simulates = True
+    initial_preprocess = False
+
+    def __init__(self, ps: float):
+        self.ps = check_probability(ps, "PS")
+
+    @property
+    def initial_ps(self) -> float:
+        return self.ps
+
+
+class GuardPS(_Guard):
     """Preprocess only where the twin's simulation predicts it helps (see the module docstring).
 
     Parameters
@@ -328,21 +348,13 @@ class GuardPS(PSPolicy):
     """
 
     name = "guard"
-    simulates = True
     samples_observations = True
-    initial_preprocess = False
     #: One-sided 95% quantile of Student's t with 7 degrees of freedom.
     T95_7 = 1.895
 
     def __init__(self, ps: float = PAPER_PS, *, max_change: float | None = None, confidence: float = T95_7):
-        self.ps = check_probability(ps, "PS")
-        if not float(confidence) >= 0.0:
-            raise ValueError(f"confidence must be non-negative, got {confidence!r}")
-        self.confidence = float(confidence)
-
-    @property
-    def initial_ps(self) -> float:
-        return self.ps
+        super().__init__(ps)
+        self.confidence = _non_negative(confidence, "confidence")
 
     def decide(self, step: int, forecast: Forecast) -> PSDecision:
         if forecast.simulation is None:
@@ -362,7 +374,7 @@ class GuardPS(PSPolicy):
                           preprocess=preprocess)
 
 
-class GuardObservedPS(PSPolicy):
+class GuardObservedPS(_Guard):
     """Preprocess only while the real observations favour it (see the module docstring).
 
     Parameters
@@ -377,19 +389,11 @@ class GuardObservedPS(PSPolicy):
     """
 
     name = "guard-observed"
-    simulates = True
     uses_evidence = True
-    initial_preprocess = False
 
     def __init__(self, ps: float = PAPER_PS, *, max_change: float | None = None, log_odds: float = math.log(19.0)):
-        self.ps = check_probability(ps, "PS")
-        if not float(log_odds) >= 0.0:
-            raise ValueError(f"log_odds must be non-negative, got {log_odds!r}")
-        self.log_odds = float(log_odds)
-
-    @property
-    def initial_ps(self) -> float:
-        return self.ps
+        super().__init__(ps)
+        self.log_odds = _non_negative(log_odds, "log_odds")
 
     def decide(self, step: int, forecast: Forecast) -> PSDecision:
         figures = _figures(forecast, evidence=forecast.evidence)

@@ -99,3 +99,21 @@ def router():
 def service_args(module: str, endpoint: str, *extra: str) -> list[str]:
     """Command-line arguments of a layer service connected to ``endpoint``."""
     return ["-m", module, "--connect", endpoint, "--log-level", "INFO", *extra]
+
+
+def altered_log(source: Path, target: Path, topic_end: str, step: int, update) -> Path:
+    """A copy of the log ``source`` at ``target`` in which the message of ``step`` on the topic ending in
+    ``topic_end`` has its fields changed by ``update(message) -> dict``; everything else as recorded."""
+    import dataclasses
+
+    from messages.codec import encode
+    from messages.logfile import read_log, write_log
+
+    log = read_log(source)
+    for i, item in enumerate(log.messages):
+        if item.topic.endswith(topic_end):
+            message = decode_for_key(item.topic, item.data)
+            if message.step == step:
+                log.messages[i] = dataclasses.replace(item, data=encode(message.model_copy(update=update(message))))
+    write_log(log, target)
+    return target

@@ -351,7 +351,6 @@ def guarded_log(tmp_path_factory):
 
 def test_the_off_decision_travels_over_zenoh_is_recorded_and_verifies(guarded_log):
     from messages.logfile import read_log
-    from messages.models import ParticleSet
     from scripts.logs.verify import verify
 
     config, result, path = guarded_log
@@ -382,20 +381,13 @@ def test_the_off_decision_travels_over_zenoh_is_recorded_and_verifies(guarded_lo
 
 
 def test_verify_notices_a_flipped_off_decision(guarded_log, tmp_path):
-    import dataclasses
-    from messages.logfile import read_log, write_log
+    from conftest import altered_log
+    from messages.logfile import read_log
     from scripts.logs.verify import verify
 
     _, _, path = guarded_log
-    log = read_log(path)
-    for i, item in enumerate(log.messages):
-        if item.topic.endswith("system/ps"):
-            message = decode_for_key(item.topic, item.data)
-            if message.step == 30:
-                flipped = message.model_copy(update={"preprocess": True})
-                log.messages[i] = dataclasses.replace(item, data=encode(flipped))
-    write_log(log, tmp_path / "flipped.mcap")
-    mismatch = verify(read_log(tmp_path / "flipped.mcap")).mismatch
+    flipped = altered_log(path, tmp_path / "flipped.mcap", "system/ps", 30, lambda m: {"preprocess": True})
+    mismatch = verify(read_log(flipped)).mismatch
     assert (mismatch.step, mismatch.field) == (30, "preprocess")
 
 

@@ -9,9 +9,9 @@ import pytest
 
 from entity.models import StateSpaceModel
 from information.mirror import summarise
-from messages.codec import decode_for_key, encode
+from messages.codec import decode_for_key
 from messages.config import RunConfig
-from messages.logfile import read_log, write_log
+from messages.logfile import read_log
 from messages.models import Estimate, PSCommand
 from scripts.inprocess import build, run, simulate
 from scripts.launch import launch
@@ -245,16 +245,12 @@ def test_a_launched_adaptive_run_changes_ps_with_reasons_and_verifies(adaptive_l
 
 
 def test_verify_notices_an_altered_predicted_figure(adaptive_log, tmp_path):
+    from conftest import altered_log
+
     _, _, path = adaptive_log
-    log = read_log(path)
-    for i, item in enumerate(log.messages):
-        if item.topic.endswith("system/ps"):
-            message = decode_for_key(item.topic, item.data)
-            if message.step == 9:
-                changed = message.model_copy(update={"predicted_ess_ratio": message.predicted_ess_ratio * 1.001})
-                log.messages[i] = dataclasses.replace(item, data=encode(changed))
-    write_log(log, tmp_path / "altered.mcap")
-    mismatch = verify(read_log(tmp_path / "altered.mcap")).mismatch
+    altered = altered_log(path, tmp_path / "altered.mcap", "system/ps", 9,
+                          lambda m: {"predicted_ess_ratio": m.predicted_ess_ratio * 1.001})
+    mismatch = verify(read_log(altered)).mismatch
     assert (mismatch.step, mismatch.field) == (9, "predicted_ess_ratio")
 
 

@@ -22,7 +22,8 @@ from messages.bus import Inbox, Presence
 from messages.codec import MessageError, decode_for_key
 from messages.config import RunConfig
 from messages.models import Estimate, Layer, Status
-from scripts.launch import (DEFAULT_RESTARTS, EstimateTally, LaunchError, _describe_code, _stop, _wait_for_recorder,
+from scripts.launch import (DEFAULT_RESTARTS, Bridge, EstimateTally, LaunchError, _describe_code, _stop,
+                            _wait_for_recorder, segment_path,
                             default_log_path, open_router, rejected_by_layer, service_command)
 
 __all__ = ["launch_fleet", "FleetResult", "twin_configs", "entity_groups"]
@@ -67,6 +68,8 @@ class FleetResult:
     failures: dict[str, str] = field(default_factory=dict)
     #: What the launcher did when a shared service died, in words.
     restarts: list[str] = field(default_factory=list)
+    #: The files that make up the log, in order (more than one when the recorder was restarted).
+    segments: list[Path] = field(default_factory=list)
     elapsed: float = 0.0
     #: Seconds from the first estimate to the last (the fleet's steady throughput window).
     stepping: float = 0.0
@@ -101,7 +104,7 @@ class FleetResult:
             *(["restarts        " + "; ".join(self.restarts)] if self.restarts else []),
             f"throughput      {rate:.0f} twin-steps/s (first estimate to last)",
             f"time            {self.elapsed:.2f} s",
-            f"log             {self.log_path}",
+            f"log             {' + '.join(str(path) for path in (self.segments or [self.log_path]))}",
         ]
         return "\n".join(lines)
 
@@ -115,8 +118,11 @@ def launch_fleet(config: RunConfig, count: int, *, log_path: Path | None = None,
 
     ``entities``: how many entity processes host the twins (default: one per CPU, at most one per twin).
     ``keep_estimates``: keep every twin's estimates (in ``tallies[twin].estimates``).
-    ``restarts``: how many times a dead shared information or system service is started again (the
-    twins run on with plain resampling meanwhile); a dead recorder ends the fleet with LaunchError.
+    ``restarts``: how many times a dead shared information or system service or recorder is started
+    again. The twins run on with plain resampling while a shared layer is gone; while a recorder is, the
+    launcher records the fleet's keys into a segment of its own (:class:`~scripts.launch.Bridge`), and the
+    new recorder writes the next segment (``run.1.mcap``, ``run.2.mcap``, ...; ``result.segments``), so a
+    recorder's death loses only what it had not flushed.
     """
     twins = twin_configs(config, count)
     if config.live:
@@ -126,14 +132,17 @@ def launch_fleet(config: RunConfig, count: int, *, log_path: Path | None = None,
     chunk = keys.twins_chunk(f"{config.twin}-*")
     result = FleetResult(config, twins, log_path,
                          tallies={t.twin: EstimateTally(t.steps, keep=keep_estimates) for t in twins})
+    result.segments.append(log_path)
     children: dict[str, subprocess.Popen] = {}
     layer_of_pid: dict[int, str] = {}
+    bridges: list[Bridge] = []  # the launcher's own recording while a new recorder starts
     total = count * (config.steps or 0)
     start = time.monotonic()
     first_estimate = last_estimate = None
 
-    def start_child(name: str, layer: str, run: RunConfig, *extra: str) -> None:
-        command = service_command(layer, run, endpoint, timeout=timeout, log_path=log_path, log_level=log_level,
+    def start_child(name: str, layer: str, run: RunConfig, *extra: str, output: Path | None = None) -> None:
+        command = service_command(layer, run, endpoint, timeout=timeout, log_path=output or log_path,
+                                  log_level=log_level,
                                   rate=rate, cloud_points=cloud_points,
                                   secure=secure.path if secure is not None else None, wait_for_recorder=False)
         children[name] = subprocess.Popen(command + list(extra), stderr=child_output, start_new_session=True)
@@ -154,7 +163,7 @@ def launch_fleet(config: RunConfig, count: int, *, log_path: Path | None = None,
         per_step = timeout + (1.0 / rate if rate else 0.0)
         deadline = time.monotonic() + startup_timeout * max(1.0, count / 10) + per_step * (config.steps or 0) + 60.0
         entity_names = [f"entity-{index}" for index in range(1, len(groups) + 1)]
-        restarted = {"information": 0, "system": 0}
+        restarted = {"information": 0, "system": 0, "recorder": 0}
         while True:
             item = watch.get(timeout=0.1)
             taken = 0
@@ -167,15 +176,19 @@ def launch_fleet(config: RunConfig, count: int, *, log_path: Path | None = None,
                         progress(result.twin_steps, total)
                 taken += 1
                 item = watch.get(timeout=0) if taken < _BATCH else None
+            for bridge in bridges:
+                bridge.pump()
+            if bridges and any(pid == children["recorder"].pid for pid, _ in result.statuses):
+                bridges.pop().close()  # the new recorder listens: it said so
             if all(children[name].poll() is not None for name in entity_names):
                 break
             for layer in ("recorder", "information", "system"):
                 if children[layer].poll() is None:
                     continue
                 code = children[layer].returncode
-                if layer == "recorder" or code == 2 or restarted[layer] >= restarts:
+                if code == 2 or restarted[layer] >= restarts:
                     raise LaunchError(f"the shared {layer} service died ({_describe_code(code)})"
-                                      + ("" if layer == "recorder" or code == 2 else "; no restarts left"))
+                                      + ("" if code == 2 else "; no restarts left"))
                 # The twins run on with plain resampling meanwhile; the new service learns them from their
                 # entities' next statuses and serves them from the step they are at.
                 restarted[layer] += 1
@@ -183,7 +196,14 @@ def launch_fleet(config: RunConfig, count: int, *, log_path: Path | None = None,
                                        f"{result.twin_steps} twin-steps; started again")
                 if notify is not None:
                     notify(result.restarts[-1])
-                start_child(layer, layer, config, "--twins", f"{config.twin}-*")
+                if layer == "recorder":  # the launcher records until the new recorder listens
+                    bridge = segment_path(log_path, len(result.segments))
+                    bridges.append(Bridge(router, config, bridge, patterns=("dtpf/**",)))
+                    segment = segment_path(log_path, len(result.segments) + 1)
+                    result.segments += [bridge, segment]
+                    start_child("recorder", "recorder", config, "--all-twins", output=segment)
+                else:
+                    start_child(layer, layer, config, "--twins", f"{config.twin}-*")
             if time.monotonic() > deadline:
                 raise LaunchError("the fleet did not finish in time")
         for name, group in zip(entity_names, groups):
@@ -198,6 +218,8 @@ def launch_fleet(config: RunConfig, count: int, *, log_path: Path | None = None,
         result.interrupted = True
     finally:
         _stop(children, tuple(children), result)
+        for bridge in bridges:
+            bridge.close()
         result.elapsed = time.monotonic() - start
         if first_estimate is not None:
             result.stepping = last_estimate - first_estimate

@@ -259,7 +259,7 @@ class Bridge:
     segment: :func:`messages.logfile.join_logs` drops such repeats.
     """
 
-    def __init__(self, router, config: RunConfig, path: Path):
+    def __init__(self, router, config: RunConfig, path: Path, patterns: tuple[str, ...] | None = None):
         from messages.admission import RunShape
         from messages.recording import McapRecording
 
@@ -267,10 +267,11 @@ class Bridge:
         self.path = path
         self.shape = RunShape(config.particles, None, None, config.steps)
         self.recording = McapRecording(path, compression="none")
-        sensor = config.observation_key()
-        pattern = keys.twin_pattern(config.twin)
-        extra = [sensor] if sensor and not sensor.startswith(pattern[:-2]) else []
-        self.inbox = Inbox(router, pattern, *extra)
+        if patterns is None:  # one twin's keys and its sensor's; a fleet passes its own
+            sensor = config.observation_key()
+            pattern = keys.twin_pattern(config.twin)
+            patterns = (pattern, *([sensor] if sensor and not sensor.startswith(pattern[:-2]) else []))
+        self.inbox = Inbox(router, *patterns)
         self.written = 0
 
     def pump(self) -> None:

@@ -307,3 +307,52 @@ def test_a_fleet_launch_restarts_a_killed_shared_service_and_every_twin_finishes
     assert "started again" in result.summary()
     degraded = sum(t.degraded for t in result.tallies.values())
     assert 0 < degraded < 3 * 150  # plain resampling while it was gone, preprocessing again after
+
+
+def test_a_fleet_launch_restarts_a_killed_recorder_and_the_segments_hold_every_twin(tmp_path):
+    """SIGKILL of the fleet's recorder 60 twin-steps in: the launcher records the fleet's keys until a new
+    recorder listens, which writes the next segment; the joined segments verify twin by twin, and each
+    twin's estimates are missing at most for the recorder's 1 s flush interval (40 steps at 40 steps/s)."""
+    import os
+    import threading
+
+    from messages.logfile import read_logs
+    from scripts.fleet import launch_fleet
+    from scripts.logs.verify import decoded_by_topic, verify_twin
+
+    config = RunConfig(particles=200, steps=150, seed=9, twin="fk")
+    said: list[str] = []
+    killed: dict = {}
+    outcome: dict = {}
+    stepping = threading.Event()
+
+    def run():
+        outcome["result"] = launch_fleet(config, 3, log_path=tmp_path / "fleet.mcap", timeout=1.0, rate=40.0,
+                                         notify=said.append, progress=lambda done, total: done >= 60 and stepping.set())
+
+    launcher = threading.Thread(target=run)
+    launcher.start()
+    assert stepping.wait(timeout=90)
+    for pid in os.listdir("/proc"):
+        try:
+            command = open(f"/proc/{pid}/cmdline", "rb").read()
+        except OSError:
+            continue
+        if b"scripts.record" in command and b"--all-twins" in command and b"fk" in command:
+            os.kill(int(pid), signal.SIGKILL)
+            killed["pid"] = int(pid)
+            break
+    launcher.join(timeout=120)
+    result = outcome["result"]
+    assert killed and not result.failures
+    assert result.twin_steps == 3 * 150
+    assert said and "the shared recorder service died (killed by SIGKILL)" in said[0]
+    assert [p.name for p in result.segments] == ["fleet.mcap", "fleet.1.mcap", "fleet.2.mcap"]
+    assert " + " in result.summary()
+    by_topic = decoded_by_topic(read_logs(result.segments))
+    for twin in (t.twin for t in result.twins):
+        estimates = {m.step for m in by_topic.get(f"dtpf/{twin}/entity/estimate", [])}
+        assert len(estimates) >= 150 - 45, twin
+        assert max(estimates) == 150  # the new recorder wrote the end
+        verification = verify_twin(by_topic, twin)
+        assert verification.ok, (twin, str(verification.mismatch))

@@ -99,7 +99,10 @@ def cmd_launch(args: argparse.Namespace) -> int:
         f"{args.twins} twins {config.twin}-1 .. {config.twin}-{args.twins}"
     print(f"dtpf: launching recorder, system, information and entity for {who} "
           f"({how}{source})", file=sys.stderr)
-    if config.live:
+    if config.live and args.twins is not None:
+        print(f"dtpf: each twin filters what arrives on dtpf/{config.twin}-<i>/sensor/observation (start a "
+              f"sensor per twin, e.g. 'dtpf sensor --twin {config.twin}-1'); Ctrl-C ends the run", file=sys.stderr)
+    elif config.live:
         print(f"dtpf: the entity filters what arrives on {config.observation_key()} (start a sensor, e.g. "
               f"'dtpf sensor --twin {config.twin}'); Ctrl-C ends the run", file=sys.stderr)
     if args.twins is not None:
@@ -137,6 +140,7 @@ def _launch_fleet(config, args: argparse.Namespace) -> int:
                               progress=None if args.quiet else ProgressBar(), cloud_points=args.cloud_points,
                               secure=args.secure, entities=args.entities,
                               restarts=0 if args.no_restart else args.restarts,
+                              observation_timeout=args.observation_timeout,
                               notify=lambda text: print(f"\ndtpf launch: {text}", file=sys.stderr, flush=True))
     except (LaunchError, ValueError) as error:
         print(f"dtpf launch: error: {error}", file=sys.stderr)

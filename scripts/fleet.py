@@ -87,7 +87,7 @@ class FleetResult:
     def summary(self) -> str:
         c = self.config
         lines = [f"fleet           {len(self.twins)} twins {self.twins[0].twin} .. {self.twins[-1].twin} of "
-                 f"{c.model_ref} (N = {c.particles}, T = {c.steps}, seed {c.seed})",
+                 f"{c.model_ref} (N = {c.particles}, {'T = ' + str(c.steps) if c.steps else 'live'}, seed {c.seed})",
                  f"{'twin':<16}{'steps':>7}{'RMSE':>10}{'mean ESS':>10}{'degraded':>10}"]
         for twin in self.twins:
             t = self.tallies[twin.twin]
@@ -97,8 +97,8 @@ class FleetResult:
                          + (f"   {self.failures[twin.twin]}" if twin.twin in self.failures else ""))
         rate = self.twin_steps / self.stepping if self.stepping > 0 else float("nan")
         lines += [
-            f"twin-steps      {self.twin_steps} of {len(self.twins) * (c.steps or 0)}"
-            f"{' (interrupted)' if self.interrupted else ''}",
+            f"twin-steps      {self.twin_steps}" + (f" of {len(self.twins) * c.steps}" if c.steps else " (live)")
+            + (" (interrupted)" if self.interrupted else ""),
             f"degraded steps  {sum(t.degraded for t in self.tallies.values())}",
             "rejected        " + (", ".join(f"{k} {v}" for k, v in sorted(self.rejected.items())) or "-"),
             *(["restarts        " + "; ".join(self.restarts)] if self.restarts else []),
@@ -113,10 +113,14 @@ def launch_fleet(config: RunConfig, count: int, *, log_path: Path | None = None,
                  timeout: float = 2.0, startup_timeout: float = 20.0, log_level: str = "WARNING",
                  rate: float | None = None, progress=None, child_output=None, cloud_points: int | None = None,
                  secure=None, notify=None, entities: int | None = None,
-                 keep_estimates: bool = False, restarts: int = DEFAULT_RESTARTS) -> FleetResult:
+                 keep_estimates: bool = False, restarts: int = DEFAULT_RESTARTS,
+                 observation_timeout: float | None = None) -> FleetResult:
     """Run ``count`` twins of ``config`` around an embedded Zenoh router (see the module's text).
 
     ``entities``: how many entity processes host the twins (default: one per CPU, at most one per twin).
+    A live fleet (``--observations live``) has no deadline: each twin takes its observations from its own
+    sensor, on ``dtpf/<twin>-<i>/sensor/observation``, and ends when its sensor ends its stream (or after
+    ``steps``); the fleet ends when every twin has. ``observation_timeout``: see ``dtpf launch``.
     ``keep_estimates``: keep every twin's estimates (in ``tallies[twin].estimates``).
     ``restarts``: how many times a dead shared information or system service or recorder is started
     again. The twins run on with plain resampling while a shared layer is gone; while a recorder is, the
@@ -125,8 +129,9 @@ def launch_fleet(config: RunConfig, count: int, *, log_path: Path | None = None,
     recorder's death loses only what it had not flushed.
     """
     twins = twin_configs(config, count)
-    if config.live:
-        raise LaunchError("--twins runs simulated or file observations; a live fleet is not supported yet")
+    if config.live and config.observations != "live":
+        raise LaunchError(f"--twins with live observations takes each twin's from its own key "
+                          f"(--observations live), not one key for all ({config.observations!r})")
     log_path = Path(log_path) if log_path else default_log_path(config)
     router, endpoint, secure = open_router(port, secure)
     chunk = keys.twins_chunk(f"{config.twin}-*")
@@ -142,7 +147,7 @@ def launch_fleet(config: RunConfig, count: int, *, log_path: Path | None = None,
 
     def start_child(name: str, layer: str, run: RunConfig, *extra: str, output: Path | None = None) -> None:
         command = service_command(layer, run, endpoint, timeout=timeout, log_path=output or log_path,
-                                  log_level=log_level,
+                                  log_level=log_level, observation_timeout=observation_timeout,
                                   rate=rate, cloud_points=cloud_points,
                                   secure=secure.path if secure is not None else None, wait_for_recorder=False)
         children[name] = subprocess.Popen(command + list(extra), stderr=child_output, start_new_session=True)
@@ -161,7 +166,9 @@ def launch_fleet(config: RunConfig, count: int, *, log_path: Path | None = None,
         for index, group in enumerate(groups, start=1):
             start_child(f"entity-{index}", "entity", config, "--twins", ",".join(group))
         per_step = timeout + (1.0 / rate if rate else 0.0)
-        deadline = time.monotonic() + startup_timeout * max(1.0, count / 10) + per_step * (config.steps or 0) + 60.0
+        # A live fleet waits for its sensors as long as it takes; a file or simulation has T steps.
+        deadline = float("inf") if config.live else (
+            time.monotonic() + startup_timeout * max(1.0, count / 10) + per_step * (config.steps or 0) + 60.0)
         entity_names = [f"entity-{index}" for index in range(1, len(groups) + 1)]
         restarted = {"information": 0, "system": 0, "recorder": 0}
         while True:

@@ -356,3 +356,38 @@ def test_a_fleet_launch_restarts_a_killed_recorder_and_the_segments_hold_every_t
         assert max(estimates) == 150  # the new recorder wrote the end
         verification = verify_twin(by_topic, twin)
         assert verification.ok, (twin, str(verification.mismatch))
+
+
+def test_a_live_fleet_follows_one_sensor_per_twin_as_their_solo_runs(processes, tmp_path):
+    """dtpf launch --twins 2 --observations live: each twin waits for its own sensor and ends with its
+    stream; the estimates are those of the twin's dtpf run (the sensor simulates the same path)."""
+    import threading
+
+    from messages.bus import free_port
+    from scripts.fleet import launch_fleet
+
+    port = free_port()
+    config = RunConfig(particles=200, steps=None, seed=6, twin="fl", observations="live")
+    outcome: dict = {}
+
+    def run():
+        outcome["result"] = launch_fleet(config, 2, log_path=tmp_path / "live.mcap", port=port, timeout=2.0,
+                                         keep_estimates=True)
+
+    launcher = threading.Thread(target=run)
+    launcher.start()
+    sensors = [processes.start(f"sensor-{i}", ["-m", "scripts.sensor", "--connect", f"tcp/127.0.0.1:{port}",
+                                               "--twin", f"fl-{i}", "--particles", "200", "--seed", "6",
+                                               "--steps", str(20 + 10 * i), "--rate", "40"])
+               for i in (1, 2)]
+    for sensor in sensors:
+        assert sensor.wait(timeout=90) == 0, processes.output(sensor)
+    launcher.join(timeout=90)
+    result = outcome["result"]
+    assert not result.failures and result.twin_steps == 30 + 40
+    for i in (1, 2):
+        tally = result.tallies[f"fl-{i}"]
+        reference = inprocess.run(RunConfig(particles=200, steps=20 + 10 * i, seed=6, twin=f"fl-{i}"))
+        np.testing.assert_array_equal([e.mean for e in tally.estimates], reference.means)
+        assert tally.degraded == 0
+    assert "(live)" in result.summary()

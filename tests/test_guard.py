@@ -378,6 +378,8 @@ def test_the_off_decision_travels_over_zenoh_is_recorded_and_verifies(guarded_lo
     verification = verify(log)
     assert verification.ok, str(verification.mismatch)
     assert verification.checked == list(range(1, 41))
+    from scripts.logs.summary import format_summary, summarise
+    assert "preprocessing off in 36 of 40 commands" in format_summary(summarise(log))
 
 
 def test_verify_notices_a_flipped_off_decision(guarded_log, tmp_path):

@@ -248,6 +248,8 @@ class TwinSummary:
     ps_commanded: Trajectory | None = None  #: system/ps, in order of applies_from_step
     ps_applied: Trajectory | None = None    #: Estimate.ps, in step order
     policies: list[str] = field(default_factory=list)
+    #: PS commands that turned the preprocessing off (a guard policy's "off"), of all PS commands.
+    off_commands: int = 0
     last_reason: str | None = None
     degraded_steps: list[int] = field(default_factory=list)
     statuses: dict[str, LayerStatus] = field(default_factory=dict)
@@ -364,6 +366,7 @@ def _twin_summary(twin: str, run_id: str, estimates: list[Estimate], ps: list[PS
     commands = sorted(enumerate(ps), key=lambda pair: (pair[1].applies_from_step, pair[0]))
     out.ps_commanded = Trajectory.of([c.ps for _, c in commands])
     out.policies = list(dict.fromkeys(c.policy for c in ps))
+    out.off_commands = sum(not c.preprocess for c in ps)
     out.last_reason = commands[-1][1].reason if commands else None
     return out
 
@@ -466,6 +469,10 @@ def format_summary(summary: LogSummary) -> str:
         policy = f", policy {', '.join(t.policies)}" if t.policies else ""
         lines.append(f"  PS commanded  {_trajectory(t.ps_commanded, 'commands')}{policy}")
         lines.append(f"  PS applied    {_trajectory(t.ps_applied, 'steps')}")
+        if t.off_commands:
+            total = t.ps_commanded.count if t.ps_commanded is not None else t.off_commands
+            lines.append(f"  preprocessing off in {t.off_commands} of {total} commands (the system layer's "
+                         f"decision; the entity resampled its own set)")
         lines.append(f"  degraded      {t.degraded}" + (f" (steps {format_ranges(t.degraded_steps)})"
                                                         if t.degraded_steps else ""))
         if not t.statuses:

@@ -277,8 +277,8 @@ def main(argv=None) -> int:
                 cells[(done.scenario, done.particles)][done.seed] = results
                 progress(i)
     elapsed = time.perf_counter() - start
-    command = "python -m scripts.paper.evaluate_guard" + (" --quick" if args.quick else f" --seeds {args.seeds}") \
-        + (" --pilot" if args.pilot else "")
+    given = list(argv if argv is not None else sys.argv[1:])
+    command = " ".join(["python -m scripts.paper.evaluate_guard", *given])
     print(f"`{command}`: T = {args.steps} (video: its {frames} frames), {args.seeds} seeds per cell "
           f"(from seed {first_seed}), {len(PILOT_VARIANTS if args.pilot else VARIANTS)} variants, {args.workers} worker processes; error mean ± 95% CI over seeds; difference "
           f"= variant - best traditional resampler of the cell, paired by seed, ± its 95% CI, marked where the "

@@ -106,6 +106,8 @@ class ConfigWatch:
                            max_bytes=64 << 20, on_drop=lambda key, reason, detail: on_reject(reason, detail))
         #: When each twin's entity was last heard (any status).
         self.heard: dict[str, float] = {}
+        #: The configuration each twin's statuses carry, validated once (a status comes every second).
+        self._configs: dict[str, tuple[str, RunConfig]] = {}
 
     def poll(self, now: float, budget: int = 256) -> list[Learned]:
         """What the statuses that arrived say, at most ``budget`` of them (the rest at the next call)."""
@@ -130,11 +132,16 @@ class ConfigWatch:
                 continue
             if status.config_json is None:
                 continue
-            try:
-                config = RunConfig.model_validate_json(status.config_json)
-            except ValueError as error:
-                self.on_reject("run configuration that does not validate", f"{item.key}: {str(error)[:300]}")
-                continue
+            known = self._configs.get(status.twin_id)
+            if known is not None and known[0] == status.config_json:
+                config = known[1]
+            else:
+                try:
+                    config = RunConfig.model_validate_json(status.config_json)
+                except ValueError as error:
+                    self.on_reject("run configuration that does not validate", f"{item.key}: {str(error)[:300]}")
+                    continue
+                self._configs[status.twin_id] = (status.config_json, config)
             if config.twin != status.twin_id or config.run_id != status.run_id:
                 self.on_reject("run configuration of another twin or run",
                                f"{item.key}: configuration of {config.twin}/{config.run_id}")
@@ -144,6 +151,7 @@ class ConfigWatch:
 
     def forget(self, twin: str) -> None:
         self.heard.pop(twin, None)
+        self._configs.pop(twin, None)
 
     def close(self) -> None:
         self.inbox.close()

@@ -214,10 +214,11 @@ def build_parser() -> argparse.ArgumentParser:
     group.add_argument("--foxglove", type=_address, default=None, metavar="[HOST:]PORT",
                        help="also serve the run live to Foxglove over its WebSocket protocol (foxglove-sdk), e.g. "
                             "8765; in Foxglove: Open connection, ws://127.0.0.1:8765")
-    group.add_argument("--cloud-points", type=int, default=1000, metavar="K",
+    group.add_argument("--cloud-points", type=int, default=None, metavar="K",
                        help="each step's particle set also goes out (and into the log) as a foxglove.PointCloud "
                             "on dtpf/<twin>/entity/cloud, at most K particles: every ceil(N/K)-th (0: none) "
-                            "(default: %(default)s)")
+                            "(default: 1000; with --twins, 0: a hundred twins' clouds are more than one recorder "
+                            "can check and write)")
     group.add_argument("--secure", metavar="DIR", default=None,
                        help="a folder made by 'dtpf secure init' (DIR, DIR/tls or DIR/usrpwd): the router "
                             "listens on tls/ (or tcp/ with passwords) and enforces its access control, each "

@@ -32,6 +32,11 @@ __all__ = ["launch_fleet", "FleetResult", "twin_configs", "entity_groups"]
 _BATCH = 256
 
 
+#: Points of each twin's foxglove.PointCloud in a fleet unless asked: none. At K = 100, N = 1e3 the clouds of
+#: 1000 points (one twin's default) made the recorder drop 11% of the fleet's messages (12,772 of 116,182).
+FLEET_CLOUD_POINTS = 0
+
+
 def entity_groups(twins: list[str], entities: int | None = None) -> list[list[str]]:
     """The twins of each entity process: ``entities`` groups (default: one per CPU), as even as can be,
     in order."""
@@ -118,6 +123,7 @@ def launch_fleet(config: RunConfig, count: int, *, log_path: Path | None = None,
     """Run ``count`` twins of ``config`` around an embedded Zenoh router (see the module's text).
 
     ``entities``: how many entity processes host the twins (default: one per CPU, at most one per twin).
+    ``cloud_points``: the entities' ``--cloud-points``; None: :data:`FLEET_CLOUD_POINTS`.
     A live fleet (``--observations live``) has no deadline: each twin takes its observations from its own
     sensor, on ``dtpf/<twin>-<i>/sensor/observation``, and ends when its sensor ends its stream (or after
     ``steps``); the fleet ends when every twin has. ``observation_timeout``: see ``dtpf launch``.
@@ -129,6 +135,7 @@ def launch_fleet(config: RunConfig, count: int, *, log_path: Path | None = None,
     recorder's death loses only what it had not flushed.
     """
     twins = twin_configs(config, count)
+    cloud_points = FLEET_CLOUD_POINTS if cloud_points is None else cloud_points
     if config.live and config.observations != "live":
         raise LaunchError(f"--twins with live observations takes each twin's from its own key "
                           f"(--observations live), not one key for all ({config.observations!r})")

@@ -14,6 +14,7 @@ import numpy as np
 
 from entity import sources
 from scripts.console import ProgressBar, run_command
+from messages import names
 from messages.config import add_run_arguments, config_from_args
 
 __all__ = ["main"]
@@ -72,6 +73,9 @@ def cmd_run(args: argparse.Namespace) -> int:
         f"mean ESS        {result.mean_ess:.1f} ({result.mean_ess / config.particles:.1%} of N)",
         f"resamplings     {result.resamplings}",
         f"PS range        {ps_text}",
+        *([f"preprocessed    {sum(s.report is not None and s.report.n_processed > 0 for s in result.steps)} of "
+           f"{len(result.steps)} steps moved particles (policy {config.policy}: off elsewhere)"]
+          if config.preprocess and config.policy in names.POLICIES_STARTING_OFF else []),
         f"degraded steps  {result.degraded}",
         f"time            {result.elapsed:.3f} s ({1e3 * result.elapsed / max(1, len(result.steps)):.3f} ms/step)",
     ]

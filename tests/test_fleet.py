@@ -287,7 +287,7 @@ def test_a_fleet_launch_restarts_a_killed_shared_service_and_every_twin_finishes
         outcome["result"] = launch_fleet(config, 3, log_path=tmp_path / "fleet.mcap", timeout=1.0, rate=40.0,
                                          notify=said.append, progress=lambda done, total: done >= 60 and stepping.set())
 
-    launcher = threading.Thread(target=run)
+    launcher = threading.Thread(target=run, daemon=True)  # a failed test must not wait on it at exit
     launcher.start()
     assert stepping.wait(timeout=90)  # 60 twin-steps in: kill the shared information service
     for pid in os.listdir("/proc"):
@@ -330,7 +330,7 @@ def test_a_fleet_launch_restarts_a_killed_recorder_and_the_segments_hold_every_t
         outcome["result"] = launch_fleet(config, 3, log_path=tmp_path / "fleet.mcap", timeout=1.0, rate=40.0,
                                          notify=said.append, progress=lambda done, total: done >= 60 and stepping.set())
 
-    launcher = threading.Thread(target=run)
+    launcher = threading.Thread(target=run, daemon=True)  # a failed test must not wait on it at exit
     launcher.start()
     assert stepping.wait(timeout=90)
     for pid in os.listdir("/proc"):
@@ -374,7 +374,7 @@ def test_a_live_fleet_follows_one_sensor_per_twin_as_their_solo_runs(processes, 
         outcome["result"] = launch_fleet(config, 2, log_path=tmp_path / "live.mcap", port=port, timeout=2.0,
                                          keep_estimates=True)
 
-    launcher = threading.Thread(target=run)
+    launcher = threading.Thread(target=run, daemon=True)  # a failed test must not wait on it at exit
     launcher.start()
     sensors = [processes.start(f"sensor-{i}", ["-m", "scripts.sensor", "--connect", f"tcp/127.0.0.1:{port}",
                                                "--twin", f"fl-{i}", "--particles", "200", "--seed", "6",
@@ -383,6 +383,7 @@ def test_a_live_fleet_follows_one_sensor_per_twin_as_their_solo_runs(processes, 
     for sensor in sensors:
         assert sensor.wait(timeout=90) == 0, processes.output(sensor)
     launcher.join(timeout=90)
+    assert not launcher.is_alive(), "the live fleet did not end with its sensors' streams"
     result = outcome["result"]
     assert not result.failures and result.twin_steps == 30 + 40
     for i in (1, 2):

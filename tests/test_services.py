@@ -167,8 +167,14 @@ def test_sigint_to_the_launcher_stops_every_child_and_leaves_a_readable_log(proc
     log = tmp_path / "interrupted.mcap"
     launcher = processes.start("launcher", ["-m", "scripts.cli", "launch", "--steps", "1000", "--rate", "20",
                                             "--twin", "t-int", "-o", str(log), "--quiet"])
-    deadline = time.monotonic() + 60
+    # Mid-run: the log has grown past 20 kB, or (a loaded machine may hold the recorder's first chunk back)
+    # 10 s have passed since it appeared, some 200 steps into the 50 s run.
+    deadline, appeared = time.monotonic() + 60, None
     while time.monotonic() < deadline and (not log.exists() or log.stat().st_size < 20_000):
+        if log.exists():
+            appeared = appeared or time.monotonic()
+            if time.monotonic() - appeared > 10.0:
+                break
         time.sleep(0.2)
     time.sleep(1.0)
     launcher.send_signal(signal.SIGINT)

@@ -270,17 +270,17 @@ def test_a_flooded_twin_is_counted_against_itself_and_slows_no_other(processes, 
     assert all(last[c.twin, layer].rejected == 0 for c in calm for layer in ("information", "system"))
 
 
-def test_a_fleet_launch_restarts_a_killed_shared_service_and_every_twin_finishes(tmp_path):
+def _fleet_with_a_kill(tmp_path, twin: str, seed: int, *marks: bytes):
+    """A fleet of 3 twins (N = 200, T = 150, 40 steps/s) whose process with ``marks`` in its command line
+    is SIGKILLed 60 twin-steps in: (the launch's result, what the launcher said)."""
     import os
     import threading
 
     from scripts.fleet import launch_fleet
 
-    config = RunConfig(particles=200, steps=150, seed=8, twin="fr")
+    config = RunConfig(particles=200, steps=150, seed=seed, twin=twin)
     said: list[str] = []
-    killed: dict = {}
     outcome: dict = {}
-
     stepping = threading.Event()
 
     def run():
@@ -289,19 +289,25 @@ def test_a_fleet_launch_restarts_a_killed_shared_service_and_every_twin_finishes
 
     launcher = threading.Thread(target=run, daemon=True)  # a failed test must not wait on it at exit
     launcher.start()
-    assert stepping.wait(timeout=90)  # 60 twin-steps in: kill the shared information service
+    assert stepping.wait(timeout=90)
+    killed = None
     for pid in os.listdir("/proc"):
         try:
             command = open(f"/proc/{pid}/cmdline", "rb").read()
         except OSError:
             continue
-        if b"information.service" in command and b"fr-*" in command and b"--twins" in command:
+        if all(mark in command for mark in marks):
             os.kill(int(pid), signal.SIGKILL)
-            killed["pid"] = int(pid)
+            killed = int(pid)
             break
     launcher.join(timeout=120)
-    result = outcome["result"]
-    assert killed and not result.failures
+    assert killed is not None and not launcher.is_alive()
+    return outcome["result"], said
+
+
+def test_a_fleet_launch_restarts_a_killed_shared_service_and_every_twin_finishes(tmp_path):
+    result, said = _fleet_with_a_kill(tmp_path, "fr", 8, b"information.service", b"fr-*", b"--twins")
+    assert not result.failures
     assert result.twin_steps == 3 * 150  # every twin, every step
     assert said and "the shared information service died (killed by SIGKILL)" in said[0]
     assert "started again" in result.summary()
@@ -313,38 +319,11 @@ def test_a_fleet_launch_restarts_a_killed_recorder_and_the_segments_hold_every_t
     """SIGKILL of the fleet's recorder 60 twin-steps in: the launcher records the fleet's keys until a new
     recorder listens, which writes the next segment; the joined segments verify twin by twin, and each
     twin's estimates are missing at most for the recorder's 1 s flush interval (40 steps at 40 steps/s)."""
-    import os
-    import threading
-
     from messages.logfile import read_logs
-    from scripts.fleet import launch_fleet
     from scripts.logs.verify import decoded_by_topic, verify_twin
 
-    config = RunConfig(particles=200, steps=150, seed=9, twin="fk")
-    said: list[str] = []
-    killed: dict = {}
-    outcome: dict = {}
-    stepping = threading.Event()
-
-    def run():
-        outcome["result"] = launch_fleet(config, 3, log_path=tmp_path / "fleet.mcap", timeout=1.0, rate=40.0,
-                                         notify=said.append, progress=lambda done, total: done >= 60 and stepping.set())
-
-    launcher = threading.Thread(target=run, daemon=True)  # a failed test must not wait on it at exit
-    launcher.start()
-    assert stepping.wait(timeout=90)
-    for pid in os.listdir("/proc"):
-        try:
-            command = open(f"/proc/{pid}/cmdline", "rb").read()
-        except OSError:
-            continue
-        if b"scripts.record" in command and b"--all-twins" in command and b"fk" in command:
-            os.kill(int(pid), signal.SIGKILL)
-            killed["pid"] = int(pid)
-            break
-    launcher.join(timeout=120)
-    result = outcome["result"]
-    assert killed and not result.failures
+    result, said = _fleet_with_a_kill(tmp_path, "fk", 9, b"scripts.record", b"--all-twins", b"fk")
+    assert not result.failures
     assert result.twin_steps == 3 * 150
     assert said and "the shared recorder service died (killed by SIGKILL)" in said[0]
     assert [p.name for p in result.segments] == ["fleet.mcap", "fleet.1.mcap", "fleet.2.mcap"]

@@ -126,7 +126,13 @@ def multinomial(weights, rng: np.random.Generator, *, out=None, checked: bool = 
 def stratified(weights, rng: np.random.Generator, *, out=None, checked: bool = False) -> np.ndarray:
     """Stratified resampling: one uniform in each stratum [(j-1)/N, j/N) (Eq. 27); draws ``rng.random(N)``."""
     w = _weights(weights, checked)
-    return _merge.stratified(w, rng.random(w.size), _output(out, w.size))
+    out = _output(out, w.size)
+    words = _merge.pcg_state(rng)
+    if words is None:
+        return _merge.stratified(w, rng.random(w.size), out)
+    _merge.stratified_pcg(w, words, out)  # draws the uniforms as it merges, from a copy of the state
+    rng.bit_generator.advance(w.size)  # where rng.random(N) leaves the PCG64
+    return out
 
 
 def systematic(weights, rng: np.random.Generator, *, out=None, checked: bool = False) -> np.ndarray:

@@ -120,7 +120,13 @@ def multinomial(weights, rng: np.random.Generator, *, out=None, checked: bool = 
     ``rng.standard_exponential(N + 1)``'s, made in the compiled pass.
     """
     w = _weights(weights, checked)
-    return _merge.multinomial(w, rng, _output(out, w.size))
+    out = _output(out, w.size)
+    words = _merge.pcg_state(rng)
+    if words is None:
+        return _merge.multinomial(w, rng, out)
+    _merge.multinomial_pcg(w, words, out)
+    _merge.set_pcg_state(rng, words)  # where rng.standard_exponential(N + 1) leaves it
+    return out
 
 
 def stratified(weights, rng: np.random.Generator, *, out=None, checked: bool = False) -> np.ndarray:
@@ -149,7 +155,13 @@ def residual(weights, rng: np.random.Generator, *, out=None, checked: bool = Fal
     N w_i - floor(N w_i), normalised; draws ``rng.standard_exponential(R + 1)``.
     """
     w = _weights(weights, checked)
-    return _merge.residual(w, rng, _output(out, w.size))
+    out = _output(out, w.size)
+    words = _merge.pcg_state(rng)
+    if words is None:
+        return _merge.residual(w, rng, out)
+    _merge.residual_pcg(w, words, out)
+    _merge.set_pcg_state(rng, words)  # where rng.standard_exponential(R + 1) leaves it
+    return out
 
 
 def gather(particles: np.ndarray, ancestors: np.ndarray, out: np.ndarray | None = None, *,

@@ -304,6 +304,8 @@ def multinomial(weights, rng, out):  # pragma: no cover - compiled
 
 #: Points each particle compares with its running sum at once (one 64-byte load of sorted points).
 COMPARED = 8
+#: How far to the right of its ancestor's position a sorted point is kept in the output (see _take_below).
+SHIFT = 2 * COMPARED
 
 
 @numba.njit(inline="always")
@@ -313,32 +315,36 @@ def _point(points, tail, base, stored, d):  # pragma: no cover - compiled
 
 
 @numba.njit(inline="always")
-def _take_below(out, points, tail, base, stored, count, k, d, limit, j):  # pragma: no cover - compiled
-    # Hand particle j the sorted points d, d + 1, ... (of ``count``) below its running sum
-    # ``limit``, at output positions k, k + 1, ..., as the plain merge "while the next point is
-    # below the running sum, take it", whose loop exit, data-dependent at every particle, cost
-    # 7.7 ms of multinomial's 15.7 at N = 1e6. Here the next COMPARED points are compared at once
-    # (sorted, the c below the sum are the first c), j goes to the next COMPARED positions
-    # unconditionally (as _put), k and d move on by c, and a loop runs only if all were below.
-    # ``points`` is ``out`` as float64, each point at least COMPARED positions to the right of the
-    # position its ancestor goes to: the positions written hold points already taken, and no load
-    # reads what the previous particle has just stored (a partly overlapping store cannot be
-    # forwarded to a load: comparing the points in place took 14 ms). Returns (k, d).
-    if d + COMPARED <= stored and k + COMPARED <= out.shape[0]:
-        below = 0
-        for q in range(COMPARED):
-            below += points[base + d + q] < limit
-        for q in range(COMPARED):
-            out[k + q] = j
-        k += below
-        d += below
-        if below < COMPARED:
-            return k, d
+def _count_below(points, at, limit):  # pragma: no cover - compiled
+    # How many of the sorted points[at:at + COMPARED] lie below ``limit``: the first that many.
+    below = 0
+    for q in range(COMPARED):
+        below += points[at + q] < limit
+    return below
+
+
+@numba.njit(inline="always")
+def _take_rest(out, points, tail, base, stored, count, k, d, limit, j):  # pragma: no cover - compiled
+    # The plain merge from point d (output position k): j takes the points below ``limit``. Returns (k, d).
     while d < count and k < out.shape[0] and _point(points, tail, base, stored, d) < limit:
         out[k] = j
         k += 1
         d += 1
     return k, d
+
+
+# How multinomial and residual hand particle j the sorted points d, d + 1, ... below its running
+# sum, at output positions k, k + 1, ...: the plain merge "while the next point is below the running
+# sum, take it" has a loop exit that depends on the data at every particle, and its mispredictions
+# cost 7.7 ms of multinomial's 15.7 at N = 1e6. Instead the next COMPARED points are compared at
+# once (_count_below: sorted, the c below the sum are the first c), j goes to the next COMPARED
+# positions unconditionally (as in _put), k and d move on by c, and the plain merge runs only when
+# all were below (or near the end). The points live in ``out`` itself (as float64), SHIFT positions
+# to the right of where their ancestors go: the positions written hold points already taken, and
+# the loads never share a cache line with what the previous particles have just stored (points in
+# place took 17 ms for multinomial, SHIFT = COMPARED 44 ms, 2 COMPARED 10 ms: the loads waited for
+# the stores). The merge loops are written out in each kernel: the same steps in an inlined
+# function that returned early took 40 ms.
 
 
 @numba.njit(inline="always")
@@ -362,14 +368,14 @@ def _draw_points(points, tail, base, stored, count, high, low, inc_high, inc_low
 def multinomial_pcg(weights, words, out):  # pragma: no cover - compiled
     # multinomial's numbers with the exponentials drawn from the PCG64 state ``words`` (advanced
     # in place; the caller puts it back into the Generator). Pass 1 draws the M + 1 exponentials
-    # and stores the M points in ``out``, COMPARED positions to the right, the last COMPARED in a
-    # small array; pass 2 merges them with the running weight sum scaled by the total.
+    # and stores the M points in ``out``, SHIFT positions to the right, the last SHIFT in a small
+    # array; pass 2 merges them with the running weight sum scaled by the total.
     m = out.shape[0]
     points = out.view(np.float64)
-    stored = max(m - COMPARED, 0)
-    tail = np.empty(COMPARED)
+    stored = max(m - SHIFT, 0)
+    tail = np.empty(SHIFT)
     high, low, inc_high, inc_low = words[0], words[1], words[2], words[3]
-    total, high, low = _draw_points(points, tail, COMPARED, stored, m, high, low, inc_high, inc_low)
+    total, high, low = _draw_points(points, tail, SHIFT, stored, m, high, low, inc_high, inc_low)
     words[0], words[1] = high, low
     cumulative = 0.0
     k = 0
@@ -377,7 +383,14 @@ def multinomial_pcg(weights, words, out):  # pragma: no cover - compiled
         if k >= m:
             break
         cumulative += weights[j] * total
-        k, _ = _take_below(out, points, tail, COMPARED, stored, m, k, k, cumulative, j)
+        if k + COMPARED <= stored:  # point k at out[k + SHIFT]
+            below = _count_below(points, k + SHIFT, cumulative)
+            for q in range(COMPARED):
+                out[k + q] = j
+            k += below
+            if below < COMPARED:
+                continue
+        k, _ = _take_rest(out, points, tail, SHIFT, stored, m, k, k, cumulative, j)
     fill_tail(out, k, weights)
     return out
 
@@ -385,10 +398,10 @@ def multinomial_pcg(weights, words, out):  # pragma: no cover - compiled
 @numba.njit(cache=True, nogil=True)
 def residual_pcg(weights, words, out):  # pragma: no cover - compiled
     # residual's numbers with the exponentials drawn from the PCG64 state ``words`` (advanced in
-    # place). The R points live in ``out`` from N - R + COMPARED on (the last COMPARED in a small
-    # array): when residual point d is read, the floors and points taken fill at most N - R + d
-    # positions, and the unconditional stores reach COMPARED - 1 further, so nothing unread is
-    # overwritten (see _take_below).
+    # place). The R points live in ``out`` from N - R + SHIFT on (the last SHIFT in a small array):
+    # when residual point d is read, the floors and points taken fill at most N - R + d positions,
+    # and the unconditional stores reach UNCONDITIONAL - 1 further, less than SHIFT, so nothing
+    # unread is overwritten (see _count_below).
     n = weights.shape[0]
     kept = 0
     residual_total = 0.0
@@ -399,9 +412,9 @@ def residual_pcg(weights, words, out):  # pragma: no cover - compiled
         residual_total += max(scaled - whole, 0.0)
     remaining = max(n - kept, 0)
     points = out.view(np.float64)
-    base = n - remaining + COMPARED
-    stored = max(remaining - COMPARED, 0)
-    tail = np.empty(COMPARED)
+    base = n - remaining + SHIFT
+    stored = max(remaining - SHIFT, 0)
+    tail = np.empty(SHIFT)
     high, low, inc_high, inc_low = words[0], words[1], words[2], words[3]
     total, high, low = _draw_points(points, tail, base, stored, remaining, high, low, inc_high, inc_low)
     words[0], words[1] = high, low
@@ -416,7 +429,15 @@ def residual_pcg(weights, words, out):  # pragma: no cover - compiled
         whole = np.floor(scaled + ROUNDING)
         k = _put(out, k, min(k + int(whole), n), j)
         cumulative += max(scaled - whole, 0.0) * scale
-        k, drawn = _take_below(out, points, tail, base, stored, remaining, k, drawn, cumulative, j)
+        if drawn + COMPARED <= stored and k + COMPARED <= n:
+            below = _count_below(points, base + drawn, cumulative)
+            for q in range(COMPARED):
+                out[k + q] = j
+            k += below
+            drawn += below
+            if below < COMPARED:
+                continue
+        k, drawn = _take_rest(out, points, tail, base, stored, remaining, k, drawn, cumulative, j)
     fill_tail(out, k, weights)
     return out
 

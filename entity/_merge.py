@@ -144,7 +144,7 @@ def _put(out, k, end, j):  # pragma: no cover - compiled
     i = k
     if k + UNCONDITIONAL <= out.shape[0]:
         for q in range(UNCONDITIONAL):
-            out[k + q] = j
+            out[_U(k + q)] = j  # an unsigned index: no check for a negative one
         i = k + UNCONDITIONAL
     while i < end:
         out[i] = j
@@ -319,7 +319,7 @@ def _count_below(points, at, limit):  # pragma: no cover - compiled
     # How many of the sorted points[at:at + COMPARED] lie below ``limit``: the first that many.
     below = 0
     for q in range(COMPARED):
-        below += points[at + q] < limit
+        below += points[_U(at + q)] < limit  # an unsigned index: no check for a negative one
     return below
 
 
@@ -386,7 +386,7 @@ def multinomial_pcg(weights, words, out):  # pragma: no cover - compiled
         if k + COMPARED <= stored:  # point k at out[k + SHIFT]
             below = _count_below(points, k + SHIFT, cumulative)
             for q in range(COMPARED):
-                out[k + q] = j
+                out[_U(k + q)] = j
             k += below
             if below < COMPARED:
                 continue
@@ -432,7 +432,7 @@ def residual_pcg(weights, words, out):  # pragma: no cover - compiled
         if drawn + COMPARED <= stored and k + COMPARED <= n:
             below = _count_below(points, base + drawn, cumulative)
             for q in range(COMPARED):
-                out[k + q] = j
+                out[_U(k + q)] = j
             k += below
             drawn += below
             if below < COMPARED:

@@ -143,11 +143,11 @@ def _split(weights, limit, particles, capacity):  # pragma: no cover - compiled
     out = np.empty((n, d))
     n_large = 0
     if d == 1:  # a loop over one component would serialise the stores
-        for i in range(n):
+        for i in range(n):  # unsigned indices: numba checks every signed one for a negative value
             value = particles[i, 0]
             out[i, 0] = value
-            rows[n_large, 0] = value
-            small[i - n_large] = i
+            rows[_U(n_large), 0] = value
+            small[_U(i - n_large)] = i
             n_large += weights[i] > limit
     else:
         for i in range(n):
@@ -258,8 +258,8 @@ def _move(particles, small, rows, ps, state, out):  # pragma: no cover - compile
         mixed = (bits >> _U(11)) <= mixed_below  # u <= PS
         f = (2.0 * r - 1.0) * (r if mixed else 1.0)  # _factor(r, u, ps)
         n_mixed += mixed
-        i = small[l]
-        m = int(v * n_large)
+        i = _U(small[l])  # unsigned indices: numba checks every signed one for a negative value
+        m = _U(int(v * n_large))
         if d == 1:  # the loop over components, even of length 1, serialises the random reads
             out[i, 0] = rows[m, 0] + f * particles[i, 0]
         else:

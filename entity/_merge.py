@@ -314,11 +314,16 @@ def _point(points, tail, base, stored, d):  # pragma: no cover - compiled
     return points[base + d] if d < stored else tail[d - stored]
 
 
+#: Residual's points compared at once: its particles take R / N (0.43 here) of them on average,
+#: and 4 beat 8 (8.3 against 9.2 ms at N = 1e6); multinomial's take one, and 8 beat 4 (10.0 against 12.3).
+RESIDUAL_COMPARED = 4
+
+
 @numba.njit(inline="always")
-def _count_below(points, at, limit):  # pragma: no cover - compiled
-    # How many of the sorted points[at:at + COMPARED] lie below ``limit``: the first that many.
+def _count_below(points, at, limit, width):  # pragma: no cover - compiled
+    # How many of the sorted points[at:at + width] lie below ``limit``: the first that many.
     below = 0
-    for q in range(COMPARED):
+    for q in range(width):
         below += points[_U(at + q)] < limit  # an unsigned index: no check for a negative one
     return below
 
@@ -353,13 +358,14 @@ def _draw_points(points, tail, base, stored, count, high, low, inc_high, inc_low
     # stored as _point reads them. Returns (total of all count + 1, high, low): the additions and
     # their order are those of the plain merge.
     total = 0.0
-    for d in range(count):
+    for d in range(stored):
         e, high, low = _pcg_exponential(high, low, inc_high, inc_low)
         total += e
-        if d < stored:
-            points[base + d] = total
-        else:
-            tail[d - stored] = total
+        points[_U(base + d)] = total
+    for d in range(stored, count):
+        e, high, low = _pcg_exponential(high, low, inc_high, inc_low)
+        total += e
+        tail[d - stored] = total
     e, high, low = _pcg_exponential(high, low, inc_high, inc_low)
     return total + e, high, low  # the (count + 1)-th, past the last point
 
@@ -384,7 +390,7 @@ def multinomial_pcg(weights, words, out):  # pragma: no cover - compiled
             break
         cumulative += weights[j] * total
         if k + COMPARED <= stored:  # point k at out[k + SHIFT]
-            below = _count_below(points, k + SHIFT, cumulative)
+            below = _count_below(points, k + SHIFT, cumulative, COMPARED)
             for q in range(COMPARED):
                 out[_U(k + q)] = j
             k += below
@@ -429,13 +435,13 @@ def residual_pcg(weights, words, out):  # pragma: no cover - compiled
         whole = np.floor(scaled + ROUNDING)
         k = _put(out, k, min(k + int(whole), n), j)
         cumulative += max(scaled - whole, 0.0) * scale
-        if drawn + COMPARED <= stored and k + COMPARED <= n:
-            below = _count_below(points, base + drawn, cumulative)
-            for q in range(COMPARED):
+        if drawn + RESIDUAL_COMPARED <= stored and k + RESIDUAL_COMPARED <= n:
+            below = _count_below(points, base + drawn, cumulative, RESIDUAL_COMPARED)
+            for q in range(RESIDUAL_COMPARED):
                 out[_U(k + q)] = j
             k += below
             drawn += below
-            if below < COMPARED:
+            if below < RESIDUAL_COMPARED:
                 continue
         k, drawn = _take_rest(out, points, tail, base, stored, remaining, k, drawn, cumulative, j)
     fill_tail(out, k, weights)

@@ -4,12 +4,19 @@ Every scheme merges sorted points with the running weight sum C_j and hands
 particle j the points below C_j. Written as "while the next point is below
 C_j, take it", the merge's loop exit depends on the data at every particle,
 and at N = 1e6 the mispredicted branches cost three times the pass itself.
-Here particle j first writes its index twice, unconditionally, at the next
-two output positions k and k + 1 and then moves k to the end of its points;
-a loop runs only from the third copy on. A particle with no point has its
-two stores overwritten by the next particle with one (or by the tail guard),
-so every position ends with the value the plain merge gives it: the same
-numbers, from the same floating-point operations in the same order.
+Here particle j first writes its index, unconditionally, at the next
+UNCONDITIONAL output positions and then moves k to the end of its points; a
+loop runs only past them. Stores past a particle's points are overwritten by
+the particles that follow (or by the tail guard), so every position ends with
+the value the plain merge gives it: the same numbers, from the same
+floating-point operations in the same order. Multinomial and residual, whose
+points are random, compare several points with the running sum at once
+(COMPARED) and keep the points in the output itself (see _count_below).
+
+For numpy's PCG64 the random numbers are drawn here, from an inline copy of
+the generator's state (pcg_state, set_pcg_state), number for number those of
+the Generator's methods; any other bit generator goes through numba's
+Generator methods (the kernels taking ``rng``).
 
 Outputs are written into a caller's (N,) int64 array, once per position
 (plus the overwritten stores, in cache). Nothing here checks the weights;

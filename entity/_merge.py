@@ -11,7 +11,8 @@ the particles that follow (or by the tail guard), so every position ends with
 the value the plain merge gives it: the same numbers, from the same
 floating-point operations in the same order. Multinomial and residual, whose
 points are random, compare several points with the running sum at once
-(COMPARED) and keep the points in the output itself (see _count_below).
+(COMPARED) and keep the points in the output itself (see the notes before
+_count_below).
 
 For numpy's PCG64 the random numbers are drawn here, from an inline copy of
 the generator's state (pcg_state, set_pcg_state), number for number those of
@@ -311,7 +312,8 @@ def multinomial(weights, rng, out):  # pragma: no cover - compiled
 
 #: Points each particle compares with its running sum at once (one 64-byte load of sorted points).
 COMPARED = 8
-#: How far to the right of its ancestor's position a sorted point is kept in the output (see _take_below).
+#: How far to the right of its ancestor's position a sorted point is kept in the output
+#: (see the notes before _count_below).
 SHIFT = 2 * COMPARED
 
 
@@ -319,6 +321,20 @@ SHIFT = 2 * COMPARED
 def _point(points, tail, base, stored, d):  # pragma: no cover - compiled
     # Sorted point d: at points[base + d] for d < stored, the last ones in ``tail``.
     return points[base + d] if d < stored else tail[d - stored]
+
+
+# How multinomial and residual hand particle j the sorted points d, d + 1, ... below its running
+# sum, at output positions k, k + 1, ...: the plain merge "while the next point is below the running
+# sum, take it" has a loop exit that depends on the data at every particle, and its mispredictions
+# cost 7.7 ms of multinomial's 15.7 at N = 1e6. Instead the next COMPARED points are compared at
+# once (_count_below: sorted, the c below the sum are the first c), j goes to the next COMPARED
+# positions unconditionally (as in _put), k and d move on by c, and the plain merge runs only when
+# all were below (or near the end). The points live in ``out`` itself (as float64), SHIFT positions
+# to the right of where their ancestors go: the positions written hold points already taken, and
+# the loads never share a cache line with what the previous particles have just stored (points in
+# place took 17 ms for multinomial, SHIFT = COMPARED 44 ms, 2 COMPARED 10 ms: the loads waited for
+# the stores). The merge loops are written out in each kernel: the same steps in an inlined
+# function that returned early took 40 ms.
 
 
 #: Residual's points compared at once: its particles take R / N (0.43 here) of them on average,
@@ -344,19 +360,6 @@ def _take_rest(out, points, tail, base, stored, count, k, d, limit, j):  # pragm
         d += 1
     return k, d
 
-
-# How multinomial and residual hand particle j the sorted points d, d + 1, ... below its running
-# sum, at output positions k, k + 1, ...: the plain merge "while the next point is below the running
-# sum, take it" has a loop exit that depends on the data at every particle, and its mispredictions
-# cost 7.7 ms of multinomial's 15.7 at N = 1e6. Instead the next COMPARED points are compared at
-# once (_count_below: sorted, the c below the sum are the first c), j goes to the next COMPARED
-# positions unconditionally (as in _put), k and d move on by c, and the plain merge runs only when
-# all were below (or near the end). The points live in ``out`` itself (as float64), SHIFT positions
-# to the right of where their ancestors go: the positions written hold points already taken, and
-# the loads never share a cache line with what the previous particles have just stored (points in
-# place took 17 ms for multinomial, SHIFT = COMPARED 44 ms, 2 COMPARED 10 ms: the loads waited for
-# the stores). The merge loops are written out in each kernel: the same steps in an inlined
-# function that returned early took 40 ms.
 
 
 @numba.njit(inline="always")
@@ -414,7 +417,7 @@ def residual_pcg(weights, words, out):  # pragma: no cover - compiled
     # place). The R points live in ``out`` from N - R + SHIFT on (the last SHIFT in a small array):
     # when residual point d is read, the floors and points taken fill at most N - R + d positions,
     # and the unconditional stores reach UNCONDITIONAL - 1 further, less than SHIFT, so nothing
-    # unread is overwritten (see _count_below).
+    # unread is overwritten (see the notes before _count_below).
     n = weights.shape[0]
     kept = 0
     residual_total = 0.0

@@ -131,21 +131,32 @@ def _threshold(weights: np.ndarray, rule: str | float) -> tuple[float, int]:
 
 @numba.njit(cache=True, nogil=True)
 def _split(weights, limit, particles, capacity):  # pragma: no cover - compiled
-    # Eq. 28 in one branch-free pass: the indices of the small particles (weight <= W), and the rows
-    # of the large ones (weight > W) copied in index order, so that the moves read their partners
-    # from a compact array of M rows instead of from all N (random reads in 3 MB, not 8 MB, at
-    # N = 1e6 and M = 0.37 N: 10x faster).
+    # Eq. 28 in one branch-free pass: the indices of the small particles (weight <= W), the rows of
+    # the large ones (weight > W) copied in index order, so that the moves read their partners from
+    # a compact array of M rows instead of from all N (random reads in 3 MB, not 8 MB, at N = 1e6
+    # and M = 0.37 N: 10x faster), and the copy of every particle the moves then write into (made
+    # here, from the values the split reads anyway: one pass over the particles, not two).
     # At most ``capacity`` weights exceed W (k for the "neff" rule): the rows array is no larger.
     n, d = particles.shape
     small = np.empty(n, dtype=np.int32)  # int32: half the memory traffic of int64; N < 2**31
     rows = np.empty((capacity + 1, d))
+    out = np.empty((n, d))
     n_large = 0
-    for i in range(n):
-        for c in range(d):
-            rows[n_large, c] = particles[i, c]
-        small[i - n_large] = i
-        n_large += weights[i] > limit
-    return small[: n - n_large], rows[:n_large]
+    if d == 1:  # a loop over one component would serialise the stores
+        for i in range(n):  # unsigned indices: numba checks every signed one for a negative value
+            value = particles[i, 0]
+            out[i, 0] = value
+            rows[_U(n_large), 0] = value
+            small[_U(i - n_large)] = i
+            n_large += weights[i] > limit
+    else:
+        for i in range(n):
+            for c in range(d):
+                out[i, c] = particles[i, c]
+                rows[n_large, c] = particles[i, c]
+            small[i - n_large] = i
+            n_large += weights[i] > limit
+    return small[: n - n_large], rows[:n_large], out
 
 
 # --- the random stream of the rules --------------------------------------------
@@ -223,22 +234,32 @@ def _draws(state, n_small, n_large):  # pragma: no cover - compiled
     return partners, r, u
 
 
+@numba.njit(inline="always")
+def _mixed_below(ps):  # pragma: no cover - compiled
+    # u <= PS for u = b * 2**-53 (b the top 53 bits of a draw) is b <= floor(PS * 2**53), exactly:
+    # the scaling by a power of two is exact, so the branch of Eq. 30 needs no conversion of u.
+    return _U(np.floor(ps * 9007199254740992.0))
+
+
 @numba.njit(cache=True, nogil=True)
 def _move(particles, small, rows, ps, state, out):  # pragma: no cover - compiled
     # For each small particle x_l in index order: its partner x_m drawn uniformly from the large
     # rows, r and u, then out[l] = x_m + f x_l (Eq. 29-30). Returns the number on the mixed branch.
+    # The three draws per particle are most of the work (1.9 million at N = 1e6, M = 0.37 N).
     n_large = rows.shape[0]
     d = particles.shape[1]
+    mixed_below = _mixed_below(ps)
     n_mixed = 0
     s0, s1, s2, s3 = state[0], state[1], state[2], state[3]
     for l in range(small.shape[0]):
         v, s0, s1, s2, s3 = _uniform(s0, s1, s2, s3)
         r, s0, s1, s2, s3 = _uniform(s0, s1, s2, s3)
-        u, s0, s1, s2, s3 = _uniform(s0, s1, s2, s3)
-        f = _factor(r, u, ps)
-        n_mixed += u <= ps
-        i = small[l]
-        m = int(v * n_large)
+        bits, s0, s1, s2, s3 = _next(s0, s1, s2, s3)
+        mixed = (bits >> _U(11)) <= mixed_below  # u <= PS
+        f = (2.0 * r - 1.0) * (r if mixed else 1.0)  # _factor(r, u, ps)
+        n_mixed += mixed
+        i = _U(small[l])  # unsigned indices: numba checks every signed one for a negative value
+        m = _U(int(v * n_large))
         if d == 1:  # the loop over components, even of length 1, serialises the random reads
             out[i, 0] = rows[m, 0] + f * particles[i, 0]
         else:
@@ -254,8 +275,7 @@ def _rules(particles, weights, limit, rank, capacity, ps, state):  # pragma: no 
     # the copy and the moves. Returns (new particles, W, M, N - M, number mixed).
     if rank >= 0:
         limit = np.partition(weights, rank)[rank]
-    small, rows = _split(weights, limit, particles, capacity)
-    out = particles.copy()
+    small, rows, out = _split(weights, limit, particles, capacity)
     if rows.shape[0] == 0 or small.shape[0] == 0:
         return out, limit, rows.shape[0], 0, 0
     return out, limit, rows.shape[0], small.shape[0], _move(particles, small, rows, ps, state, out)
@@ -431,10 +451,9 @@ def preprocess(
         new_particles, limit, n_large, n_small, n_mixed = _preprocess_small(x, w, threshold_rule, ps, rng)
     else:
         limit, capacity = _threshold(w, threshold_rule)
-        small_idx, large_rows = _split(w, limit, x, capacity)
+        small_idx, large_rows, new_particles = _split(w, limit, x, capacity)
         n_small, n_large = small_idx.size, large_rows.shape[0]
         if n_large > 0 and n_small > 0:
-            new_particles = x.copy()
             n_mixed = int(_move(x, small_idx, large_rows, ps, _seed(rng), new_particles))
     if n_large == 0 or n_small == 0:
         report = PreprocessReport(limit, n_large, 0, 0, 0, ps)

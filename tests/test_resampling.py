@@ -272,3 +272,81 @@ def test_checked_weights_of_another_type_are_still_checked():
 def test_distinct_counts_the_parents():
     assert rs.distinct(np.array([0, 0, 2, 3, 3, 3, 9])) == 4
     assert rs.distinct(np.array([5])) == 1
+
+
+# --- the inline PCG64 path against numba's Generator methods --------------------
+# For a PCG64 the schemes draw from an inline copy of its state (entity._merge.pcg_*), merge
+# several points at a time and keep their uniforms in a ring or their points in the output
+# itself; for any other bit generator they take the Generator's own methods. Both must give the
+# same ancestors and leave the generator in the same state, on sets large enough to reach the
+# rings, the catch-up and pause of stratified's drawing, and the last points' plain merge.
+
+def large_cases():
+    """Weights of 1 to 30,000 particles shaped to stress the merges."""
+    rng = np.random.default_rng(41)
+    for n in (1, 5, 9, 17, 4099, 30_000):
+        lw = rng.standard_normal(n)
+        yield np.exp(lw) / np.exp(lw).sum()                      # the benchmark's weights
+        w = np.sort(np.exp(2.0 * rng.standard_normal(n)))          # heavy particles last: m lags
+        yield w / w.sum()
+        yield w[::-1] / w.sum()                                   # heavy particles first: m runs ahead
+        w = np.zeros(n)
+        w[rng.integers(0, n, max(n // 1000, 1))] = 1.0            # a few particles take everything
+        yield w / w.sum()
+        yield np.full(n, 1.0 / n)
+        w = rng.integers(0, 3, n).astype(float)                   # N C_j on integers, zeros between
+        w[-1] += 1.0
+        yield w / w.sum()
+
+
+def _generator_path(scheme, w, rng):
+    """The scheme through numba's Generator methods (the path of non-PCG64 bit generators)."""
+    from entity import _merge
+
+    out = np.empty(w.size, dtype=np.int64)
+    if scheme == "stratified":
+        return _merge.stratified(w, rng.random(w.size), out)
+    return getattr(_merge, scheme)(w, rng, out)
+
+
+@pytest.mark.parametrize("scheme", ["stratified", "multinomial", "residual"])
+def test_the_inline_pcg64_path_gives_the_generator_paths_numbers(scheme):
+    for i, w in enumerate(large_cases()):
+        for seed in range(3):
+            rng, reference_rng = np.random.default_rng(seed), np.random.default_rng(seed)
+            got = rs.RESAMPLERS[scheme](w, rng)
+            np.testing.assert_array_equal(got, _generator_path(scheme, w, reference_rng),
+                                          err_msg=f"case {i}, N={w.size}, seed {seed}")
+            assert rng.bit_generator.state == reference_rng.bit_generator.state, (i, seed)
+
+
+def test_inline_pcg64_draws_are_the_generators():
+    from entity import _merge
+
+    for seed in range(3):
+        rng = np.random.default_rng(seed)
+        words = _merge.pcg_state(rng)
+        np.testing.assert_array_equal(_merge.pcg_uniforms(words, np.empty(50_001)), rng.random(50_001))
+        np.testing.assert_array_equal(words, _merge.pcg_state(rng))
+        # 300,000 exponentials reach the ziggurat's rejections (about 1 in 100) and its tail.
+        np.testing.assert_array_equal(_merge.pcg_exponentials(words, np.empty(300_001)),
+                                      rng.standard_exponential(300_001))
+        replica = np.random.default_rng(seed + 100)
+        replica.bit_generator.state = {**replica.bit_generator.state,
+                                       "state": {**rng.bit_generator.state["state"]}}
+        _merge.set_pcg_state(replica, words)
+        assert replica.bit_generator.state == rng.bit_generator.state
+
+
+@pytest.mark.parametrize("scheme", SCHEMES)
+def test_another_bit_generator_takes_the_generator_methods(scheme):
+    w = skewed_weights(3000)
+    rng = np.random.Generator(np.random.Philox(5))
+    got = rs.RESAMPLERS[scheme](w, rng)
+    reference_rng = np.random.Generator(np.random.Philox(5))
+    if scheme == "systematic":
+        expected = rs.systematic(w, reference_rng)
+    else:
+        expected = _generator_path(scheme, w, reference_rng)
+    np.testing.assert_array_equal(got, expected)
+    np.testing.assert_array_equal(rng.integers(0, 2 ** 62, 4), reference_rng.integers(0, 2 ** 62, 4))

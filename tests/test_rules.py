@@ -259,3 +259,23 @@ def test_a_stream_prepared_ahead_changes_no_number_and_only_serves_its_step():
     np.testing.assert_array_equal(wrong.preprocess(5, particles, weights, [1.0]).particles, expected.particles)
     other_step = layer().preprocess(6, particles, weights, [1.0])
     assert not np.array_equal(other_step.particles, expected.particles)
+
+
+@pytest.mark.parametrize("n", [rules.SMALL_SET - 1, rules.SMALL_SET, 3 * rules.SMALL_SET])
+@pytest.mark.parametrize("d", [1, 3])
+@pytest.mark.parametrize("ps", [0.0, 0.3, 1.0])
+def test_both_paths_apply_the_rules_with_their_documented_draws(n, d, ps):
+    # Below SMALL_SET one compiled call, from it on three; the split copies the set the moves write
+    # into, and u <= PS is decided on the draw's bits: the numbers of the rules as documented.
+    x, w = weighted_set(n=n, d=d, seed=n + d)
+    rng = np.random.default_rng(15)
+    result = rules.preprocess(x, w, ps, rng)
+    large, small, partners, r, u = redraw(x, w, ps, seed=15)
+    expected = x.copy()
+    expected[small] = rules.apply_rules(x[partners], x[small], r, u, ps)
+    np.testing.assert_array_equal(result.particles, expected)
+    assert result.report.n_mixed == int(np.sum(u <= ps))
+    assert result.report.n_large == large.size and result.report.n_processed == small.size
+    after = np.random.default_rng(15)
+    rules.draws(after, 0, 1)  # the seed words: what preprocess takes from the generator
+    assert rng.random() == after.random()

@@ -89,6 +89,9 @@ def cmd_launch(args: argparse.Namespace) -> int:
     config = resolved_config(args)
     sources.load_model(config)  # a wrong model or file: one line here, before any process starts
     signal.signal(signal.SIGTERM, _interrupt)
+    # SIGINT stops the launch even when it was started in the background of a script (a non-interactive
+    # shell starts such a job with SIGINT ignored, and Python then installs no handler of its own).
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     source = f", observations from {config.observations}" if config.observations else ""
     how = "embedded Zenoh on 127.0.0.1"
     if args.secure:

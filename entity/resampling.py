@@ -113,6 +113,17 @@ def inverse_cdf(points, weights) -> np.ndarray:
                               np.empty(p.size, dtype=np.int64))
 
 
+def _exponential_merge(w: np.ndarray, rng: np.random.Generator, out: np.ndarray, plain, inline) -> np.ndarray:
+    """``inline(w, words, out)`` on numpy's PCG64 stepped in the compiled pass, its state written back where
+    ``rng.standard_exponential`` would leave it; ``plain(w, rng, out)`` for any other generator."""
+    words = _merge.pcg_state(rng)
+    if words is None:
+        return plain(w, rng, out)
+    inline(w, words, out)
+    _merge.set_pcg_state(rng, words)
+    return out
+
+
 def multinomial(weights, rng: np.random.Generator, *, out=None, checked: bool = False) -> np.ndarray:
     """Multinomial resampling: N i.i.d. draws from W, via ordered uniforms (Eq. 26).
 
@@ -124,13 +135,7 @@ def multinomial(weights, rng: np.random.Generator, *, out=None, checked: bool = 
     ``rng.standard_exponential(N + 1)``'s, made in the compiled pass.
     """
     w = _weights(weights, checked)
-    out = _output(out, w.size)
-    words = _merge.pcg_state(rng)
-    if words is None:
-        return _merge.multinomial(w, rng, out)
-    _merge.multinomial_pcg(w, words, out)
-    _merge.set_pcg_state(rng, words)  # where rng.standard_exponential(N + 1) leaves it
-    return out
+    return _exponential_merge(w, rng, _output(out, w.size), _merge.multinomial, _merge.multinomial_pcg)
 
 
 def stratified(weights, rng: np.random.Generator, *, out=None, checked: bool = False) -> np.ndarray:
@@ -159,13 +164,7 @@ def residual(weights, rng: np.random.Generator, *, out=None, checked: bool = Fal
     N w_i - floor(N w_i), normalised; draws ``rng.standard_exponential(R + 1)``.
     """
     w = _weights(weights, checked)
-    out = _output(out, w.size)
-    words = _merge.pcg_state(rng)
-    if words is None:
-        return _merge.residual(w, rng, out)
-    _merge.residual_pcg(w, words, out)
-    _merge.set_pcg_state(rng, words)  # where rng.standard_exponential(R + 1) leaves it
-    return out
+    return _exponential_merge(w, rng, _output(out, w.size), _merge.residual, _merge.residual_pcg)
 
 
 def gather(particles: np.ndarray, ancestors: np.ndarray, out: np.ndarray | None = None, *,

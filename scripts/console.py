@@ -9,7 +9,19 @@ from __future__ import annotations
 import sys
 import time
 
-__all__ = ["ProgressBar", "TaskProgress", "run_command"]
+__all__ = ["ProgressBar", "TaskProgress", "run_command", "stop_on_signals"]
+
+
+def stop_on_signals():
+    """An event SIGINT or SIGTERM sets, for a command that serves until it is stopped (``dtpf router``,
+    ``dtpf bridge``): install it before serving, then ``while not stop.wait(0.5): pass``."""
+    import signal
+    import threading
+
+    stop = threading.Event()
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, lambda *_: stop.set())
+    return stop
 
 
 def run_command(parser, args) -> int:

@@ -15,7 +15,6 @@ then, in Foxglove, Open connection, ``ws://127.0.0.1:8765``.
 from __future__ import annotations
 
 import argparse
-import signal
 import sys
 import threading
 import time
@@ -24,6 +23,7 @@ from messages import keys
 from messages.bus import BusError, Inbox, add_zenoh_arguments, open_session, zenoh_config_from_args
 from messages.codec import ENVELOPE_ENCODING, message_encoding, schema_for
 from messages.models import ParticleSet
+from scripts.console import stop_on_signals
 
 __all__ = ["FoxgloveBridge", "parse_address", "register"]
 
@@ -99,9 +99,7 @@ class FoxgloveBridge:
 
 def cmd_bridge(args: argparse.Namespace) -> int:
     host, port = args.foxglove
-    stop = threading.Event()
-    for signum in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(signum, lambda *_: stop.set())
+    stop = stop_on_signals()
     try:
         session = open_session(zenoh_config_from_args(args, role="viewer"))
     except BusError as error:

@@ -119,9 +119,11 @@ class RunResult:
         return np.array([s.report.ps if s.report is not None else np.nan for s in self.steps])
 
 
-def simulate(config: RunConfig) -> tuple[np.ndarray, np.ndarray]:
-    """Truth and observations of the run's scenario, from stream(seed, twin, 0, "scenario")."""
-    model = sources.load_model(config, check=False)
+def simulate(config: RunConfig, model=None) -> tuple[np.ndarray, np.ndarray]:
+    """Truth and observations of the run's scenario, from stream(seed, twin, 0, "scenario");
+    ``model``: the run's model if it is loaded already (default: the one the configuration names)."""
+    if model is None:
+        model = sources.load_model(config, check=False)
     return model.simulate(config.steps, stream(config.seed, config.twin, 0, "scenario"))
 
 

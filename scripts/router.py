@@ -13,11 +13,10 @@ from __future__ import annotations
 
 import argparse
 import json
-import signal
 import sys
-import threading
 
 from messages.bus import BusError, open_session, zenoh_config
+from scripts.console import stop_on_signals
 
 __all__ = ["register", "cmd_router"]
 
@@ -32,9 +31,7 @@ def _file_endpoints(folder) -> list[str]:
 
 def cmd_router(args: argparse.Namespace) -> int:
     listen = args.listen or ([] if args.secure else ["tcp/127.0.0.1:7447"])
-    stop = threading.Event()
-    for signum in (signal.SIGINT, signal.SIGTERM):  # before the router listens: a client may stop it at once
-        signal.signal(signum, lambda *_: stop.set())
+    stop = stop_on_signals()  # before the router listens: a client may stop it at once
     try:
         session = open_session(zenoh_config(mode="router", listen=listen, connect=args.connect, secure=args.secure,
                                             role="router" if args.secure else None))

@@ -277,10 +277,8 @@ class PredictivePS(_Adaptive):
         super().__init__(ps, max_change)
         if int(candidates) < 3 or int(candidates) % 2 == 0:
             raise ValueError(f"candidates must be odd and at least 3, got {candidates!r}")
-        if not float(confidence) >= 0.0:
-            raise ValueError(f"confidence must be non-negative, got {confidence!r}")
         self.candidates = int(candidates)
-        self.confidence = float(confidence)
+        self.confidence = _non_negative(confidence, "confidence")
 
     def candidate_values(self) -> list[float]:
         """The PS values tried at the next decision (the current PS included)."""

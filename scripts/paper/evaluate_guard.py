@@ -48,9 +48,9 @@ import numpy as np
 from entity import models, model_ref
 from messages.config import RunConfig
 from scripts.console import TaskProgress
-from scripts.inprocess import build
+from scripts.inprocess import build, simulate
+from scripts.paper.common import mean_ci, significance
 
-Z95 = 1.959963984540054
 TRADITIONAL = ("systematic", "multinomial", "stratified", "residual")
 #: The relative rule's options (PS and weights chosen on pilot seeds, see the module docstring).
 RELATIVE = dict(move_rule="relative", weight_rule="likelihood", ps=0.0)
@@ -111,12 +111,15 @@ def _errors(scenario: str, means: np.ndarray, truth: np.ndarray) -> float:
     return float(np.mean((means - truth) ** 2))
 
 
-def run_variant(task: Task, label: str, model, options: dict) -> dict:
+def task_config(task: Task, options: dict, **variant) -> RunConfig:
+    """The run of ``task`` on its scenario (``options``) with a variant's options."""
+    return RunConfig(particles=task.particles, seed=task.seed, steps=task.steps, twin="guard-1", **options, **variant)
+
+
+def run_variant(task: Task, label: str, model, options: dict, truth: np.ndarray, observations: np.ndarray) -> dict:
+    """One variant on the task's data set (``truth``, ``observations``: shared by every variant)."""
     variants = PILOT_VARIANTS if task.pilot else VARIANTS
-    config = RunConfig(particles=task.particles, seed=task.seed, steps=task.steps, twin="guard-1",
-                       **options, **variants[label])
-    truth, observations = model.simulate(task.steps, _scenario_stream(config))
-    pf = build(config, observations, model)
+    pf = build(task_config(task, options, **variants[label]), observations, model)
     start = time.perf_counter()
     steps = list(pf)
     elapsed = time.perf_counter() - start
@@ -128,11 +131,6 @@ def run_variant(task: Task, label: str, model, options: dict) -> dict:
                 distinct=float(np.mean(distinct)) / n, on=float(np.mean(on)), ms=1e3 * elapsed / len(steps))
 
 
-def _scenario_stream(config: RunConfig):
-    from messages.streams import stream
-    return stream(config.seed, config.twin, 0, "scenario")
-
-
 _MODELS: dict[str, tuple[dict, object]] = {}
 
 
@@ -141,11 +139,10 @@ def run_task(task: Task) -> tuple[Task, dict[str, dict]]:
         _MODELS[task.scenario] = scenario_model(task.scenario)
     options, model = _MODELS[task.scenario]
     variants = PILOT_VARIANTS if task.pilot else VARIANTS
-    results = {label: run_variant(task, label, model, options) for label in variants
+    truth, observations = simulate(task_config(task, options), model)  # one data set for every variant
+    results = {label: run_variant(task, label, model, options, truth, observations) for label in variants
                if task.pilot or runs_on(task.scenario, label)}
     if isinstance(model, models.DriftModel):  # the exact posterior mean: the floor of any filter
-        config = RunConfig(particles=task.particles, seed=task.seed, steps=task.steps, twin="guard-1", **options)
-        truth, observations = model.simulate(task.steps, _scenario_stream(config))
         results["Kalman (exact)"] = dict(error=float(np.mean((model.kalman(observations) - truth) ** 2)))
     return task, results
 
@@ -155,17 +152,6 @@ def _warm_up(scenarios) -> None:
     step includes it."""
     for scenario in scenarios:
         run_task(Task(scenario, 20, 0, 3))
-
-
-def mean_ci(values) -> tuple[float, float]:
-    values = np.asarray(values, dtype=np.float64)
-    half = Z95 * float(values.std(ddof=1)) / math.sqrt(values.size) if values.size > 1 else math.nan
-    return float(values.mean()), half
-
-
-def _sign(value: float, half: float) -> int:
-    """-1 if the 95% interval lies below 0, +1 above, 0 if it holds 0."""
-    return -1 if value + half < 0 else 1 if value - half > 0 else 0
 
 
 def _num(value: float) -> str:
@@ -185,8 +171,8 @@ def cell_rows(by_seed: dict[int, dict[str, dict]]) -> tuple[str, list[dict]]:
         d, dh = mean_ci(error[label] - error[best])
         s, sh = mean_ci(error[label] - error["systematic"])
         row = dict(variant=label, error=m, error_ci=h, diff=d, diff_ci=dh, vs_systematic=s, vs_systematic_ci=sh,
-                   significant=_sign(d, dh) if label != best else 0,
-                   significant_vs_systematic=_sign(s, sh) if label != "systematic" else 0)
+                   significant=significance(d, dh) if label != best else 0,
+                   significant_vs_systematic=significance(s, sh) if label != "systematic" else 0)
         for figure in ("ess", "distinct", "on", "ms"):
             values = [by_seed[s][label].get(figure) for s in seeds]
             row[figure] = float(np.mean(values)) if values[0] is not None else math.nan

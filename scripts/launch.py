@@ -348,7 +348,7 @@ def launch(config: RunConfig, *, log_path: Path | None = None, port: int | None 
            rate: float | None = None, progress=None, child_output=None,
            observation_timeout: float | None = None, restarts: int = DEFAULT_RESTARTS,
            keep_estimates: bool = True, notify=None, cloud_points: int | None = None,
-           foxglove: tuple[str, int] | None = None, secure=None) -> LaunchResult:
+           foxglove: tuple[str, int] | None = None, secure=None, record: bool = True) -> LaunchResult:
     """Run ``config`` as four processes around an embedded Zenoh router.
 
     ``rate`` caps the entity's steps per second (None: as fast as it can).
@@ -368,6 +368,7 @@ def launch(config: RunConfig, *, log_path: Path | None = None, port: int | None 
     folder of ``dtpf secure init`` (:mod:`messages.secure`); the router then
     listens on its protocol (``tls/`` or ``tcp/`` with passwords) and enforces
     its access control, and each service connects as the role of its layer.
+    ``record``: False runs no recorder (the split alone, for benchmarks); nothing is logged.
     Raises LaunchError when the router cannot listen, a service fails to start
     or refuses its configuration; the entity's failure ends the run with
     :attr:`LaunchResult.failure` set.
@@ -387,7 +388,7 @@ def launch(config: RunConfig, *, log_path: Path | None = None, port: int | None 
         children[layer] = subprocess.Popen(
             service_command(layer, config, endpoint, timeout=timeout, log_path=output, log_level=log_level,
                             rate=rate, observation_timeout=observation_timeout, cloud_points=cloud_points,
-                            secure=secure.path if secure is not None else None),
+                            secure=secure.path if secure is not None else None, wait_for_recorder=record),
             stderr=child_output, start_new_session=True)
         layer_of_pid[children[layer].pid] = layer
 
@@ -427,8 +428,9 @@ def launch(config: RunConfig, *, log_path: Path | None = None, port: int | None 
                       max_payload=1 << 20, max_items=10_000)
         presence = Presence(router, config.twin, "launcher", names=[layer.value for layer in Layer])
         # The recorder first, and listening, before any layer says it is running.
-        start_child("recorder", log_path)
-        _wait_for_recorder(children["recorder"], presence, startup_timeout)
+        if record:
+            start_child("recorder", log_path)
+            _wait_for_recorder(children["recorder"], presence, startup_timeout)
         for layer in LAYERS[1:]:
             start_child(layer, log_path)
         per_step = timeout + (1.0 / rate if rate else 0.0)
@@ -451,7 +453,7 @@ def launch(config: RunConfig, *, log_path: Path | None = None, port: int | None 
             if children["entity"].poll() is not None:
                 break
             for layer in LAYERS[:-1]:
-                if layer not in gone and children[layer].poll() is not None:
+                if layer in children and layer not in gone and children[layer].poll() is not None:
                     revive(layer)
             if time.monotonic() > deadline:
                 raise LaunchError("the run did not finish in time")

@@ -74,6 +74,17 @@ def wait_for_step(router, step, timeout, degraded=None):
     return router.collect(seen, timeout)
 
 
+def test_launch_without_the_recorder_runs_the_split_alone(tmp_path):
+    """record=False (the benchmarks' split alone): no recorder process, no log, the same numbers."""
+    config = RunConfig(particles=200, steps=15, seed=5, twin="t-norecord")
+    log = tmp_path / "run.mcap"
+    result = launch(config, log_path=log, timeout=5.0, record=False, notify=lambda text: None)
+    assert result.exit_codes == {"system": 0, "information": 0, "entity": 0}
+    assert not log.exists()
+    means = np.array([e.mean for e in sorted(result.estimates, key=lambda e: e.step)])
+    np.testing.assert_array_equal(means, inprocess.run(config).means)
+
+
 def test_entity_survives_the_information_layer_being_killed_and_restarted(processes, router, tmp_path):
     run = ["--particles", "500", "--steps", "150", "--twin", "t-kill", "--seed", "3"]
     log = tmp_path / "kill.mcap"

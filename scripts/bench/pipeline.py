@@ -113,44 +113,13 @@ def run_inprocess(config: RunConfig) -> float:
 
 # --- (b) three processes over Zenoh -------------------------------------------
 
-@contextlib.contextmanager
-def without_recorder():
-    """Launch without the recorder service, by patching ``scripts.launch`` in this process only.
-
-    ``launch()`` starts the layers in ``LAYERS`` and the entity waits for
-    ``--wait-for recorder``; both are swapped here and restored afterwards.
-    """
-    layers, command = launch_module.LAYERS, launch_module.service_command
-    if "recorder" not in layers:
-        raise RuntimeError("scripts.launch changed: LAYERS has no 'recorder'; --no-recorder needs updating")
-
-    def service_command(*args, **kwargs):
-        out = command(*args, **kwargs)
-        kept = []
-        for item in out:
-            if item == "recorder" and kept and kept[-1] == "--wait-for":
-                kept.pop()
-            else:
-                kept.append(item)
-        return kept
-
-    launch_module.LAYERS = tuple(layer for layer in layers if layer != "recorder")
-    launch_module.service_command = service_command
-    try:
-        yield
-    finally:
-        launch_module.LAYERS, launch_module.service_command = layers, command
-
-
 def run_launched(config: RunConfig, *, recorder: bool, timeout: float, folder: Path,
                  cloud_points: int | None = None, secure: Path | None = None) -> tuple[float, float, int]:
     """(seconds per step over the timed window, wall seconds of the whole launch, degraded steps)."""
     log_path = folder / f"bench-{config.particles}-{time.monotonic_ns()}.mcap"
-    context = contextlib.nullcontext() if recorder else without_recorder()
     start = time.perf_counter()
-    with context:
-        result = launch_module.launch(config, log_path=log_path, timeout=timeout, child_output=None,
-                                      cloud_points=cloud_points, notify=lambda text: None, secure=secure)
+    result = launch_module.launch(config, log_path=log_path, timeout=timeout, child_output=None, record=recorder,
+                                  cloud_points=cloud_points, notify=lambda text: None, secure=secure)
     wall = time.perf_counter() - start
     with contextlib.suppress(FileNotFoundError):
         log_path.unlink()

@@ -46,6 +46,15 @@ def check_weights(weights, *, normalised: bool = True, name: str = "weights") ->
         raise ValueError(f"{name} must be 1-D, got shape {w.shape}")
     if w.size == 0:
         raise ValueError(f"{name} is empty")
+    # Two reductions decide the usual case: a NaN makes the minimum NaN, a negative value makes it
+    # negative, an infinite value makes the sum infinite. Anything else takes the passes below.
+    smallest, total = float(w.min()), float(w.sum())
+    if smallest >= 0.0 and np.isfinite(total):
+        if total <= 0.0:
+            raise ValueError(f"{name} are all zero (N={w.size})")
+        if normalised and abs(total - 1.0) > SUM_TOLERANCE:
+            raise ValueError(f"{name} must sum to 1 (within {SUM_TOLERANCE:g}), got sum {total!r}")
+        return w
     finite = np.isfinite(w)
     if not finite.all():
         kind = "NaN" if np.isnan(w).any() else "infinite"
@@ -82,6 +91,8 @@ def check_particles(particles, *, n: int | None = None, name: str = "particles")
         raise ValueError(f"{name} is empty (shape {x.shape})")
     if n is not None and x.shape[0] != n:
         raise ValueError(f"{name} and weights differ in length: {x.shape[0]} particles, {n} weights")
+    if np.isfinite(np.add.reduce(x, axis=None)):  # a NaN or an infinity makes the sum non-finite
+        return x
     finite = np.isfinite(x)
     if not finite.all():
         raise ValueError(f"{name} contain non-finite values {_describe(x, ~finite)}")

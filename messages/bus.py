@@ -206,7 +206,8 @@ class Doorbell:
     def ring(self, name: str) -> None:
         with self._lock:
             self._rung.add(name)
-        self._event.set()
+        if not self._event.is_set():  # Event.set takes a lock and notifies even when nobody waits
+            self._event.set()
 
     def wait(self, timeout: float) -> set[str]:
         """The names rung since the last call, waiting up to ``timeout`` seconds for one."""

@@ -103,6 +103,21 @@ def parse(key_expr: str) -> tuple[str, Layer, str]:
         Naming what is wrong: not a string, wrong prefix, wrong number of
         chunks, bad twin id, unknown layer or bad topic.
     """
+    parsed = _PARSED.get(key_expr) if isinstance(key_expr, str) else None
+    if parsed is None:
+        parsed = _parse(key_expr)
+        if len(_PARSED) >= _PARSED_MAX:  # a flood of made-up keys cannot grow the cache
+            _PARSED.clear()
+        _PARSED[key_expr] = parsed
+    return parsed
+
+
+#: Keys parsed before (a service sees the same few keys at every step): at most _PARSED_MAX of them.
+_PARSED: dict[str, tuple[str, Layer, str]] = {}
+_PARSED_MAX = 4096
+
+
+def _parse(key_expr: str) -> tuple[str, Layer, str]:
     if not isinstance(key_expr, str):
         raise ValueError(f"key expression must be a string, got {key_expr!r}")
     chunks = key_expr.split("/")

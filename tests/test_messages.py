@@ -36,6 +36,7 @@ from messages import (
     message_encoding,
     schema_for,
 )
+from messages.arrays import check_particles, check_weights
 from messages.codec import ENVELOPE_ENCODING, EnvelopeHeader
 from messages.models import (MESSAGE_CLASSES, CompressedImage, ImageAnnotations, Observation, ParticleSetHeader,
                              PointCloud, Rejected)
@@ -357,6 +358,48 @@ def test_decode_rejects_bad_weights(weights, match):
     assert info.value.step == 7
 
 
+def _reference_weights_verdict(w, normalised):
+    """What check_weights decided before its two-reduction fast path: the error's first words, or None."""
+    if not np.isfinite(w).all():
+        return "NaN" if np.isnan(w).any() else "infinite"
+    if (w < 0).any():
+        return "negative"
+    total = float(w.sum())
+    if total <= 0.0:
+        return "all zero"
+    if normalised and abs(total - 1.0) > 1e-6:
+        return "sum to 1"
+    return None
+
+
+@pytest.mark.parametrize("values", [
+    [0.5, 0.5], [np.nan, 1.0], [1.0, np.nan], [np.inf, 0.0], [-np.inf, 1.0], [np.inf, -np.inf],
+    [-0.0, 1.0], [-1e-300, 1.0], [0.0, 0.0], [1e308, 1e308], [0.7, 0.7], [np.nan, -1.0], [-1.0, np.inf],
+])
+@pytest.mark.parametrize("normalised", [True, False])
+def test_check_weights_decides_as_the_full_passes_do(values, normalised):
+    w = np.array(values)
+    expected = _reference_weights_verdict(w, normalised)
+    if expected is None:
+        assert check_weights(w, normalised=normalised) is not None
+    else:
+        with pytest.raises(ValueError, match=expected):
+            check_weights(w, normalised=normalised)
+
+
+@pytest.mark.parametrize("values, ok", [
+    ([[0.0], [1.0]], True), ([[1e308], [1e308]], True), ([[np.nan], [0.0]], False), ([[np.inf], [-np.inf]], False),
+    ([[0.0, -np.inf]], False),
+])
+def test_check_particles_finds_every_non_finite_value(values, ok):
+    x = np.array(values)
+    if ok:
+        assert check_particles(x) is not None
+    else:
+        with pytest.raises(ValueError, match="non-finite values at index"):
+            check_particles(x)
+
+
 def test_decode_rejects_nan_particles():
     message = particle_set(n=3)
     header, _ = envelope_parts(message)
@@ -508,6 +551,20 @@ def test_key_for_message(make, key):
 def test_parse_rejects_bad_keys(key, match):
     with pytest.raises(ValueError, match=match):
         keys.parse(key)
+
+
+def test_parse_caches_good_keys_within_a_bound_and_never_bad_ones():
+    keys._PARSED.clear()
+    good = "dtpf/cache-1/entity/particles"
+    assert keys.parse(good) == keys.parse(good) == ("cache-1", Layer.ENTITY, "particles")
+    assert good in keys._PARSED
+    with pytest.raises(ValueError):
+        keys.parse("dtpf/a*b/entity/particles")
+    assert "dtpf/a*b/entity/particles" not in keys._PARSED
+    for i in range(3 * keys._PARSED_MAX):  # a flood of made-up keys
+        keys.parse(f"dtpf/flood-{i}/entity/particles")
+    assert 0 < len(keys._PARSED) <= keys._PARSED_MAX
+    keys._PARSED.clear()
 
 
 @pytest.mark.parametrize("twin, layer, topic, match", [

@@ -31,8 +31,8 @@ from entity.intake import ObservationIntake
 from messages.admission import RunShape
 from messages.bus import add_zenoh_arguments
 from messages.config import RunConfig, add_run_arguments
-from messages.models import (ARRAYS_CHECKED, Estimate, Observation, PackedElementField, ParticleSet, ParticleSetKind,
-                             PointCloud, ServiceState, Time)
+from messages.models import (ARRAYS_CHECKED, BASE64_CHECKED, Estimate, Observation, PackedElementField, ParticleSet,
+                             ParticleSetKind, PointCloud, ServiceState, Time)
 from messages.fleet import host_twins
 from messages.service import ServiceShell, add_service_arguments, run_service
 
@@ -174,10 +174,10 @@ def _publish_step(shell: ServiceShell, step, truth, observation, model, config: 
         shell.publish(message)
     if cloud:  # the particle set as Foxglove draws it (entity/cloud.py says which particles)
         points = cloud_points(step.particles, step.weights, cloud)
-        shell.publish(PointCloud(
+        shell.publish(PointCloud.model_validate(dict(
             **shell.header(step.step), timestamp=Time.now(), frame_id="state", point_stride=POINT_STRIDE,
             fields=[PackedElementField(name=name, offset=offset, type=8) for name, offset in FIELDS],
-            data=base64.b64encode(points.tobytes()).decode("ascii")))
+            data=base64.b64encode(points.tobytes()).decode("ascii")), context=BASE64_CHECKED))
 
 
 def _run_batch(shell: ServiceShell, pf: ParticleFilter, data, model, config: RunConfig,

@@ -163,13 +163,14 @@ class VideoTrackingModel(StateSpaceModel):
         the estimate's circle (its position and scale times r_1)."""
         import base64
 
-        from messages.models import (CircleAnnotation, Color, CompressedImage, ImageAnnotations, Point2,
-                                     PointsAnnotation, Time)
+        from messages.models import (BASE64_CHECKED, CircleAnnotation, Color, CompressedImage, ImageAnnotations,
+                                     Point2, PointsAnnotation, Time)
 
         stamp = Time.now()
         frame = encode_jpeg(self.video.frame(header["step"]))
-        out = [CompressedImage(**header, timestamp=stamp, frame_id="camera", format="jpeg",
-                               data=base64.b64encode(frame).decode("ascii"))]
+        out = [CompressedImage.model_validate(dict(**header, timestamp=stamp, frame_id="camera", format="jpeg",
+                                                   data=base64.b64encode(frame).decode("ascii")),
+                                              context=BASE64_CHECKED)]
         if particles is None or mean is None:
             return out
         stride = max(1, math.ceil(len(particles) / self.annotated_particles))

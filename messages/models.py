@@ -524,7 +524,15 @@ class Status(Message):
         description="Rejected messages by the key expression they arrived on, most first.")
 
 
-def _base64(value: str) -> str:
+#: Validation context for base64 text a layer has just made with ``base64.b64encode`` (its own point
+#: cloud or frame): ``PointCloud.model_validate(fields, context=BASE64_CHECKED)`` skips decoding it again
+#: (building a 1000-point cloud took 141-175 us with the check and 39 us without). Receivers never use it.
+BASE64_CHECKED = {"base64_checked": True}
+
+
+def _base64(value: str, info: ValidationInfo) -> str:
+    if info.context and info.context.get("base64_checked") is True and isinstance(value, str):
+        return value
     try:
         base64.b64decode(value, validate=True)
     except (binascii.Error, ValueError):

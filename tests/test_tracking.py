@@ -16,7 +16,7 @@ from PIL import Image
 from entity import models
 from entity.tracking import VideoTrackingModel, disc_offsets, encode_jpeg, hsv_bins
 from entity.video import VideoScene, _render, render
-from messages.codec import decode, decode_for_key, encode, schema_for
+from messages.codec import MessageError, decode, decode_for_key, encode, schema_for
 from messages.config import RunConfig
 from messages.models import CompressedImage, Time
 from messages.schema import foxglove_problems
@@ -202,6 +202,19 @@ def test_frame_message_round_trips_and_its_schema_is_foxglove_shaped():
     with pytest.raises(ValueError, match="data must be standard base64"):
         CompressedImage(run_id="r", twin_id="t", step=1, timestamp=Time(sec=0, nsec=0), frame_id="camera",
                         format="jpeg", data="not base64!")
+
+
+
+def test_base64_checked_is_for_the_maker_only_a_receiver_still_decodes():
+    """BASE64_CHECKED skips the check where the maker just ran b64encode; the bytes on the bus are checked."""
+    from messages.models import BASE64_CHECKED
+
+    fields = dict(run_id="r", twin_id="t", step=1, timestamp=Time(sec=0, nsec=0), frame_id="camera",
+                  format="jpeg", data="not base64!")
+    trusted = CompressedImage.model_validate(fields, context=BASE64_CHECKED)  # the maker vouches for it
+    assert trusted.data == "not base64!"
+    with pytest.raises(MessageError, match="data must be standard base64"):
+        decode_for_key("dtpf/t/entity/frame", encode(trusted))
 
 
 # --- the report and the services -----------------------------------------------------------------------

@@ -279,3 +279,22 @@ def test_both_paths_apply_the_rules_with_their_documented_draws(n, d, ps):
     after = np.random.default_rng(15)
     rules.draws(after, 0, 1)  # the seed words: what preprocess takes from the generator
     assert rng.random() == after.random()
+
+
+@pytest.mark.parametrize("n_small", [1, rules.MOVE_BLOCK - 1, rules.MOVE_BLOCK, rules.MOVE_BLOCK + 1, 5 * rules.MOVE_BLOCK + 7])
+@pytest.mark.parametrize("d", [1, 2])
+def test_blocked_moves_are_the_particle_by_particle_moves(n_small, d):
+    # _move_blocked makes a block's draws before its moves: the same numbers in the same order as
+    # _move, whatever the count's remainder by the block size.
+    rng = np.random.default_rng(n_small + d)
+    n = 2 * n_small + 3
+    particles = rng.standard_normal((n, d))
+    small = np.sort(rng.choice(n, n_small, replace=False)).astype(np.int32)
+    rows = rng.standard_normal((n - n_small, d))
+    state = rng.integers(0, 2 ** 64, size=4, dtype=np.uint64)
+    one, blocked = particles.copy(), particles.copy()
+    mixed_one = rules._move(particles, small, rows, 0.4, state, one)
+    mixed_blocked = rules._move_blocked(particles, small, rows, 0.4, state, blocked)
+    np.testing.assert_array_equal(blocked, one)
+    assert mixed_blocked == mixed_one and 0 <= mixed_one <= n_small
+    assert not np.array_equal(one[small], particles[small])

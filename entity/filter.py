@@ -296,10 +296,16 @@ class ParticleFilter:
         return self
 
     def warm_up(self) -> None:
-        """Resample a small throwaway set once, so that the compiled resampler is loaded before the
-        first step (its first call costs about 0.15 s), and make a stream of step 0 (the compiled
-        SeedSequence); the run's random streams are not touched."""
-        self.resample(np.full(8, 1.0 / 8), np.random.default_rng(0))
+        """Resample and gather a small throwaway set, writable and read-only, so that the compiled
+        resampler and gather are loaded before the first step (the first call costs about 0.15 s, a
+        compilation seconds), and make a stream of step 0 (the compiled SeedSequence); the run's random
+        streams are not touched."""
+        weights, particles = np.full(8, 1.0 / 8), np.zeros((8, self.model.dim))
+        ancestors = self.resample(weights, np.random.default_rng(0))
+        resampling.gather(particles, ancestors, np.empty_like(particles))
+        # A twin's answer arrives as a decoded message's read-only arrays, which numba compiles apart.
+        weights.flags.writeable = particles.flags.writeable = False
+        resampling.gather(particles, self.resample(weights, np.random.default_rng(0)), np.empty_like(particles))
         resampling.distinct(np.zeros(2, dtype=np.int64))
         stream(self.seed, self.twin, 0, "entity")
 

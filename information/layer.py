@@ -87,9 +87,14 @@ class InformationLayer:
             particles = rng.standard_normal((size, self.model.dim))
             weights = rng.random(size)
             weights /= weights.sum()
-            rules.preprocess(particles, weights, self.ps, rng, threshold_rule=self.threshold_rule,
-                             weight_rule="inherit")
-        summarise(particles, weights, self.threshold_rule, None)
+            # numba compiles read-only arrays apart, and a decoded message's are read-only: both kinds
+            # (a service that warmed up writable arrays only compiled for 4.8 s on its first real step,
+            # past the entity's lockstep timeout).
+            for writable in (True, False):
+                particles.flags.writeable = weights.flags.writeable = writable
+                rules.preprocess(particles, weights, self.ps, rng, threshold_rule=self.threshold_rule,
+                                 weight_rule="inherit")
+                summarise(particles, weights, self.threshold_rule, None)
         stream(self.seed, self.twin, 0, "information")  # the compiled SeedSequence (messages._seedseq)
 
     def set_ps(self, ps: float, applies_from_step: int, preprocess: bool = True) -> None:

@@ -350,3 +350,94 @@ def test_the_launcher_counts_a_forged_layer_status_but_not_a_sensors():
     _take(result, status("entity", 4242), None, children)    # the launcher's own entity
     assert result.ignored_statuses == 1
     assert list(result.statuses_by_pid) == [4242]
+
+
+class _Answers:
+    """An entity's inbox of preprocessed sets, filled by the test."""
+
+    key_expr = "dtpf/t/information/preprocessed"
+
+    def __init__(self, flood=None):
+        self.items = []
+        self.flood = flood  # a message it always has (len stays 3)
+
+    def __len__(self):
+        return 3 if self.flood is not None else len(self.items)
+
+    def get(self, timeout):
+        if self.flood is not None:
+            return self.flood
+        if self.items:
+            return self.items.pop(0)
+        time.sleep(timeout)
+        return None
+
+
+class _EntityShell:
+    """What ZenohTwin uses of a ServiceShell, with the information layer alive."""
+
+    def __init__(self, answers):
+        import logging
+        import types
+        self.answers = answers
+        self.presence = types.SimpleNamespace(alive={"information"})
+        self.log = logging.getLogger("dtpf.test")
+        self.published = []
+
+    def inbox(self, layer, topic):
+        return self.answers
+
+    def header(self, step):
+        return {"run_id": "run", "twin_id": "t", "step": step}
+
+    def publish(self, message):
+        self.published.append(message)
+
+    def receive(self, item, expected):
+        return item
+
+    def reject(self, *args, **kwargs):
+        raise AssertionError(f"unexpected rejection {args}")
+
+
+def _answer(step, particles, weights):
+    from messages.models import ParticleSetKind
+    return ParticleSet.model_validate(dict(
+        run_id="run", twin_id="t", step=step, kind=ParticleSetKind.PREPROCESSED, particles=particles + 1.0,
+        weights=weights, observation=[0.5], ps=0.81, threshold=0.02, n_large=20, n_processed=30, n_mixed=25,
+        n_plain=5))
+
+
+def test_an_answer_that_came_while_the_entity_worked_past_its_deadline_is_taken():
+    # The entity works while it waits (work_ahead); on a cold start numba compiled that work for seconds,
+    # past the lockstep timeout, and the answer already in the inbox was dropped: every twin of a fleet's
+    # first run degraded its first step.
+    from entity.service import ZenohTwin
+    particles, weights = np.random.default_rng(0).standard_normal((50, 1)), np.full(50, 1 / 50)
+    answers = _Answers()
+    twin = ZenohTwin(_EntityShell(answers), timeout=0.2)
+
+    def slow_work():  # the answer arrives, the work goes on past the deadline
+        answers.items.append(_answer(3, particles, weights))
+        time.sleep(0.4)
+    twin.while_waiting = slow_work
+    got = twin(3, particles, weights, np.array([0.5]))
+    assert got is not None and np.array_equal(got.particles, particles + 1.0)
+
+    twin.while_waiting = lambda: time.sleep(0.3)  # past the deadline with nothing in: degraded at once
+    start = time.monotonic()
+    assert twin(4, particles, weights, np.array([0.5])) is None
+    assert time.monotonic() - start < 0.3 + 0.2
+
+
+def test_a_flood_of_stale_answers_past_the_deadline_does_not_hold_the_step():
+    from entity.service import ZenohTwin
+    particles, weights = np.random.default_rng(1).standard_normal((50, 1)), np.full(50, 1 / 50)
+    twin = ZenohTwin(_EntityShell(_Answers(flood=_answer(1, particles, weights))), timeout=0.1)
+    twin.while_waiting = lambda: time.sleep(0.15)
+    result = []
+    worker = threading.Thread(target=lambda: result.append(twin(2, particles, weights, np.array([0.5]))),
+                              daemon=True)
+    worker.start()
+    worker.join(timeout=5)
+    assert not worker.is_alive() and result == [None]

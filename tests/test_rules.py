@@ -298,3 +298,40 @@ def test_blocked_moves_are_the_particle_by_particle_moves(n_small, d):
     np.testing.assert_array_equal(blocked, one)
     assert mixed_blocked == mixed_one and 0 <= mixed_one <= n_small
     assert not np.array_equal(one[small], particles[small])
+
+
+_FIRST_STEP = """
+import numba, numpy as np
+import information.mirror, information.rules, information.select
+from entity import models
+from information.layer import InformationLayer
+
+def compiled():
+    return sum(len(f.signatures) for module in (information.rules, information.select, information.mirror)
+               for f in vars(module).values() if isinstance(f, numba.core.registry.CPUDispatcher))
+
+layer = InformationLayer(models.get("ungm"), ps=0.81, seed=0, twin="t")
+layer.warm_up()
+before = compiled()
+rng = np.random.default_rng(1)
+for n in (1000, 5000):  # a decoded message's arrays: read-only
+    x, w = rng.standard_normal((n, 1)), rng.random(n)
+    w /= w.sum()
+    x.flags.writeable = w.flags.writeable = False
+    result = layer.preprocess(1, x, w, [0.5], checked=True)
+    layer.mirror(x, w, n // 2, result.report.threshold, checked=True)
+print(before, compiled())
+"""
+
+
+def test_the_information_layers_warm_up_compiles_what_its_first_real_step_needs():
+    # numba compiles read-only arrays apart; a service that warmed up on writable arrays only compiled on
+    # its first decoded set, for seconds, past the entity's lockstep timeout (a fleet's first run: every
+    # twin's first step degraded). In a fresh process, so that nothing else compiled those kinds first.
+    import subprocess
+    import sys
+    from conftest import ROOT
+    done = subprocess.run([sys.executable, "-c", _FIRST_STEP], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    before, after = map(int, done.stdout.split())
+    assert before > 0 and after == before

@@ -78,6 +78,7 @@ import numpy as np
 
 from entity import models, resampling
 from information import rules
+from information.select import kth_largest
 from messages.config import RunConfig
 from scripts.inprocess import build, simulate
 
@@ -151,8 +152,12 @@ def particles_growth_model(model: models.GrowthModel):
 # --- part 1: kernels ----------------------------------------------------------
 
 #: The floors, timed with the kernels: one pass over the weights, one gather of the particles by
-#: sorted ancestors, N uniforms from the run's generator; all into preallocated arrays.
-FLOORS = ("weight pass", "gather", "uniforms")
+#: sorted ancestors, N uniforms from the run's generator; all into preallocated arrays. DT
+#: preprocessing's two: selecting W of Eq. 28 (the (k+1)-th largest weight, k = round(ESS), as
+#: preprocess selects it: information.select's radix select, below rules.SMALL_SET numba's
+#: np.partition in compiled code) and reading each small particle's
+#: partner (Eq. 29), N - k rows at random among the k large ones, in a compiled loop.
+FLOORS = ("weight pass", "gather", "uniforms", "select", "partners")
 #: The floor each dtpf kernel is bounded by (the times of the floors of a repetition are added).
 BOUNDS = {
     "systematic": ("weight pass",),
@@ -160,6 +165,7 @@ BOUNDS = {
     "multinomial": ("weight pass", "uniforms"),
     "residual": ("weight pass", "uniforms"),
     "systematic + gather": ("weight pass", "gather"),
+    "preprocess": ("select", "partners"),
 }
 #: Targets (issue 18): (row, measure, reference rows summed, limit, N).
 TARGETS = [
@@ -197,9 +203,23 @@ def kernel_entries(with_filterpy: bool, threads: tuple[int, ...]) -> dict[tuple[
         rng, out = np.random.default_rng(seed), np.empty_like(w)
         return lambda: rng.random(w.size, out=out)
 
+    def select(w, x, a, seed):
+        k = large_count(w)
+        if w.size < rules.SMALL_SET:  # as preprocess selects there: numba's np.partition, in compiled code
+            return lambda: _partition_at(w, w.size - k - 1)
+        return lambda: kth_largest(w, k + 1)
+
+    def partners(w, x, a, seed):
+        k = large_count(w)
+        rows, at = x[:k].copy(), np.random.default_rng(seed).integers(0, k, w.size - k).astype(np.uint64)
+        out = np.empty((at.size, x.shape[1]))
+        return lambda: _read_rows(rows, at, out)
+
     entries["weight pass", "floor"] = weight_pass
     entries["gather", "floor"] = gather
     entries["uniforms", "floor"] = uniforms
+    entries["select", "floor"] = select
+    entries["partners", "floor"] = partners
     for scheme in SCHEMES:
         def ours(w, x, a, seed, f=resampling.RESAMPLERS[scheme]):
             rng, out = np.random.default_rng(seed), np.empty(w.size, dtype=np.int64)
@@ -238,6 +258,23 @@ def kernel_entries(with_filterpy: bool, threads: tuple[int, ...]) -> dict[tuple[
         return lambda: rules.preprocess(x, w, PS, rng, checked=True)
     entries["preprocess", "dtpf"] = preprocess
     return entries
+
+
+def large_count(weights: np.ndarray) -> int:
+    """k = round(ESS), clipped to [1, N - 1]: the particles DT preprocessing counts as large (Eq. 25, 28)."""
+    return min(max(round(1.0 / float(np.dot(weights, weights))), 1), weights.size - 1)
+
+
+@numba.njit(cache=True, nogil=True)
+def _partition_at(weights, rank):  # pragma: no cover - compiled
+    return np.partition(weights, rank)[rank]
+
+
+@numba.njit(cache=True, nogil=True)
+def _read_rows(rows, at, out):  # pragma: no cover - compiled
+    # The partners' floor: out[j] = rows[at[j]] for random at (unsigned: no check for negative indices).
+    for j in range(at.shape[0]):
+        out[j, 0] = rows[at[j], 0]
 
 
 def threads_label(threads: int) -> str:
@@ -286,6 +323,7 @@ def kernel_references(key: tuple[str, str]) -> dict[str, tuple[tuple[str, str], 
         return {}
     refs = {}
     if row == "preprocess":
+        refs["floor"] = tuple((f, "floor") for f in BOUNDS[row])
         refs["dtpf systematic"] = (("systematic", "dtpf"),)
         refs["weight pass"] = (("weight pass", "floor"),)  # systematic itself moved: the fixed measure
     elif impl != "particles":
@@ -328,6 +366,10 @@ def bench_kernels(n: int, repeats: int, seed: int, order: random.Random, threads
                 rows = [(r, "floor") if r in FLOORS else (r, "dtpf") for r in refs]
                 ratios.setdefault(((row, impl), "target"), []).append(
                     now[row, impl] / sum(now[r] for r in rows))
+        floor = [(f, "floor") for f in BOUNDS["preprocess"]]
+        if all(f in now for f in floor) and ("systematic", "dtpf") in now:  # what any preprocessing must pay
+            ratios.setdefault((("preprocess", "floor"), "dtpf systematic"), []).append(
+                sum(now[f] for f in floor) / now["systematic", "dtpf"])
     return times, ratios, faults
 
 
@@ -575,7 +617,9 @@ def main(argv=None) -> int:
     labels = {"floor": "floor", "particles": "particles (numba)", "dtpf": "dtpf (numba, out=, checked=True)",
               "dtpf, checking": "dtpf (numba, checks W, allocates)", "filterpy": "filterpy (Python loop)"}
     floor_labels = {"weight pass": "`np.cumsum(W, out=)`", "gather": "`np.take(X, A, axis=0, out=)`",
-                    "uniforms": "`rng.random(N, out=)`"}
+                    "uniforms": "`rng.random(N, out=)`",
+                    "select": "W of Eq. 28, the (k+1)-th largest weight, k = round(ESS), selected as `preprocess` does",
+                    "partners": "N - k random rows of the k large (compiled loop)"}
     rows = [(f, "floor") for f in FLOORS]
     rows += [(s, impl) for s in SCHEMES for impl in ("particles", "dtpf", "dtpf, checking", "filterpy")]
     rows += [("systematic + gather", "particles")] + [("systematic + gather", threads_label(t)) for t in threads]
@@ -632,6 +676,10 @@ def main(argv=None) -> int:
             failed |= not ok and impl in ("dtpf", threads_label(1))  # what the filter runs
             print(f"- N = {fmt_n(target_n)}: {what} <= {limit:g}: ×{ratio:.2f} "
                   f"(per-repetition {min(ratios):.2f}-{max(ratios):.2f}), {'PASS' if ok else 'FAIL'}")
+            floor = kernels[target_n][1].get((("preprocess", "floor"), "dtpf systematic"))
+            if row == "preprocess" and floor:
+                print(f"  - its floor, select + partners (no draws, no split, no output set) / dtpf systematic: "
+                      f"×{statistics.median(floor):.2f} (per-repetition {min(floor):.2f}-{max(floor):.2f})")
     for n in ([] if args.kernels else sizes):
         ratios = filters[n][1].get("a/c")
         if not ratios:

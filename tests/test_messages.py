@@ -679,6 +679,29 @@ def test_schema_for_mcap(cls):
         assert set(schema["properties"]) == set(cls.model_fields)
 
 
+def test_a_recording_of_many_twins_makes_each_schema_once(tmp_path, monkeypatch):
+    # A fleet's recorder opens a channel per twin and topic; pydantic's JSON Schema took 10 ms each time,
+    # 8.3 s of a 100-twin recorder's 38.7 s of CPU.
+    import messages.codec as codec
+    from messages.recording import McapRecording
+    made = []
+    real = codec.json_schema
+    monkeypatch.setattr(codec, "json_schema", lambda cls: made.append(cls) or real(cls))
+    clear = getattr(codec.schema_for, "cache_clear", lambda: None)
+    clear()
+    try:
+        with McapRecording(tmp_path / "fleet.mcap") as recording:
+            for twin in range(30):
+                for message in (estimate(twin_id=f"t-{twin}"), status(twin_id=f"t-{twin}")):
+                    recording.write(keys.key_for(message), encode(message))
+    finally:
+        clear()  # the next test makes them with the real function again
+    assert sorted(cls.__name__ for cls in made) == ["Estimate", "Status"]
+    with open(tmp_path / "fleet.mcap", "rb") as log:
+        summary = make_reader(log).get_summary()
+    assert len(summary.channels) == 60 and len(summary.schemas) == 2
+
+
 # --- MCAP: self-describing files ---
 
 def record(messages) -> io.BytesIO:

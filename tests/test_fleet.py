@@ -371,3 +371,19 @@ def test_a_live_fleet_follows_one_sensor_per_twin_as_their_solo_runs(processes, 
         np.testing.assert_array_equal([e.mean for e in tally.estimates], reference.means)
         assert tally.degraded == 0
     assert "(live)" in result.summary()
+
+
+def test_the_fleet_benchmark_counts_cpu_between_two_instants_by_kind():
+    # CPU per twin-step in scripts.bench.fleet: each process's samples interpolated at the fleet's first and
+    # last estimate, summed by kind; a process that ended in the window counts to its last sample.
+    import os
+    from scripts.bench.fleet import RssSampler, _descendants
+    sampler = RssSampler()
+    sampler.cpu = {1: ("entity", [(10.0, 1.0), (11.0, 1.5), (12.0, 2.5)]),
+                   2: ("entity", [(10.0, 0.0), (10.5, 0.2)]),  # ended at 10.5
+                   3: ("recorder", [(9.0, 3.0), (13.0, 7.0)])}
+    got = sampler.cpu_between(10.5, 11.5)
+    assert got["entity"] == pytest.approx((2.0 - 1.25) + 0.0)
+    assert got["recorder"] == pytest.approx(1.0)
+    me = {pid: rest for pid, *rest in _descendants(os.getpid())}[os.getpid()]
+    assert me[2] > 0  # this process's own CPU seconds, from /proc

@@ -13,7 +13,13 @@ where it fits (``--solo-max``), (k) K solo ``scripts.launch.launch`` at once
 - RSS: the largest resident set of each child process, sampled every 0.25 s
   from /proc (the launcher's own process is not counted), summed by kind;
   "shared per twin" is (RSS of the information + system services at K minus
-  at K = 1) / (K - 1), the growth the issue bounds at 2 MB per twin at N = 1e3.
+  at K = 1) / (K - 1), the growth the issue bounds at 2 MB per twin at N = 1e3;
+- CPU per twin-step (fleets): each process's CPU time (utime + stime from
+  /proc, sampled with the RSS) between the fleet's first and last estimate,
+  interpolated between samples, summed by kind and divided by the twin-steps
+  of that window; "launcher" is this process (the router, the fleet's progress
+  and the sampler). Less moved by other load than twin-steps/s, and it says
+  which process to make cheaper.
 
 Run from the repository root::
 
@@ -46,11 +52,13 @@ TARGET_SHARED_MB_PER_TWIN = 2.0
 
 
 class RssSampler:
-    """The largest RSS of every child process of this process (and their children), by kind."""
+    """The largest RSS of every child process of this process (and their children), by kind, and
+    every process's CPU time, this one's included, at each sample (wall time, CPU seconds)."""
 
     def __init__(self, interval: float = 0.25):
         self.interval = interval
         self.peak: dict[int, tuple[str, int]] = {}
+        self.cpu: dict[int, tuple[str, list[tuple[float, float]]]] = {}
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
 
@@ -65,9 +73,25 @@ class RssSampler:
     def _run(self) -> None:
         me = os.getpid()
         while not self._stop.wait(self.interval):
-            for pid, kind, rss in _descendants(me):
-                if rss > self.peak.get(pid, ("", 0))[1]:
-                    self.peak[pid] = (kind, rss)
+            now = time.time()
+            for pid, kind, rss, cpu in _descendants(me):
+                if pid == me:
+                    kind = "launcher"
+                else:
+                    if rss > self.peak.get(pid, ("", 0))[1]:
+                        self.peak[pid] = (kind, rss)
+                self.cpu.setdefault(pid, (kind, []))[1].append((now, cpu))
+
+    def cpu_between(self, start: float, end: float) -> dict[str, float]:
+        """CPU seconds of each kind of process between wall times ``start`` and ``end`` (time.time()),
+        each process's samples interpolated linearly (a process that ended in the window counts to its
+        last sample)."""
+        kinds: dict[str, float] = {}
+        for kind, samples in self.cpu.values():
+            times, cpus = zip(*samples)
+            used = float(np.interp(end, times, cpus) - np.interp(start, times, cpus))
+            kinds[kind] = kinds.get(kind, 0.0) + used
+        return kinds
 
     def by_kind(self) -> dict[str, list[int]]:
         kinds: dict[str, list[int]] = {}
@@ -77,7 +101,8 @@ class RssSampler:
 
 
 def _descendants(root: int):
-    """(pid, kind, rss bytes) of every process below ``root``; kind from its command line."""
+    """(pid, kind, rss bytes, CPU seconds) of ``root`` and every process below it; kind from its
+    command line."""
     parents, info = {}, {}
     for entry in os.listdir("/proc"):
         if not entry.isdigit():
@@ -91,9 +116,10 @@ def _descendants(root: int):
                 pages = int(f.read().split()[1])
         except OSError:
             continue
-        ppid = int(stat.rsplit(")", 1)[1].split()[1])
-        parents[int(entry)] = ppid
-        info[int(entry)] = (_kind(command), pages * os.sysconf("SC_PAGE_SIZE"))
+        fields = stat.rsplit(")", 1)[1].split()  # fields 3.. of proc(5): state, ppid, ..., utime, stime
+        parents[int(entry)] = int(fields[1])
+        info[int(entry)] = (_kind(command), pages * os.sysconf("SC_PAGE_SIZE"),
+                            (int(fields[11]) + int(fields[12])) / _TICKS)
     below = {root}
     changed = True
     while changed:
@@ -102,7 +128,10 @@ def _descendants(root: int):
             if ppid in below and pid not in below:
                 below.add(pid)
                 changed = True
-    return [(pid, *info[pid]) for pid in below if pid != root and pid in info]
+    return [(pid, *info[pid]) for pid in below if pid in info]
+
+
+_TICKS = os.sysconf("SC_CLK_TCK")
 
 
 def _kind(command: list[bytes]) -> str:
@@ -131,8 +160,12 @@ def run_fleet(n: int, k: int, steps: int, folder: Path) -> dict:
         raise RuntimeError(f"fleet N={n} K={k} incomplete: {result.twin_steps} of {k * steps} twin-steps, "
                            f"{result.failures}")
     by_twin = {twin: tally.estimates for twin, tally in result.tallies.items()}
+    stamps = [e.stamp.to_ns() * 1e-9 for estimates in by_twin.values() for e in estimates]
+    window = sum(1 for estimates in by_twin.values() for e in estimates) - 1  # twin-steps after the first
+    cpu = rss.cpu_between(min(stamps), max(stamps))
     return {"rate": result.twin_steps / result.stepping, "gaps": step_latencies(by_twin), "rss": rss.by_kind(),
-            "degraded": sum(t.degraded for t in result.tallies.values()), "rejected": sum(result.rejected.values())}
+            "degraded": sum(t.degraded for t in result.tallies.values()), "rejected": sum(result.rejected.values()),
+            "cpu_ms": {kind: 1e3 * seconds / max(window, 1) for kind, seconds in cpu.items()}}
 
 
 def run_solo(n: int, k: int, steps: int, folder: Path) -> dict:
@@ -211,6 +244,15 @@ def main(argv=None) -> int:
               f"{_mb(rss.get('information', []))} | {_mb(rss.get('system', []))} | {_mb(rss.get('recorder', []))} | "
               f"{r['degraded']} | {r['rejected']} |")
     print("\nRSS: the peak of each process, summed over the processes of a kind (K solo launches have K of each).")
+    kinds = ("entity", "information", "system", "recorder", "launcher")
+    print("\n| N | K | CPU ms per twin-step: " + " | ".join(kinds) + " | all |\n" + "|---" * (len(kinds) + 3) + "|")
+    for n, k, mode, r in rows:
+        if "cpu_ms" in r:
+            cpu = r["cpu_ms"]
+            print(f"| {n:.0e} | {k} | " + " | ".join(f"{cpu.get(kind, 0.0):.3f}" for kind in kinds)
+                  + f" | {sum(cpu.values()):.3f} |")
+    print("\nCPU: utime + stime from /proc between the fleet's first and last estimate, by kind of process "
+          "(launcher: this process, the router in it), per twin-step of that window.")
     failed = False
     for (n, k), shared in sorted(shared_at.items()):
         if k > 1 and (n, 1) in shared_at:

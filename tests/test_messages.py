@@ -567,6 +567,18 @@ def test_parse_caches_good_keys_within_a_bound_and_never_bad_ones():
     keys._PARSED.clear()
 
 
+def test_key_for_remembers_keys_within_a_bound_and_gives_each_message_its_own():
+    keys._KEYS.clear()
+    propagated, preprocessed = particle_set(), particle_set(kind="preprocessed")
+    assert keys.key_for(propagated) == keys.key_for(propagated) == f"dtpf/{propagated.twin_id}/entity/particles"
+    assert keys.key_for(preprocessed) == f"dtpf/{preprocessed.twin_id}/information/preprocessed"
+    assert keys.key_for(estimate(twin_id="other")) == "dtpf/other/entity/estimate"
+    for i in range(2 * keys._PARSED_MAX):  # a fleet of many twins
+        assert keys.key_for(status(twin_id=f"t-{i}")) == f"dtpf/t-{i}/recorder/status"
+    assert 0 < len(keys._KEYS) <= keys._PARSED_MAX
+    keys._KEYS.clear()
+
+
 @pytest.mark.parametrize("twin, layer, topic, match", [
     ("a/b", "entity", "particles", "twin id .*got 'a/b'"),
     ("", "entity", "particles", "twin id must be non-empty"),

@@ -821,3 +821,22 @@ def test_streams_are_the_seed_sequences_generators():
                     expected = np.random.Generator(np.random.PCG64(streams.seed_sequence(seed, twin, step, layer)))
                     got = streams.stream(seed, twin, step, layer)
                     np.testing.assert_array_equal(got.integers(0, 2 ** 63, 4), expected.integers(0, 2 ** 63, 4))
+
+
+@pytest.mark.parametrize("check", [
+    "check_particles(np.array([[np.inf], [-np.inf]]))",  # the fast path's sum is NaN
+    "check_weights(np.array([np.inf, -np.inf, 1.0]))",
+    "check_particles(np.array([[1e308], [1e308]]))",  # the sum overflows; every value is finite
+])
+def test_hostile_arrays_are_named_without_a_numpy_warning(check):
+    # A service would print numpy's "invalid value encountered in reduce" to its log for every first bad
+    # set; with warnings as errors (a fresh process, the filter of messages.arrays in force) none comes.
+    import subprocess
+    import sys
+    from conftest import ROOT
+    code = ("import numpy as np\nfrom messages.arrays import check_particles, check_weights\n"
+            f"try:\n    {check}\nexcept ValueError as error:\n    print('ValueError:', error)\nelse:\n    print('ok')\n")
+    done = subprocess.run([sys.executable, "-W", "error::RuntimeWarning", "-c", code], cwd=ROOT,
+                          capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr[-1500:]
+    assert done.stdout.startswith("ok" if "1e308" in check else "ValueError:"), done.stdout

@@ -22,6 +22,7 @@ import numpy as np
 from entity.models import StateSpaceModel
 from information import rules
 from information.mirror import WeightSummary, summarise
+from information.select import RADIX_MIN
 from messages.arrays import check_probability
 from messages.streams import stream
 
@@ -39,6 +40,10 @@ class InformationOutput:
 
 #: Most PS commands waiting for their step (the system layer sends one per step, for the next).
 MAX_PENDING = 64
+
+#: The (threshold rule, size class) whose kernels :meth:`InformationLayer.warm_up` has loaded in this
+#: process: numba compiles per type of argument, not per twin, so a fleet's service warms up once a class.
+_WARMED: set[tuple[str, int]] = set()
 
 
 class InformationLayer:
@@ -79,23 +84,31 @@ class InformationLayer:
         self.twin = twin
         self._ahead: tuple[int, np.random.Generator] | None = None
 
-    def warm_up(self, n: int = 8) -> None:
-        """Run the rules and the mirror once on a small throwaway set, so that their compiled kernels
-        are loaded before the first real step (the first call costs about 0.2 s); no state changes."""
-        rng = np.random.default_rng(0)
-        for size in (n, rules.SMALL_SET):  # below SMALL_SET the rules are one compiled call, from it on three
-            particles = rng.standard_normal((size, self.model.dim))
-            weights = rng.random(size)
-            weights /= weights.sum()
-            # numba compiles read-only arrays apart, and a decoded message's are read-only: both kinds
-            # (a service that warmed up writable arrays only compiled for 4.8 s on its first real step,
-            # past the entity's lockstep timeout).
-            for writable in (True, False):
-                particles.flags.writeable = weights.flags.writeable = writable
-                rules.preprocess(particles, weights, self.ps, rng, threshold_rule=self.threshold_rule,
-                                 weight_rule="inherit")
-                summarise(particles, weights, self.threshold_rule, None)
+    def warm_up(self, particles: int = 8) -> None:
+        """Run the rules and the mirror on a throwaway set of the size class of ``particles``, read-only
+        as a decoded message's arrays are, so that the compiled kernels the service's first real step
+        takes are loaded before it (a compilation takes seconds); once per process, threshold rule and
+        size class. No state changes.
+
+        numba compiles read-only arrays apart from writable ones, and the rules' path changes with N
+        (one compiled call below SMALL_SET, three from it on, the radix select from RADIX_MIN on): a
+        service that warmed up on writable arrays compiled for 4.8 s on its first set, past the entity's
+        lockstep timeout, and one that warmed up every class and kind did not come up within the
+        entity's 20 s startup timeout on a cold cache (21 s of compiling).
+        """
         stream(self.seed, self.twin, 0, "information")  # the compiled SeedSequence (messages._seedseq)
+        size = 8 if particles < rules.SMALL_SET else rules.SMALL_SET if particles < RADIX_MIN else RADIX_MIN
+        key = (self.threshold_rule if isinstance(self.threshold_rule, str) else "a value", size)
+        if key in _WARMED:
+            return
+        rng = np.random.default_rng(0)
+        x = rng.standard_normal((size, self.model.dim))
+        w = rng.random(size)
+        w /= w.sum()
+        x.flags.writeable = w.flags.writeable = False
+        rules.preprocess(x, w, self.ps, rng, threshold_rule=self.threshold_rule, weight_rule="inherit")
+        summarise(x, w, self.threshold_rule, size)
+        _WARMED.add(key)
 
     def set_ps(self, ps: float, applies_from_step: int, preprocess: bool = True) -> None:
         """Schedule a new PS from the system layer, in force from ``applies_from_step``;

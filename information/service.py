@@ -76,7 +76,7 @@ class TwinInformation:
         self.system_known = False
         self.waiting: ParticleSet | None = None  # a set waiting for the decision of the step before
         self.deadline = 0.0
-        self.layer.warm_up()  # before the entity can send step 1
+        self.layer.warm_up(config.particles)  # before the entity can send step 1
 
     def poll(self, now: float) -> float | None:
         """Handle what has arrived; the time to look again if a set waits for its PS decision."""

@@ -16,10 +16,13 @@ service, the in-process pipeline and ``dtpf verify`` decide identically.
 """
 from __future__ import annotations
 
+import logging
 from collections import deque
 from dataclasses import replace
 
-from information.mirror import WeightSummary
+import numpy as np
+
+from information.mirror import WeightSummary, summarise
 from messages.streams import stream
 from system.policy import PSDecision, PSPolicy
 from system.predict import Forecast, Predictor, Snapshot
@@ -100,3 +103,46 @@ class SystemLayer:
         self.forecasts.append(replace(forecast, simulation=None))  # the figures; not the simulated sets
         self.decisions.append(decision)
         return decision
+
+
+#: The configurations whose compiled kernels :func:`warm_up` has loaded in this process: numba compiles per
+#: type of argument, not per twin, so a fleet's service warms up once per kind of twin.
+_WARMED: set[tuple] = set()
+
+
+def warm_up(config, model) -> None:
+    """Run a throwaway system layer of ``config`` for four steps on a synthetic set of the size class of
+    its N, read-only as a decoded set is, so that the compiled kernels its policy takes (the evidence's
+    propagation and likelihood, the rules, the what-if simulations) are loaded before the first real step.
+
+    On a cold cache, ``--policy guard-observed`` compiled for seconds at step 4, past the lockstep timeout
+    (three steps degraded). Once per process and kind of twin; best effort: what the synthetic set cannot
+    run (a model that refuses a zero observation) is left to the real steps. No state of a real twin is
+    touched: the layer, its streams and its set are its own.
+    """
+    from information import rules
+    from information.select import RADIX_MIN
+
+    n = config.particles
+    size = 8 if n < rules.SMALL_SET else rules.SMALL_SET if n < RADIX_MIN else RADIX_MIN
+    key = (config.policy, config.model_ref, config.resampler, str(config.threshold), config.weight_rule,
+           config.move_rule, size)
+    if key in _WARMED:
+        return
+    _WARMED.add(key)
+    layer = SystemLayer.from_config(config, twin="warm-up", model=model, keep=4)
+    if not layer.needs_particles:
+        return
+    rng = np.random.default_rng(0)
+    try:
+        particles = np.asarray(model.initial_particles(size, rng), dtype=np.float64).reshape(size, -1)
+        particles.flags.writeable = False
+        observation = np.zeros(model.obs_dim)
+        for step in range(1, 5):
+            weights = rng.random(size)
+            weights /= weights.sum()
+            weights.flags.writeable = False
+            layer.observe(step, summarise(particles, weights, config.threshold, size),
+                          Snapshot.of(particles, weights, observation))
+    except Exception as error:  # the real steps report what is wrong; this was only a warm-up
+        logging.getLogger("dtpf.system").debug("warm-up stopped early: %s", error)

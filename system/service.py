@@ -24,7 +24,7 @@ from messages.fleet import add_fleet_arguments, serve_layer
 from messages.config import RunConfig, add_run_arguments
 from messages.models import ParticleSet, PSCommand, WeightState
 from messages.service import ServiceShell, add_service_arguments, run_service
-from system.layer import SystemLayer
+from system.layer import SystemLayer, warm_up
 from system.predict import Snapshot
 
 __all__ = ["main", "summary_of", "ParticleSets", "TwinSystem"]
@@ -77,6 +77,7 @@ class TwinSystem:
         self.timeout = timeout
         # The service keeps only what the policies look back on, not the run's whole history.
         self.layer = SystemLayer.from_config(config, model=model, keep=16)
+        warm_up(config, model)  # before the entity can send step 1
         shell.expect(RunShape.of(config, model))
         self.states = shell.inbox("information", "weight_state")
         self.sets = ParticleSets(shell) if self.layer.needs_particles else None

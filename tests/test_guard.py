@@ -420,3 +420,45 @@ def test_the_evaluation_quick_form_prints_every_variant_of_every_scenario(capsys
     for label in ("systematic", "DT relative rule, PS 0", "regularised"):
         assert error(drift, label) == pytest.approx(error(shifted, label), rel=1e-6)
     assert error(shifted, "DT paper rule, PS 0.81") > 100 * error(drift, "DT paper rule, PS 0.81")
+
+
+_SYSTEM_FIRST_STEPS = """
+import numba, numpy as np
+import entity._growth, entity._merge, information.mirror, information.rules, information.select, messages._seedseq
+from entity import models
+from information.mirror import summarise
+from messages.config import RunConfig
+from system.layer import SystemLayer, warm_up
+from system.predict import Snapshot
+
+def compiled():
+    return sum(len(f.signatures) for module in (entity._growth, entity._merge, information.rules, information.select,
+                                                information.mirror, messages._seedseq)
+               for f in vars(module).values() if isinstance(f, numba.core.registry.CPUDispatcher))
+
+config = RunConfig(policy="guard-observed", move_rule="relative", weight_rule="likelihood", ps=0.0, particles=300)
+model = models.get("ungm")
+warm_up(config, model)
+before = compiled()
+layer = SystemLayer.from_config(config, model=model, keep=16)
+rng = np.random.default_rng(3)
+for step in range(1, 6):  # what the service decodes: read-only arrays
+    x, w = rng.standard_normal((300, 1)) * 5, rng.random(300)
+    w /= w.sum()
+    x.flags.writeable = w.flags.writeable = False
+    layer.observe(step, summarise(x, w, "neff", 300), Snapshot.of(x, w, np.array([float(step)])))
+print(before, compiled())
+"""
+
+
+def test_the_system_layers_warm_up_compiles_what_its_first_real_steps_need():
+    # On a cold cache guard-observed compiled at step 4, for seconds, past the lockstep timeout: three steps
+    # degraded. In a fresh process, so that nothing else compiled those kernels first.
+    import subprocess
+    import sys
+    from conftest import ROOT
+    done = subprocess.run([sys.executable, "-c", _SYSTEM_FIRST_STEPS], cwd=ROOT, capture_output=True, text=True,
+                          timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    before, after = map(int, done.stdout.split())
+    assert before > 0 and after == before

@@ -22,7 +22,6 @@ import numpy as np
 from entity.models import StateSpaceModel
 from information import rules
 from information.mirror import WeightSummary, summarise
-from information.select import RADIX_MIN
 from messages.arrays import check_probability
 from messages.streams import stream
 
@@ -97,7 +96,7 @@ class InformationLayer:
         entity's 20 s startup timeout on a cold cache (21 s of compiling).
         """
         stream(self.seed, self.twin, 0, "information")  # the compiled SeedSequence (messages._seedseq)
-        size = 8 if particles < rules.SMALL_SET else rules.SMALL_SET if particles < RADIX_MIN else RADIX_MIN
+        size = rules.size_class(particles)
         key = (self.threshold_rule if isinstance(self.threshold_rule, str) else "a value", size)
         if key in _WARMED:
             return

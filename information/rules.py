@@ -60,7 +60,7 @@ from typing import Callable, Literal
 import numba
 import numpy as np
 
-from information.select import kth_largest
+from information.select import RADIX_MIN, kth_largest
 from entity.filter import PreprocessReport  # the filter's contract: what it receives
 from messages.arrays import check_probability, check_set
 
@@ -399,6 +399,13 @@ def _move_relative(x: np.ndarray, w: np.ndarray, limit: float, ps: float, rng: n
 #: Below this many particles :func:`preprocess` makes one compiled call (numba's np.partition selects W);
 #: from it on, numpy's partition or the radix select (information.select) is faster than that.
 SMALL_SET = 1 << 12
+
+
+def size_class(n: int) -> int:
+    """The smallest set that takes the code path :func:`preprocess` and the mirror take for N = ``n``: 8
+    (one compiled call, below SMALL_SET), SMALL_SET (three calls) or RADIX_MIN (W and the quantiles from
+    the radix select); what a layer warms up on."""
+    return 8 if n < SMALL_SET else SMALL_SET if n < RADIX_MIN else RADIX_MIN
 
 
 def _preprocess_small(x, w, threshold_rule, ps, rng):

@@ -120,11 +120,9 @@ def warm_up(config, model) -> None:
     run (a model that refuses a zero observation) is left to the real steps. No state of a real twin is
     touched: the layer, its streams and its set are its own.
     """
-    from information import rules
-    from information.select import RADIX_MIN
+    from information.rules import size_class
 
-    n = config.particles
-    size = 8 if n < rules.SMALL_SET else rules.SMALL_SET if n < RADIX_MIN else RADIX_MIN
+    size = size_class(config.particles)
     key = (config.policy, config.model_ref, config.resampler, str(config.threshold), config.weight_rule,
            config.move_rule, size)
     if key in _WARMED:

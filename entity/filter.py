@@ -47,7 +47,7 @@ from entity.models import StateSpaceModel
 from messages.arrays import check_particles, check_set
 from messages.streams import stream
 
-__all__ = ["ParticleFilter", "FilterStep", "Preprocessor", "Preprocessed", "PreprocessReport", "FilterError"]
+__all__ = ["ParticleFilter", "FilterStep", "PendingStep", "Preprocessor", "Preprocessed", "PreprocessReport", "FilterError"]
 
 #: z value of a two-sided 95% normal interval.
 Z95 = 1.959963984540054
@@ -391,6 +391,28 @@ class ParticleFilter:
         return self._step(z)
 
     def _step(self, observation: np.ndarray) -> FilterStep:
+        pending = self.begin_step(observation, ask=self.preprocessor is not None)
+        answer = None
+        if pending.asks:
+            try:
+                answer = self.preprocessor(pending.step, pending.particles, pending.weights, observation,
+                                           pending.parents)
+            except BaseException:
+                self._waiting = None
+                raise
+        return self.finish_step(pending, answer)
+
+    def begin_step(self, observation, *, ask: bool = True) -> "PendingStep":
+        """Steps 1-2 of step k on z_k (propagate, weight, normalise, ESS), up to the preprocessor's question.
+
+        For a caller that asks its preprocessor itself, without blocking (the
+        entity service's event loop): when ``pending.asks`` (resampling is due
+        and ``ask``), hand ``pending``'s set to the preprocessor, then call
+        :meth:`finish_step` with its answer (None: no answer, a degraded step);
+        :meth:`work_ahead` may run in between. Otherwise call
+        :meth:`finish_step` at once. The numbers are those of ``next()``.
+        """
+        z = np.asarray(observation, dtype=np.float64).reshape(-1)
         self.k += 1
         k = self.k
         ahead, self._ahead = self._ahead, None
@@ -410,8 +432,8 @@ class ParticleFilter:
         innovation = None
         if self.innovation:
             prior = np.exp(self.log_weights - prior_log_total)
-            innovation = normalised_innovation(self.model, self.particles, prior, observation, k)
-        log_likelihood = self.model.log_likelihood(self.particles, observation, k)
+            innovation = normalised_innovation(self.model, self.particles, prior, z, k)
+        log_likelihood = self.model.log_likelihood(self.particles, z, k)
         if self._flat:  # 0 + l is l: no pass over zeros
             np.copyto(self.log_weights, log_likelihood)
         else:
@@ -420,21 +442,26 @@ class ParticleFilter:
         log_predictive = log_total - prior_log_total  # log sum_i W_(k-1)^i p(z_k | x_k^i)
         self._log_total = log_total - top
         ess = 1.0 / float(np.dot(weights, weights))
-        particles = self.particles
 
         due = self.resample_below is None or ess < self.resample_below * self.n
         self._flat = due
         if not due:
             self.log_weights -= top  # keep log-weights near 0 between resamplings
+        pending = PendingStep(k, self.particles, weights, z, self.parents, ess, due, due and ask, rng,
+                              log_predictive, innovation)
+        if pending.asks:
+            self._waiting = (k, weights, rng)
+        return pending
+
+    def finish_step(self, pending: "PendingStep", answer: Preprocessed | None) -> FilterStep:
+        """Steps 3-6 of the step :meth:`begin_step` began: take the preprocessor's ``answer`` (None:
+        degraded, if it was asked), estimate, resample, jitter."""
+        self._waiting = None
+        k, particles, weights, rng, due = pending.step, pending.particles, pending.weights, pending.rng, pending.due
         degraded = False
         report = None
         target_particles, target_weights = particles, weights
-        if due and self.preprocessor is not None:
-            self._waiting = (k, weights, rng)
-            try:
-                answer = self.preprocessor(k, particles, weights, observation, self.parents)
-            finally:
-                self._waiting = None
+        if pending.asks:
             if answer is None:
                 degraded = True
             else:
@@ -458,5 +485,27 @@ class ParticleFilter:
             self.log_weights.fill(0.0)
             self._log_total = float(np.log(self.n))
             self.parents = resampling.distinct(ancestors)
-        return FilterStep(k, particles, weights, ess, mean, var, mean - half, mean + half,
-                          due, degraded, report, ancestors, parents, log_predictive, innovation)
+        return FilterStep(k, particles, weights, pending.ess, mean, var, mean - half, mean + half,
+                          due, degraded, report, ancestors, parents, pending.log_predictive, pending.innovation)
+
+
+@dataclass(frozen=True)
+class PendingStep:
+    """A filter step between :meth:`ParticleFilter.begin_step` and :meth:`ParticleFilter.finish_step`.
+
+    ``particles``, ``weights``, ``observation`` and ``parents`` are what the
+    preprocessor is asked about (``asks``: resampling is due and a preprocessor
+    is to be asked); the rest is the step's own state.
+    """
+
+    step: int
+    particles: np.ndarray
+    weights: np.ndarray
+    observation: np.ndarray
+    parents: int | None
+    ess: float
+    due: bool
+    asks: bool
+    rng: np.random.Generator
+    log_predictive: float
+    innovation: float | None

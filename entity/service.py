@@ -26,33 +26,45 @@ import zenoh
 
 from entity import sources
 from entity.cloud import FIELDS, POINT_STRIDE, cloud_points
-from entity.filter import ParticleFilter, Preprocessed, PreprocessReport
+from entity.filter import ParticleFilter, PendingStep, Preprocessed, PreprocessReport
 from entity.intake import ObservationIntake
 from messages.admission import RunShape
-from messages.bus import add_zenoh_arguments
+from messages.bus import Doorbell, add_zenoh_arguments
 from messages.config import RunConfig, add_run_arguments
 from messages.models import (ARRAYS_CHECKED, BASE64_CHECKED, Estimate, Observation, PackedElementField, ParticleSet,
                              ParticleSetKind, PointCloud, ServiceState, Time)
 from messages.fleet import host_twins
-from messages.service import ServiceShell, add_service_arguments, run_service
+from messages.service import TAKE_BUDGET, ServiceShell, add_service_arguments, run_service
 
-__all__ = ["ZenohTwin", "main"]
+__all__ = ["ZenohTwin", "TwinRun", "LiveObservations", "main"]
 
 
 class ZenohTwin:
-    """The filter's preprocessor hook over Zenoh: publish the set, wait for the answer."""
+    """The lockstep with the information layer, without blocking: publish the set, then look for the answer.
+
+    :meth:`ask` publishes step k's particle set and starts the wait;
+    :meth:`look` takes what the inbox holds and says whether to go on
+    waiting. A missing or late answer never stalls the filter: the step is
+    degraded once the deadline has passed, or at once when the information
+    layer is gone. The answer that is in the inbox when the deadline passes
+    is still taken (the work done meanwhile can outlast the deadline: numba
+    compiling it on a cold start took seconds), and only what the inbox held
+    at the deadline is looked at, so a flood cannot hold the step.
+    """
 
     def __init__(self, shell: ServiceShell, timeout: float):
         self.shell = shell
         self.timeout = timeout
         self.answers = shell.inbox("information", "preprocessed")
         self.information_was_alive = True
-        #: Called once the particle set is out, before waiting for the answer: work that
-        #: does not depend on it (the service sets the filter's work_ahead).
-        self.while_waiting = None
+        self.step = 0
+        self.deadline = 0.0
+        self._looks_left: int | None = None
 
-    def __call__(self, step, particles, weights, observation, parents=None) -> Preprocessed | None:
+    def ask(self, pending: PendingStep, now: float) -> bool:
+        """Publish the set of ``pending``; True if an answer is to be waited for (the layer is alive)."""
         shell = self.shell
+        step = pending.step
         alive = "information" in shell.presence.alive
         if not alive and self.information_was_alive:
             shell.log.warning("step %d: the information layer is gone, plain resampling until it is back", step)
@@ -61,45 +73,50 @@ class ZenohTwin:
         self.information_was_alive = alive
         # The filter checked both arrays (propagate's output, normalised weights): not scanned again here.
         shell.publish(ParticleSet.model_validate(dict(
-            **shell.header(step), kind=ParticleSetKind.PROPAGATED, particles=particles, weights=weights,
-            observation=[float(v) for v in observation], parents=parents), context=ARRAYS_CHECKED))
-        if not alive:
-            return None  # nobody to wait for: do not stall the filter
-        deadline = time.monotonic() + self.timeout
-        if self.while_waiting is not None:
-            self.while_waiting()
-        # A stop does not cut the wait: the step in flight finishes with its answer (the launcher stops
-        # the entity before the information layer), bounded by the timeout and the layer's liveliness.
-        last_looks = None
-        while True:
-            remaining = deadline - time.monotonic()
-            if remaining <= 0:
-                # The work done while waiting may outlast the deadline (numba compiling it on a cold start
-                # took seconds, with the answer already in): what the inbox holds at the deadline is
-                # looked at, no more (a flood cannot hold the step), then the step is degraded.
-                last_looks = len(self.answers) if last_looks is None else last_looks - 1
-                if last_looks <= 0:
+            **shell.header(step), kind=ParticleSetKind.PROPAGATED, particles=pending.particles,
+            weights=pending.weights, observation=[float(v) for v in pending.observation],
+            parents=pending.parents), context=ARRAYS_CHECKED))
+        self.step, self.deadline, self._looks_left = step, now + self.timeout, None
+        return alive  # nobody to wait for: do not stall the filter
+
+    def look(self, now: float) -> tuple[Preprocessed | None, bool]:
+        """(the answer, False) once it is in; (None, True) to wait on; (None, False): the step goes on
+        without one. A stop does not cut the wait: the step in flight finishes with its answer (the
+        launcher stops the entity before the information layer), bounded by the timeout and the
+        layer's liveliness."""
+        shell, step = self.shell, self.step
+        for _ in range(TAKE_BUDGET):
+            if now >= self.deadline:
+                self._looks_left = len(self.answers) if self._looks_left is None else self._looks_left - 1
+                if self._looks_left <= 0:
                     break
-            answer = shell.receive(self.answers.get(timeout=min(max(remaining, 0.0), 0.05)), ParticleSet)
+            answer = shell.receive(self.answers.get(timeout=0), ParticleSet)
             if answer is None:
-                if "information" not in shell.presence.alive and len(self.answers) == 0:
+                if len(self.answers):
+                    continue  # a bad one, counted
+                if "information" not in shell.presence.alive:
                     shell.log.warning("step %d: the information layer died before it answered, plain "
                                       "resampling", step)
                     self.information_was_alive = False
-                    return None  # it died while we waited: no answer will come
-                continue
+                    return None, False  # it died while we waited: no answer will come
+                break
             if answer.step != step:
                 shell.log.debug("ignored a late preprocessed set of step %d at step %d", answer.step, step)
                 continue
             report = PreprocessReport(answer.threshold, answer.n_large, answer.n_processed,
                                       answer.n_mixed, answer.n_plain, answer.ps)
             try:
-                return Preprocessed(answer.particles, answer.weights, report, checked=True)
+                return Preprocessed(answer.particles, answer.weights, report, checked=True), False
             except ValueError as error:  # the shell checked the shape; anything else is counted too
                 shell.reject("preprocessed set the filter cannot take", f"step {step}: {error}",
                              key=self.answers.key_expr)
+        else:
+            self.answers.ring()  # more waits: the other twins first, then this one again
+            return None, True
+        if now < self.deadline:
+            return None, True
         shell.log.warning("step %d: no preprocessed set within %.1f s, plain resampling", step, self.timeout)
-        return None
+        return None, False
 
 
 def main(config: RunConfig, zenoh_config: zenoh.Config, args: argparse.Namespace) -> int:
@@ -107,21 +124,24 @@ def main(config: RunConfig, zenoh_config: zenoh.Config, args: argparse.Namespace
 
     The observations are simulated, read from a file, or (live) taken from the
     sensor one at a time, one filter step each, until the sensor ends its
-    stream, ``--steps`` are done or the service is stopped.
+    stream, ``--steps`` are done or the service is stopped. With ``--twins``
+    the process hosts several twins, all in one event loop.
     """
+    models: dict[str, object] = {}  # one model object per reference, shared by the twins of this process
+
+    def make(shell: ServiceShell, twin_config: RunConfig) -> TwinRun:
+        model = models.get(twin_config.model_ref)
+        if model is None:
+            model = models[twin_config.model_ref] = sources.load_model(twin_config)
+        return TwinRun(shell, twin_config, model, sources.observations_of(twin_config, model), args)
+
     if args.twins:
-        configs = hosted_configs(config, args.twins)
-        models: dict[str, object] = {}  # one model object per reference, shared by the twins of this process
-
-        def run(shell: ServiceShell, twin_config: RunConfig) -> int:
-            model = models.setdefault(twin_config.model_ref, sources.load_model(twin_config))
-            return run_twin(shell, twin_config, model, sources.observations_of(twin_config, model), args)
-
-        return host_twins("entity", configs, zenoh_config, run)
+        return host_twins("entity", hosted_configs(config, args.twins), zenoh_config, make)
     model = sources.load_model(config)
-    data = sources.observations_of(config, model)
-    with ServiceShell("entity", config, zenoh_config) as shell:
-        return run_twin(shell, config, model, data, args)
+    data = sources.observations_of(config, model)  # a wrong file stops the service before its session opens
+    doorbell = Doorbell()
+    with ServiceShell("entity", config, zenoh_config, doorbell=doorbell) as shell:
+        return drive(TwinRun(shell, config, model, data, args), doorbell)
 
 
 def hosted_configs(config: RunConfig, twins: str) -> list[RunConfig]:
@@ -139,29 +159,152 @@ def hosted_configs(config: RunConfig, twins: str) -> list[RunConfig]:
     return [RunConfig.model_validate({**config.model_dump(), "twin": name}) for name in names]
 
 
-def run_twin(shell: ServiceShell, config: RunConfig, model, data, args: argparse.Namespace) -> int:
-    """One twin's filter on ``shell``, to the end (or until the shell stops)."""
-    steps = config.steps if config.steps is not None or data is None else len(data.observations)
-    shell.expect(RunShape(config.particles, model.dim, model.obs_dim, steps))
-    wait_for = args.wait_for if args.wait_for is not None else (
-        ["information", "system"] if config.preprocess else [])
-    twin = ZenohTwin(shell, args.timeout) if config.preprocess else None
-    live = LiveObservations(shell, model, config, args.observation_timeout) if data is None else None
-    if wait_for:  # the run configuration, at once: a fleet's shared layers learn the twin from it
-        shell.publish_status()
-    shell.wait_for_layers(wait_for, args.startup_timeout)
-    # Without truth the filter is judged by how it predicts its data: the innovation too.
-    pf = ParticleFilter(model, None if data is None else data.observations, config.particles,
-                        resampler=config.resampler, resample_below=config.resample_below, seed=config.seed,
-                        twin=config.twin, preprocessor=twin, innovation=data is None or data.truth is None,
-                        jitter=config.jitter)
-    if twin is not None:
-        twin.while_waiting = pf.work_ahead
-    pf.warm_up()
-    shell.running()
-    if live is not None:
-        return _run_live(shell, pf, live, config, args.cloud_points)
-    return _run_batch(shell, pf, data, model, config, args)
+def drive(run: "TwinRun", doorbell: Doorbell) -> int:
+    """Poll one twin's run whenever its inboxes or its peers ring (or its deadline comes) until it ends."""
+    while run.code is None:
+        deadline = run.poll(time.monotonic())
+        if run.code is None:
+            doorbell.wait(_wait_time(deadline, time.monotonic()))
+    return run.code
+
+
+def _wait_time(deadline: float | None, now: float) -> float:
+    return _IDLE if deadline is None else min(_IDLE, max(0.0, deadline - now))
+
+
+#: Longest wait of the event loop when nothing arrives (startup, stops and quiet sensors are looked at this often).
+_IDLE = 0.2
+
+
+class TwinRun:
+    """One twin's filter on ``shell`` as a state machine that never blocks: :meth:`poll` does what can be done.
+
+    Starting: it publishes the twin's status (how a fleet's shared layers
+    learn it) and waits, up to ``--startup-timeout``, for the layers it talks
+    to. Then, one filter step at a time: the next observation (the next of a
+    simulation or a file, at most ``--rate`` a second; or the sensor's next
+    accepted one), the step up to the preprocessor's question
+    (:meth:`entity.filter.ParticleFilter.begin_step`), the set out to the
+    information layer, and, while the answer is awaited, what the answer does
+    not change (:meth:`~entity.filter.ParticleFilter.work_ahead`: resampling
+    with its own weights, the next step's propagation noise); with the answer
+    or without it, the rest of the step and its estimate. :attr:`code` is the
+    exit code once it has ended (0 done, 130 stopped).
+    """
+
+    def __init__(self, shell: ServiceShell, config: RunConfig, model, data, args: argparse.Namespace):
+        self.shell = shell
+        self.config = config
+        self.model = model
+        self.data = data
+        self.cloud = args.cloud_points
+        self.steps = config.steps if config.steps is not None or data is None else len(data.observations)
+        shell.expect(RunShape(config.particles, model.dim, model.obs_dim, self.steps))
+        self.wait_for = set(args.wait_for if args.wait_for is not None else (
+            ["information", "system"] if config.preprocess else []))
+        self.twin = ZenohTwin(shell, args.timeout) if config.preprocess else None
+        self.live = LiveObservations(shell, model, config, args.observation_timeout) if data is None else None
+        self.period = 1.0 / args.rate if args.rate and data is not None else 0.0
+        if self.wait_for:  # the run configuration, at once: a fleet's shared layers learn the twin from it
+            shell.publish_status()
+        self.startup_deadline = time.monotonic() + args.startup_timeout
+        self.startup_timeout = args.startup_timeout
+        self.pf: ParticleFilter | None = None
+        self.pending: PendingStep | None = None
+        self.truth = None
+        self.next_tick = 0.0
+        #: The exit code once the run has ended (None while it runs).
+        self.code: int | None = None
+
+    def poll(self, now: float) -> float | None:
+        """Do what can be done now: at most one filter step. Returns when to look again at the latest
+        (None: when something arrives), ``now`` if there is more to do at once."""
+        if self.code is not None:
+            return None
+        if self.pf is None:
+            if self.shell.stopping:
+                self._end(130, "stopped before the first step")
+                return None
+            missing = self.wait_for - self.shell.presence.alive
+            if missing and now < self.startup_deadline:
+                return self.startup_deadline
+            if missing:
+                self.shell.log.warning("going on without %s: not alive after %.1f s", ", ".join(sorted(missing)),
+                                       self.startup_timeout)
+            self._start()
+            return now
+        if self.pending is None:
+            wake = self._begin(now)
+            if self.pending is None:
+                return wake
+        if self.pending.asks and self.twin is not None:
+            answer, waiting = self.twin.look(now)
+            if waiting:
+                return self.twin.deadline
+        else:
+            answer = None
+        self._finish(answer)
+        return now
+
+    def _start(self) -> None:
+        config, data = self.config, self.data
+        # Without truth the filter is judged by how it predicts its data: the innovation too.
+        self.pf = ParticleFilter(self.model, None if data is None else data.observations, config.particles,
+                                 resampler=config.resampler, resample_below=config.resample_below,
+                                 seed=config.seed, twin=config.twin, innovation=data is None or data.truth is None,
+                                 jitter=config.jitter)
+        self.pf.warm_up()
+        self.shell.running()
+        if self.live is not None:
+            self.shell.log.info("waiting for observations on %s", self.live.key)
+        self.next_tick = time.monotonic()
+
+    def _end(self, code: int, message: str, *values) -> None:
+        self.shell.log.info(message, *values)
+        self.code = code
+
+    def _begin(self, now: float) -> float | None:
+        """Begin the next step if its observation is there; else when to look again."""
+        pf, shell = self.pf, self.shell
+        if self.live is None:
+            if pf.k >= pf.steps:
+                self._end(0, "finished %d steps", pf.steps)
+                return None
+            if shell.stopping:
+                self._end(130, "stopped after step %d of %d", pf.k, pf.steps)
+                return None
+            if self.period and now < self.next_tick:
+                return self.next_tick
+            observation = self.data.observations[pf.k]
+            self.truth = None if self.data.truth is None else self.data.truth[pf.k]
+        else:
+            if self.steps is not None and pf.k >= self.steps:
+                self._end(0, "finished %d steps", pf.k)
+                return None
+            if shell.stopping:
+                self._end(130, "stopped after step %d", pf.k)
+                return None
+            message = self.live.take(now)
+            if message is None:
+                return now if self.live.more else None  # a flood: the rest at once; else when one comes
+            if message.end:
+                self._end(0, "the sensor ended its stream after %d observations", pf.k)
+                return None
+            observation, self.truth = message.values, message.truth
+        self.pending = pending = pf.begin_step(observation, ask=self.twin is not None)
+        if pending.asks and self.twin is not None:
+            if self.twin.ask(pending, now):
+                pf.work_ahead()  # off the lockstep's critical path; the same numbers
+            else:
+                self._finish(None)  # nobody to wait for: do not stall the filter
+        return now
+
+    def _finish(self, answer: Preprocessed | None) -> None:
+        pending, self.pending = self.pending, None
+        step = self.pf.finish_step(pending, answer)
+        _publish_step(self.shell, step, self.truth, pending.observation, self.model, self.config, self.cloud)
+        if self.period:
+            self.next_tick += self.period
 
 
 def _publish_step(shell: ServiceShell, step, truth, observation, model, config: RunConfig, cloud: int = 0) -> None:
@@ -186,27 +329,8 @@ def _publish_step(shell: ServiceShell, step, truth, observation, model, config: 
             data=base64.b64encode(points.tobytes()).decode("ascii")), context=BASE64_CHECKED))
 
 
-def _run_batch(shell: ServiceShell, pf: ParticleFilter, data, model, config: RunConfig,
-               args: argparse.Namespace) -> int:
-    """Every observation of a simulation or a file, at most ``--rate`` steps per second."""
-    period = 1.0 / args.rate if args.rate else 0.0
-    next_tick = time.monotonic()
-    for step in pf:
-        k = step.step
-        _publish_step(shell, step, None if data.truth is None else data.truth[k - 1],
-                      data.observations[k - 1], model, config, args.cloud_points)
-        if shell.stopping:
-            shell.log.info("stopped after step %d of %d", k, pf.steps)
-            return 130
-        if period:
-            next_tick += period
-            time.sleep(max(0.0, next_tick - time.monotonic()))
-    shell.log.info("finished %d steps", pf.steps)
-    return 0
-
-
 class LiveObservations:
-    """The sensor's observations as they arrive: decoded, checked by the intake, counted."""
+    """The sensor's observations as they arrive: decoded, checked by the intake, counted; never blocks."""
 
     def __init__(self, shell: ServiceShell, model, config: RunConfig, quiet_after: float):
         self.shell = shell
@@ -214,27 +338,23 @@ class LiveObservations:
         self.inbox = shell.inbox_on(self.key)
         self.intake = ObservationIntake(model.obs_dim, model.dim)
         self.quiet_after = quiet_after
+        self.last = time.monotonic()
+        #: Whether the last :meth:`take` left samples in the inbox (a flood: look again at once).
+        self.more = False
         shell.observation_counts = self.intake.counts
 
-    def next(self) -> Observation | None:
-        """The next accepted observation (or the end of the stream); None once the service stops.
+    def take(self, now: float) -> Observation | None:
+        """The next accepted observation (or the end of the stream), None if none is in.
 
-        Waits as long as it takes; after ``quiet_after`` seconds without one the
-        status says so (state 'waiting'), and 'running' again when one comes.
+        After ``quiet_after`` seconds without one the status says so (state
+        'waiting'), and 'running' again when one comes.
         """
         shell = self.shell
-        last = time.monotonic()
-        while not shell.stopping:
-            item = self.inbox.get(timeout=0.2)
+        self.more = True
+        for _ in range(TAKE_BUDGET):
+            item = self.inbox.get(timeout=0)
             if item is None:
-                quiet = time.monotonic() - last
-                if quiet >= self.quiet_after and shell.state != ServiceState.WAITING:
-                    shell.state = ServiceState.WAITING
-                    shell.detail = (f"no observation for {quiet:.1f} s on {self.key} (last sequence "
-                                    f"{self.intake.last_sequence}); waiting")
-                    shell.log.warning("%s", shell.detail)
-                    shell.publish_status()
-                continue
+                break
             rejected = shell.rejected
             message = shell.receive(item, Observation)
             if message is None:
@@ -246,30 +366,23 @@ class LiveObservations:
                 shell.reject(verdict.reason, verdict.detail)
                 continue
             if shell.state == ServiceState.WAITING:
-                shell.log.info("observations again after %.1f s (sequence %d)", time.monotonic() - last,
-                               message.step)
+                shell.log.info("observations again after %.1f s (sequence %d)", now - self.last, message.step)
                 shell.state, shell.detail = ServiceState.RUNNING, None
                 shell.publish_status()
+            self.last = now
             return message
+        else:
+            self.inbox.ring()
+            return None
+        self.more = False
+        quiet = now - self.last
+        if quiet >= self.quiet_after and shell.state != ServiceState.WAITING:
+            shell.state = ServiceState.WAITING
+            shell.detail = (f"no observation for {quiet:.1f} s on {self.key} (last sequence "
+                            f"{self.intake.last_sequence}); waiting")
+            shell.log.warning("%s", shell.detail)
+            shell.publish_status()
         return None
-
-
-def _run_live(shell: ServiceShell, pf: ParticleFilter, live: LiveObservations, config: RunConfig,
-              cloud: int = 0) -> int:
-    """One filter step per accepted observation, until the stream ends, ``--steps`` or a stop."""
-    shell.log.info("waiting for observations on %s", live.key)
-    while config.steps is None or pf.k < config.steps:
-        observation = live.next()
-        if observation is None:
-            shell.log.info("stopped after step %d", pf.k)
-            return 130
-        if observation.end:
-            shell.log.info("the sensor ended its stream after %d observations", pf.k)
-            break
-        step = pf.update(observation.values)
-        _publish_step(shell, step, observation.truth, observation.values, pf.model, config, cloud)
-    shell.log.info("finished %d steps", pf.k)
-    return 0
 
 
 def build_parser() -> argparse.ArgumentParser:

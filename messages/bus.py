@@ -306,9 +306,11 @@ class Presence:
     disappears within a few milliseconds (ECOSYSTEM.md).
     """
 
-    def __init__(self, session: zenoh.Session, twin: str, layer: str, names=None):
+    def __init__(self, session: zenoh.Session, twin: str, layer: str, names=None, doorbell: Doorbell | None = None):
         self.twin = twin
         self.layer = layer
+        #: Rung with the twin's id when a peer comes or goes (a thread that waits on inboxes sees it).
+        self.doorbell = doorbell
         #: The layer names that count (None: any); a token of another name is ignored, so a flood of
         #: made-up names cannot grow the set.
         self.names = None if names is None else frozenset(names)
@@ -336,6 +338,8 @@ class Presence:
             else:
                 self._alive.discard(parts[2])
             self._changed.notify_all()
+        if self.doorbell is not None:
+            self.doorbell.ring(self.twin)
 
     @property
     def alive(self) -> set[str]:

@@ -271,48 +271,91 @@ def serve_fleet(layer: str, pattern: str, zenoh_config, make_work, *, allow_mode
         session.close()
 
 
-def host_twins(layer: str, configs: list[RunConfig], zenoh_config, run) -> int:
-    """Run ``run(shell, config)`` for each twin of ``configs``, each in a thread of its own on one Zenoh
-    session (an entity hosting several twins); SIGINT/SIGTERM stop them all. Returns the largest exit
-    code of the twins (2 when a twin's model or file is wrong)."""
+def host_twins(layer: str, configs: list[RunConfig], zenoh_config, make) -> int:
+    """Run each twin of ``configs`` on one Zenoh session in one event loop (an entity hosting several twins).
+
+    ``make(shell, config)`` gives a twin's run: an object whose ``poll(now)`` does
+    what can be done without blocking and returns when to look again (None:
+    when something arrives; a time already passed: at once), and whose
+    ``code`` is its exit code once it has ended. A twin polls when its inboxes
+    or its peers ring, or its time comes; the statuses of every twin go out
+    every second (a waiting entity's status is how a fleet's shared layers
+    learn it). A twin whose model or file is wrong (RunInputError) ends with
+    2, one that fails with a bug of ours with 1; the others go on.
+    SIGINT/SIGTERM stop them all. Returns the largest exit code of the twins.
+
+    One thread for all the twins: with a thread each, every twin-step handed
+    the GIL between the twins' threads (numpy and the compiled kernels release
+    it) and the process switched context hundreds of times a twin-step.
+    """
     log = logging.getLogger(f"dtpf.{layer}")
     session = open_session(zenoh_config)
-    shells = [ServiceShell(layer, config, session=session) for config in configs]
-    codes: dict[str, int] = {}
+    doorbell = Doorbell()
+    shells = {config.twin: ServiceShell(layer, config, session=session, doorbell=doorbell) for config in configs}
+    stop = threading.Event()
 
     def on_signal(signum, frame):
         log.info("received %s, stopping %d twins", signal.Signals(signum).name, len(shells))
-        for shell in shells:
+        stop.set()
+        for shell in shells.values():
             shell.stop()
 
     for signum in (signal.SIGINT, signal.SIGTERM):
         signal.signal(signum, on_signal)
     watchdog = ExitWatchdog(log, grace=EXIT_GRACE)
     watchdog.install()
+    codes: dict[str, int] = {}
+    runs: dict[str, object] = {}
 
-    def body(shell: ServiceShell) -> None:
-        twin = shell.config.twin
+    def end(twin: str, code: int, exc: BaseException | None = None) -> None:
+        codes[twin] = code
+        runs.pop(twin, None)
+        shells[twin].__exit__(type(exc) if exc else None, exc, None)
+
+    def guarded(twin: str, action) -> float | None:
         try:
-            with shell:
-                codes[twin] = run(shell, shell.config)
+            return action()
         except RunInputError as error:
             log.error("twin %s: %s", twin, error)
-            codes[twin] = 2
-        except Exception:  # a bug of ours: this twin fails, the others go on
+            end(twin, 2, error)
+        except Exception as error:  # a bug of ours: this twin fails, the others go on
             log.exception("twin %s failed", twin)
-            codes[twin] = 1
+            end(twin, 1, error)
+        return None
 
-    threads = [threading.Thread(target=body, args=(shell,), name=f"twin {shell.config.twin}") for shell in shells]
-    for thread in threads:
-        thread.start()
-    # The statuses of every twin (a waiting entity's status is how a fleet's shared layers learn it).
-    while any(thread.is_alive() for thread in threads):
+    for twin, shell in shells.items():
+        shell.__enter__()
+        made = guarded(twin, lambda: make(shell, shell.config))
+        if made is not None:
+            runs[twin] = made
+    due: dict[str, float] = {twin: 0.0 for twin in runs}  # when each twin next wants a look
+    rung: set[str] = set(runs)
+    next_tick = 0.0
+    while runs:
         now = time.monotonic()
-        for shell, thread in zip(shells, threads):
-            if thread.is_alive():
-                shell.tick(now)
-        time.sleep(_IDLE)
-    code = max((c if isinstance(c, int) else 1 for c in codes.values()), default=1)
+        if now >= next_tick:
+            next_tick = now + _IDLE
+            for shell in shells.values():
+                if shell.config.twin in runs:
+                    shell.tick(now)
+        rung |= {twin for twin, when in due.items() if when <= now}
+        for twin in rung:
+            run = runs.get(twin)
+            if run is None:
+                continue
+            wake = guarded(twin, lambda: run.poll(now))
+            if twin not in runs:
+                due.pop(twin, None)
+            elif run.code is not None:
+                end(twin, run.code)
+                due.pop(twin, None)
+            else:
+                due[twin] = now + _IDLE if wake is None else wake
+        if not runs:
+            break
+        soonest = min(due.values(), default=now + _IDLE)
+        rung = doorbell.wait(min(_IDLE, max(0.0, soonest - time.monotonic())))
+    code = max(codes.values(), default=1)
     watchdog.arm(code=code)
     session.close()
     return code

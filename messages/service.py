@@ -217,7 +217,8 @@ class ServiceShell:
         self.shared = session is not None
         self.watchdog = ExitWatchdog(self.log) if not self.shared else None
         self.session = session if self.shared else open_session(zenoh_config)
-        self.presence = Presence(self.session, config.twin, self.layer.value, names=_LAYER_NAMES)
+        self.presence = Presence(self.session, config.twin, self.layer.value, names=_LAYER_NAMES,
+                                 doorbell=doorbell)
         self._status_thread = threading.Thread(target=self._report, name="status", daemon=True)
         self._next_status = time.monotonic() + STATUS_INTERVAL
 

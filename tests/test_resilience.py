@@ -372,6 +372,9 @@ class _Answers:
         time.sleep(timeout)
         return None
 
+    def ring(self):
+        self.rung = getattr(self, "rung", 0) + 1
+
 
 class _EntityShell:
     """What ZenohTwin uses of a ServiceShell, with the information layer alive."""
@@ -408,6 +411,12 @@ def _answer(step, particles, weights):
         n_plain=5))
 
 
+def _pending(step, particles, weights):
+    from entity.filter import PendingStep
+    return PendingStep(step, particles, weights, np.array([0.5]), None, 50.0, True, True,
+                       np.random.default_rng(0), 0.0, None)
+
+
 def test_an_answer_that_came_while_the_entity_worked_past_its_deadline_is_taken():
     # The entity works while it waits (work_ahead); on a cold start numba compiled that work for seconds,
     # past the lockstep timeout, and the answer already in the inbox was dropped: every twin of a fleet's
@@ -416,28 +425,25 @@ def test_an_answer_that_came_while_the_entity_worked_past_its_deadline_is_taken(
     particles, weights = np.random.default_rng(0).standard_normal((50, 1)), np.full(50, 1 / 50)
     answers = _Answers()
     twin = ZenohTwin(_EntityShell(answers), timeout=0.2)
-
-    def slow_work():  # the answer arrives, the work goes on past the deadline
-        answers.items.append(_answer(3, particles, weights))
-        time.sleep(0.4)
-    twin.while_waiting = slow_work
-    got = twin(3, particles, weights, np.array([0.5]))
-    assert got is not None and np.array_equal(got.particles, particles + 1.0)
-
-    twin.while_waiting = lambda: time.sleep(0.3)  # past the deadline with nothing in: degraded at once
     start = time.monotonic()
-    assert twin(4, particles, weights, np.array([0.5])) is None
-    assert time.monotonic() - start < 0.3 + 0.2
+    assert twin.ask(_pending(3, particles, weights), start)
+    answers.items.append(_answer(3, particles, weights))  # the answer arrives, the work goes on past the deadline
+    got, waiting = twin.look(start + 0.4)
+    assert not waiting and got is not None and np.array_equal(got.particles, particles + 1.0)
+
+    assert twin.ask(_pending(4, particles, weights), start)
+    assert twin.look(start + 0.1) == (None, True)          # before the deadline with nothing in: wait on
+    assert twin.look(start + 0.3) == (None, False)         # past it with nothing in: degraded at once
 
 
 def test_a_flood_of_stale_answers_past_the_deadline_does_not_hold_the_step():
     from entity.service import ZenohTwin
     particles, weights = np.random.default_rng(1).standard_normal((50, 1)), np.full(50, 1 / 50)
-    twin = ZenohTwin(_EntityShell(_Answers(flood=_answer(1, particles, weights))), timeout=0.1)
-    twin.while_waiting = lambda: time.sleep(0.15)
-    result = []
-    worker = threading.Thread(target=lambda: result.append(twin(2, particles, weights, np.array([0.5]))),
-                              daemon=True)
-    worker.start()
-    worker.join(timeout=5)
-    assert not worker.is_alive() and result == [None]
+    answers = _Answers(flood=_answer(1, particles, weights))
+    twin = ZenohTwin(_EntityShell(answers), timeout=0.1)
+    start = time.monotonic()
+    twin.ask(_pending(2, particles, weights), start)
+    assert twin.look(start + 0.05) == (None, True)         # a flood before the deadline: looked at in budgets
+    assert answers.rung == 1                               # and the rest left for the next look
+    looks = [twin.look(start + 0.15) for _ in range(5)]    # past it: only what the inbox held, then degraded
+    assert (None, False) in looks[:4]

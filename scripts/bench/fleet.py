@@ -55,8 +55,10 @@ class RssSampler:
     """The largest RSS of every child process of this process (and their children), by kind, and
     every process's CPU time, this one's included, at each sample (wall time, CPU seconds)."""
 
-    def __init__(self, interval: float = 0.25):
+    def __init__(self, interval: float = 0.25, kind=None):
         self.interval = interval
+        #: The kind of a process from its command line (its arguments as bytes); the layers' by default.
+        self.kind = kind or _kind
         self.peak: dict[int, tuple[str, int]] = {}
         self.cpu: dict[int, tuple[str, list[tuple[float, float]]]] = {}
         self._stop = threading.Event()
@@ -74,7 +76,7 @@ class RssSampler:
         me = os.getpid()
         while not self._stop.wait(self.interval):
             now = time.time()
-            for pid, kind, rss, cpu in _descendants(me):
+            for pid, kind, rss, cpu in _descendants(me, self.kind):
                 if pid == me:
                     kind = "launcher"
                 else:
@@ -100,7 +102,7 @@ class RssSampler:
         return kinds
 
 
-def _descendants(root: int):
+def _descendants(root: int, kind_of=None):
     """(pid, kind, rss bytes, CPU seconds) of ``root`` and every process below it; kind from its
     command line."""
     parents, info = {}, {}
@@ -118,7 +120,7 @@ def _descendants(root: int):
             continue
         fields = stat.rsplit(")", 1)[1].split()  # fields 3.. of proc(5): state, ppid, ..., utime, stime
         parents[int(entry)] = int(fields[1])
-        info[int(entry)] = (_kind(command), pages * os.sysconf("SC_PAGE_SIZE"),
+        info[int(entry)] = ((kind_of or _kind)(command), pages * os.sysconf("SC_PAGE_SIZE"),
                             (int(fields[11]) + int(fields[12])) / _TICKS)
     below = {root}
     changed = True

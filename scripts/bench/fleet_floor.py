@@ -1,0 +1,251 @@
+"""The transport floor under a fleet's throughput: a fleet's messages with no filter and no decoding in them.
+
+One twin-step of ``dtpf launch --twins K`` is five messages through the
+launcher's router: the entity's particle set (to the information layer and
+the recorder), the preprocessed set (to the entity and the recorder), the
+weight state (to the system layer and the recorder), the PS command (to the
+information layer and the recorder) and the estimate (to the recorder and the
+launcher's progress), besides about 0.76 statuses per twin-step at K = 100.
+This benchmark sends the same messages, of the sizes a real fleet's log holds
+at N = 1e3 (``--scale`` for others), between stand-in processes that do
+nothing else: no filter, no rules, no pydantic, no MCAP writing. Each stand-in
+receives as the product does (``messages.bus.Inbox``: a Zenoh subscriber whose
+Python callback copies the payload into a queue that rings a doorbell) and
+publishes with the product's publishers (congestion control BLOCK); the
+recorder stand-in takes every message of the fleet and copies it out. The
+bench process hosts the router and counts the estimates, as the launcher does.
+
+Receivers:
+
+- ``inbox``: one subscriber per twin and topic, as the shared services and the
+  entity hold today (each subscriber's callback runs on a Python thread of
+  its own in zenoh-python);
+- ``demux``: one subscriber per topic in each process, on a wildcard of its
+  twins, that hands each sample to its twin.
+
+Figures: twin-steps per second (estimates from the first to the last, over
+that time) and each kind of process's CPU time per twin-step in that window
+(utime + stime from /proc). Whatever the layers compute comes on top: a
+fleet cannot go faster than this on the same machine. Run from the
+repository root::
+
+    python -m scripts.bench.fleet_floor                      # K = 100, both receivers, 3 repetitions
+    python -m scripts.bench.fleet_floor --twins 10 100 --repeats 1
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import random
+import statistics
+import struct
+import subprocess
+import sys
+import time
+
+from messages.bus import Doorbell, Inbox, free_port, open_session, publisher, zenoh_config
+from scripts.bench.fleet import RssSampler
+
+RECEIVERS = ("inbox", "demux")
+ROLES = ("recorder", "system", "information", "entity")
+#: Bytes of each message of one twin-step at N = 1e3 (means over a K = 100 fleet's log), by topic.
+SIZES = {"entity/particles": 16_368, "information/preprocessed": 16_464, "information/weight_state": 529,
+         "system/ps": 212, "entity/estimate": 421}
+#: Topics whose size grows with N (the particle sets).
+SCALED = ("entity/particles", "information/preprocessed")
+_STEP = struct.Struct("<q")
+PREFIX = "floor"
+
+
+def _payload(topic: str, step: int, scale: float) -> bytes:
+    size = int(SIZES[topic] * (scale if topic in SCALED else 1.0))
+    return _STEP.pack(step) + bytes(max(0, size - _STEP.size))
+
+
+def _twins_of(process: int, processes: int, k: int) -> list[str]:
+    """The twins an entity stand-in hosts: ``e<process>-<i>``, every processes-th of the K."""
+    return [f"e{process}-{i}" for i in range(process + 1, k + 1, processes)]
+
+
+class Receiver:
+    """Samples of ``topic`` for a set of twins, as (twin, payload), with one doorbell for all of them."""
+
+    def __init__(self, session, topic: str, twins: list[str] | None, chunk: str, how: str, doorbell: Doorbell):
+        self.inboxes: list[Inbox] = []
+        if how == "demux" or twins is None:
+            self.inboxes.append(Inbox(session, f"{PREFIX}/{chunk}/{topic}", doorbell=doorbell, name=topic))
+        else:
+            self.inboxes += [Inbox(session, f"{PREFIX}/{twin}/{topic}", doorbell=doorbell, name=topic)
+                             for twin in twins]
+
+    def drain(self):
+        for inbox in self.inboxes:
+            while (item := inbox.get(timeout=0)) is not None:
+                yield item.key.split("/", 2)[1], item.payload
+
+
+class Publishers:
+    """One publisher per key, declared on first use (as ``ServiceShell.publish`` does)."""
+
+    def __init__(self, session):
+        self.session = session
+        self.by_key = {}
+
+    def put(self, twin: str, topic: str, payload: bytes) -> None:
+        key = f"{PREFIX}/{twin}/{topic}"
+        pub = self.by_key.get(key)
+        if pub is None:
+            pub = self.by_key[key] = publisher(self.session, key)
+        pub.put(payload)
+
+
+def _serve(role: str, router: str, how: str, k: int, processes: int, process: int, steps: int,
+           scale: float) -> int:
+    """One stand-in process, until 10 s pass without input (or, for an entity, its twins are done)."""
+    session = open_session(zenoh_config(mode="client", connect=[router]))
+    doorbell = Doorbell()
+    out = Publishers(session)
+    all_twins = [twin for p in range(processes) for twin in _twins_of(p, processes, k)]
+    if role == "recorder":
+        inbox = Inbox(session, f"{PREFIX}/**")
+        while inbox.get(timeout=10) is not None:
+            pass
+        os._exit(0)
+    if role == "system":
+        weights = Receiver(session, "information/weight_state", all_twins, "*", how, doorbell)
+        while doorbell.wait(10):
+            for twin, payload in weights.drain():
+                out.put(twin, "system/ps", _payload("system/ps", _STEP.unpack_from(payload)[0], scale))
+        os._exit(0)
+    if role == "information":
+        sets = Receiver(session, "entity/particles", all_twins, "*", how, doorbell)
+        commands = Receiver(session, "system/ps", all_twins, "*", how, doorbell)
+        while doorbell.wait(10):
+            for _ in commands.drain():
+                pass
+            for twin, payload in sets.drain():
+                step = _STEP.unpack_from(payload)[0]
+                out.put(twin, "information/preprocessed", _payload("information/preprocessed", step, scale))
+                out.put(twin, "information/weight_state", _payload("information/weight_state", step, scale))
+        os._exit(0)
+    twins = _twins_of(process, processes, k)
+    answers = Receiver(session, "information/preprocessed", twins, f"e{process}-$*", how, doorbell)
+    time.sleep(2.0)  # every stand-in subscribed
+    done = 0
+    for twin in twins:
+        out.put(twin, "entity/particles", _payload("entity/particles", 1, scale))
+    while done < len(twins) and doorbell.wait(10):
+        for twin, payload in answers.drain():
+            step = _STEP.unpack_from(payload)[0]
+            out.put(twin, "entity/estimate", _payload("entity/estimate", step, scale))
+            if step < steps:
+                out.put(twin, "entity/particles", _payload("entity/particles", step + 1, scale))
+            else:
+                done += 1
+    time.sleep(0.5)
+    os._exit(0)
+
+
+def _kind(command: list[bytes]) -> str:
+    text = b" ".join(command).decode(errors="replace")
+    for role in ROLES:
+        if f"--serve {role} " in text:
+            return role
+    return "other"
+
+
+def one_run(k: int, how: str, steps: int, processes: int, scale: float) -> dict:
+    """Twin-steps per second and CPU ms per twin-step by kind of process, of one fleet of stand-ins."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    router = open_session(zenoh_config(mode="router", listen=[endpoint]))
+    children = []
+    try:
+        session = open_session(zenoh_config(mode="client", connect=[endpoint]))
+        estimates = Inbox(session, f"{PREFIX}/*/entity/estimate")
+        with RssSampler(kind=_kind) as sampler:
+            for role in ROLES:
+                for process in range(processes if role == "entity" else 1):
+                    children.append(subprocess.Popen(
+                        [sys.executable, "-m", "scripts.bench.fleet_floor", "--serve", role, endpoint, how, str(k),
+                         str(processes), str(process), str(steps), str(scale)]))
+            first = last = None
+            count = 0
+            while count < k * steps:
+                item = estimates.get(timeout=30)
+                if item is None:
+                    raise RuntimeError(f"stand-in fleet stalled: {count} of {k * steps} estimates ({how}, K = {k})")
+                last = time.time()
+                first = first or last
+                count += 1
+        session.close()
+        cpu = sampler.cpu_between(first, last)
+        window = count - 1
+        return {"rate": window / (last - first), "cpu_ms": {kind: 1e3 * s / window for kind, s in cpu.items()}}
+    finally:
+        for child in children:
+            child.kill()
+            child.wait()
+        router.close()
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m scripts.bench.fleet_floor", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--twins", nargs="+", type=int, default=[100], metavar="K",
+                        help="fleet sizes (default: 100)")
+    parser.add_argument("--steps", type=int, default=200, help="steps per twin (default: %(default)s)")
+    parser.add_argument("--entities", type=int, default=2,
+                        help="entity stand-in processes, as dtpf launch --entities (default: %(default)s)")
+    parser.add_argument("--scale", type=float, default=1.0,
+                        help="particle sets this many times the size of N = 1e3's (default: %(default)s)")
+    parser.add_argument("--receivers", nargs="+", choices=RECEIVERS, default=list(RECEIVERS),
+                        help="receivers to compare (default: both)")
+    parser.add_argument("--repeats", type=int, default=3, help="runs per variant, interleaved (default: %(default)s)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the run order")
+    parser.add_argument("--serve", nargs=8, help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    if args.serve:
+        role, router, how, k, processes, process, steps, scale = args.serve
+        return _serve(role, router, how, int(k), int(processes), int(process), int(steps), float(scale))
+    variants = [(k, how) for k in args.twins for how in args.receivers]
+    order = variants * args.repeats
+    random.Random(args.seed).shuffle(order)
+    load = os.getloadavg()[0]
+    start = time.perf_counter()
+    runs: dict[tuple, list[dict]] = {v: [] for v in variants}
+    for i, (k, how) in enumerate(order, 1):
+        result = one_run(k, how, args.steps, args.entities, args.scale)
+        runs[k, how].append(result)
+        print(f"  run {i}/{len(order)}: K = {k} {how}: {result['rate']:.0f} twin-steps/s, "
+              f"{sum(result['cpu_ms'].values()):.3f} ms CPU per twin-step", file=sys.stderr, flush=True)
+    print(f"`python -m scripts.bench.fleet_floor{' ' + ' '.join(sys.argv[1:]) if sys.argv[1:] else ''}`: Python "
+          f"{platform.python_version()}, {os.cpu_count()} CPUs, 1-min load {load:.2f} before, "
+          f"{time.perf_counter() - start:.0f} s in all; {args.steps} steps per twin, {args.entities} entity "
+          f"processes, particle sets of {int(SIZES['entity/particles'] * args.scale)} bytes.\n")
+    kinds = ("entity", "information", "system", "recorder", "launcher")
+    print("| K | receiver | twin-steps/s (range) | CPU ms per twin-step: " + " | ".join(kinds) + " | all |")
+    print("|---" * (len(kinds) + 4) + "|")
+    for k, how in variants:
+        rates = [r["rate"] for r in runs[k, how]]
+        cpu = {kind: statistics.median(r["cpu_ms"].get(kind, 0.0) for r in runs[k, how]) for kind in kinds}
+        total = statistics.median(sum(r["cpu_ms"].values()) for r in runs[k, how])
+        print(f"| {k} | {how} | {statistics.median(rates):.0f} ({min(rates):.0f}-{max(rates):.0f}) | "
+              + " | ".join(f"{cpu[kind]:.3f}" for kind in kinds) + f" | {total:.3f} |")
+    print(f"\nMedians over {args.repeats} runs, variants interleaved. CPU: utime + stime from /proc between the "
+          "first and the last estimate; 'launcher' is the bench process, with the router in it. "
+          f"{os.cpu_count()} cores give {os.cpu_count() * 1000} ms of CPU a second: 1,000 twin-steps/s needs at most "
+          f"{os.cpu_count():.1f} ms per twin-step in all.")
+    return 0
+
+
+if __name__ == "__main__":
+    # Leave without the interpreter's teardown, where Zenoh's runtime threads kept a finished bench waiting.
+    try:
+        code = main()
+    except Exception:
+        import traceback
+        traceback.print_exc()
+        code = 1
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)

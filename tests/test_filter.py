@@ -156,6 +156,35 @@ def test_working_ahead_during_the_preprocessor_call_changes_no_number(model, ans
         np.testing.assert_array_equal(a.mean, b.mean)
 
 
+@pytest.mark.parametrize("answer", [keep, reweigh, skip_odd])
+@pytest.mark.parametrize("resample_below", [None, 0.5])
+def test_a_step_begun_and_finished_by_its_caller_gives_the_numbers_of_next(answer, resample_below):
+    # The entity service's event loop asks the twin itself: begin_step, the question, work_ahead while the
+    # answer is awaited, finish_step. With resample_below some steps are not due and ask nothing.
+    _, z = models.get("ungm").simulate(15, np.random.default_rng(3))
+    plain = list(ParticleFilter(models.get("ungm"), z, 300, seed=9, resample_below=resample_below,
+                                preprocessor=answer))
+    pf = ParticleFilter(models.get("ungm"), z, 300, seed=9, resample_below=resample_below)
+    asked = []
+    for k in range(15):
+        pending = pf.begin_step(z[k])
+        reply = None
+        if pending.asks:
+            asked.append(pending.step)
+            pf.work_ahead()
+            reply = answer(pending.step, pending.particles, pending.weights, pending.observation, pending.parents)
+        step = pf.finish_step(pending, reply)
+        a = plain[k]
+        assert (step.step, step.resampled, step.degraded, step.parents) == (a.step, a.resampled, a.degraded,
+                                                                             a.parents)
+        np.testing.assert_array_equal(step.particles, a.particles)
+        np.testing.assert_array_equal(step.mean, a.mean)
+        if a.resampled:
+            np.testing.assert_array_equal(step.ancestors, a.ancestors)
+    assert asked == [s.step for s in plain if s.resampled]
+    assert 0 < len(asked) and (resample_below is None) == (len(asked) == 15)
+
+
 def test_resampling_ahead_outside_a_preprocessor_call_does_nothing():
     model = models.get("ungm")
     _, z = model.simulate(3, np.random.default_rng(0))

@@ -9,7 +9,7 @@ their entities and runs each of them on the process's one Zenoh session:
 
 - a twin is learned from its entity's Status (state ``starting``, with its
   run configuration), which the entity publishes before it waits for the
-  layers and every second after; the layer then declares
+  layers and every second while it starts; the layer then declares
   ``dtpf/<twin>/<layer>/alive`` for that twin, which is what the entity waits
   for;
 - a twin is dropped, its state freed, when its entity says it has finished or
@@ -106,7 +106,7 @@ class ConfigWatch:
                            max_bytes=64 << 20, on_drop=lambda key, reason, detail: on_reject(reason, detail))
         #: When each twin's entity was last heard (any status).
         self.heard: dict[str, float] = {}
-        #: The configuration each twin's statuses carry, validated once (a status comes every second).
+        #: The configuration each twin's statuses carry, validated once (a status comes every few seconds).
         self._configs: dict[str, tuple[str, RunConfig]] = {}
 
     def poll(self, now: float, budget: int = 256) -> list[Learned]:
@@ -279,8 +279,8 @@ def host_twins(layer: str, configs: list[RunConfig], zenoh_config, make) -> int:
     when something arrives; a time already passed: at once), and whose
     ``code`` is its exit code once it has ended. A twin polls when its inboxes
     or its peers ring, or its time comes; the statuses of every twin go out
-    every second (a waiting entity's status is how a fleet's shared layers
-    learn it). A twin whose model or file is wrong (RunInputError) ends with
+    every second while it starts (a starting entity's status is how a
+    fleet's shared layers learn it), every FLEET_STATUS_INTERVAL after. A twin whose model or file is wrong (RunInputError) ends with
     2, one that fails with a bug of ours with 1; the others go on.
     SIGINT/SIGTERM stop them all. Returns the largest exit code of the twins.
 

@@ -387,3 +387,29 @@ def test_the_fleet_benchmark_counts_cpu_between_two_instants_by_kind():
     assert got["recorder"] == pytest.approx(1.0)
     me = {pid: rest for pid, *rest in _descendants(os.getpid())}[os.getpid()]
     assert me[2] > 0  # this process's own CPU seconds, from /proc
+
+
+def test_a_fleet_twin_says_its_status_every_second_while_it_starts_and_every_five_once_it_runs():
+    # A K = 100 fleet published about 0.76 statuses per twin-step at one a second; a starting twin's status
+    # is how the shared services learn it, so that one keeps its pace.
+    from messages.bus import open_session, zenoh_config
+    from messages.service import FLEET_STATUS_INTERVAL, STATUS_INTERVAL, ServiceShell
+
+    session = open_session(zenoh_config(mode="peer", listen=["tcp/127.0.0.1:0"]))
+    try:
+        shell = ServiceShell("information", RunConfig(twin="cadence-1", run_id="run"), session=session)
+        said = []
+        shell.publish_status = lambda: said.append(shell.state)
+        start = time.monotonic()
+        ticks = [start + STATUS_INTERVAL * i / 4 for i in range(1, 4 * 3 + 1)]  # 3 s, four ticks a second
+        for now in ticks:
+            shell.tick(now)
+        assert said == [ServiceState.STARTING] * 3
+        shell.state = ServiceState.RUNNING
+        said.clear()
+        for i in range(1, 4 * 10 + 1):  # ten seconds
+            shell.tick(ticks[-1] + i / 4)
+        assert said == [ServiceState.RUNNING] * 2 and FLEET_STATUS_INTERVAL == 5.0
+        shell.presence.close()
+    finally:
+        session.close()

@@ -33,7 +33,7 @@ from messages.bus import Doorbell, add_zenoh_arguments
 from messages.config import RunConfig, add_run_arguments
 from messages.models import (ARRAYS_CHECKED, BASE64_CHECKED, Estimate, Observation, PackedElementField, ParticleSet,
                              ParticleSetKind, PointCloud, ServiceState, Time)
-from messages.fleet import host_twins
+from messages.fleet import host_twins, serve_run
 from messages.service import TAKE_BUDGET, ServiceShell, add_service_arguments, run_service
 
 __all__ = ["ZenohTwin", "TwinRun", "LiveObservations", "main"]
@@ -141,7 +141,7 @@ def main(config: RunConfig, zenoh_config: zenoh.Config, args: argparse.Namespace
     data = sources.observations_of(config, model)  # a wrong file stops the service before its session opens
     doorbell = Doorbell()
     with ServiceShell("entity", config, zenoh_config, doorbell=doorbell) as shell:
-        return drive(TwinRun(shell, config, model, data, args), doorbell)
+        return serve_run(TwinRun(shell, config, model, data, args), doorbell)
 
 
 def hosted_configs(config: RunConfig, twins: str) -> list[RunConfig]:
@@ -157,23 +157,6 @@ def hosted_configs(config: RunConfig, twins: str) -> list[RunConfig]:
     if not names or len(set(names)) != len(names):
         raise ValueError(f"--twins takes a count or distinct twin ids, got {twins!r}")
     return [RunConfig.model_validate({**config.model_dump(), "twin": name}) for name in names]
-
-
-def drive(run: "TwinRun", doorbell: Doorbell) -> int:
-    """Poll one twin's run whenever its inboxes or its peers ring (or its deadline comes) until it ends."""
-    while run.code is None:
-        deadline = run.poll(time.monotonic())
-        if run.code is None:
-            doorbell.wait(_wait_time(deadline, time.monotonic()))
-    return run.code
-
-
-def _wait_time(deadline: float | None, now: float) -> float:
-    return _IDLE if deadline is None else min(_IDLE, max(0.0, deadline - now))
-
-
-#: Longest wait of the event loop when nothing arrives (startup, stops and quiet sensors are looked at this often).
-_IDLE = 0.2
 
 
 class TwinRun:
@@ -237,7 +220,7 @@ class TwinRun:
             wake = self._begin(now)
             if self.pending is None:
                 return wake
-        if self.pending.asks and self.twin is not None:
+        if self.pending.asks:  # asked only with a twin to ask
             answer, waiting = self.twin.look(now)
             if waiting:
                 return self.twin.deadline
@@ -292,7 +275,7 @@ class TwinRun:
                 return None
             observation, self.truth = message.values, message.truth
         self.pending = pending = pf.begin_step(observation, ask=self.twin is not None)
-        if pending.asks and self.twin is not None:
+        if pending.asks:
             if self.twin.ask(pending, now):
                 pf.work_ahead()  # off the lockstep's critical path; the same numbers
             else:

@@ -37,7 +37,7 @@ from messages.config import RunConfig, RunInputError
 from messages.models import ServiceState, Status
 from messages.service import EXIT_GRACE, ExitWatchdog, ServiceShell, Tally, release_memory
 
-__all__ = ["serve_layer", "serve_one", "serve_fleet", "host_twins", "add_fleet_arguments", "ConfigWatch", "Learned"]
+__all__ = ["serve_layer", "serve_one", "serve_run", "serve_fleet", "host_twins", "add_fleet_arguments", "ConfigWatch", "Learned"]
 
 #: Longest wait between two looks at the twins when nothing arrives.
 _IDLE = 0.2
@@ -77,6 +77,16 @@ def serve_layer(layer: str, config: RunConfig, zenoh_config, args, load_model, m
         shell.running()
         serve_one(shell, work, doorbell)
     return 0
+
+
+def serve_run(run, doorbell: Doorbell) -> int:
+    """Poll one twin's ``run`` (a :func:`host_twins` run: ``poll(now)``, ``code``) whenever its inboxes or its
+    peers ring, or its time comes, until it ends; returns its exit code."""
+    while run.code is None:
+        deadline = run.poll(time.monotonic())
+        if run.code is None:
+            doorbell.wait(_wait_time(deadline, time.monotonic()))
+    return run.code
 
 
 def serve_one(shell: ServiceShell, twin, doorbell: Doorbell) -> None:
@@ -280,8 +290,9 @@ def host_twins(layer: str, configs: list[RunConfig], zenoh_config, make) -> int:
     ``code`` is its exit code once it has ended. A twin polls when its inboxes
     or its peers ring, or its time comes; the statuses of every twin go out
     every second while it starts (a starting entity's status is how a
-    fleet's shared layers learn it), every FLEET_STATUS_INTERVAL after. A twin whose model or file is wrong (RunInputError) ends with
-    2, one that fails with a bug of ours with 1; the others go on.
+    fleet's shared layers learn it), every FLEET_STATUS_INTERVAL after. A
+    twin whose model or file is wrong (RunInputError) ends with 2, one that
+    fails with a bug of ours with 1; the others go on.
     SIGINT/SIGTERM stop them all. Returns the largest exit code of the twins.
 
     One thread for all the twins: with a thread each, every twin-step handed
@@ -292,11 +303,9 @@ def host_twins(layer: str, configs: list[RunConfig], zenoh_config, make) -> int:
     session = open_session(zenoh_config)
     doorbell = Doorbell()
     shells = {config.twin: ServiceShell(layer, config, session=session, doorbell=doorbell) for config in configs}
-    stop = threading.Event()
 
     def on_signal(signum, frame):
         log.info("received %s, stopping %d twins", signal.Signals(signum).name, len(shells))
-        stop.set()
         for shell in shells.values():
             shell.stop()
 
@@ -312,7 +321,7 @@ def host_twins(layer: str, configs: list[RunConfig], zenoh_config, make) -> int:
         runs.pop(twin, None)
         shells[twin].__exit__(type(exc) if exc else None, exc, None)
 
-    def guarded(twin: str, action) -> float | None:
+    def guarded(twin: str, action):
         try:
             return action()
         except RunInputError as error:
@@ -353,8 +362,7 @@ def host_twins(layer: str, configs: list[RunConfig], zenoh_config, make) -> int:
                 due[twin] = now + _IDLE if wake is None else wake
         if not runs:
             break
-        soonest = min(due.values(), default=now + _IDLE)
-        rung = doorbell.wait(min(_IDLE, max(0.0, soonest - time.monotonic())))
+        rung = doorbell.wait(_wait_time(min(due.values(), default=None), time.monotonic()))
     code = max(codes.values(), default=1)
     watchdog.arm(code=code)
     session.close()

@@ -441,12 +441,6 @@ class ServiceShell:
             self.log.warning("rejected %d messages in the last %.0f s (%d in all; by kind: %s)",
                              new, REJECTION_LOG_INTERVAL, rejected, kinds)
 
-    def wait_for_layers(self, layers, timeout: float) -> None:
-        """Wait until ``layers`` are alive; log the ones still missing (the run goes on)."""
-        missing = self.presence.wait_for(layers, timeout)
-        if missing:
-            self.log.warning("going on without %s: not alive after %.1f s", ", ".join(sorted(missing)), timeout)
-
 
 def release_memory() -> bool:
     """Give the heap's free pages back to the system (glibc ``malloc_trim``); False elsewhere.

@@ -389,6 +389,18 @@ def test_the_fleet_benchmark_counts_cpu_between_two_instants_by_kind():
     assert me[2] > 0  # this process's own CPU seconds, from /proc
 
 
+def test_the_fleet_benchmark_counts_a_process_sampled_before_its_exec_under_its_layer():
+    # subprocess forks, then execs the layer: a sample in between shows the bench's own command line.
+    from scripts.bench.fleet import RssSampler
+    sampler = RssSampler()
+    sampler.record(10.0, [(7, "launcher-ish", 900, 50.0), (8, "other", 500 << 20, 0.0)], me=7)
+    sampler.record(11.0, [(7, "launcher-ish", 900, 51.0), (8, "information", 200 << 20, 0.6)], me=7)
+    sampler.record(12.0, [(7, "launcher-ish", 900, 52.0), (8, "information", 250 << 20, 1.4)], me=7)
+    got = sampler.cpu_between(10.0, 12.0)
+    assert got == pytest.approx({"launcher": 2.0, "information": 1.4})
+    assert sampler.by_kind() == {"information": [250 << 20]}  # not the fork's 500 MB of the parent
+
+
 def test_a_fleet_twin_says_its_status_every_second_while_it_starts_and_every_five_once_it_runs():
     # A K = 100 fleet published about 0.76 statuses per twin-step at one a second; a starting twin's status
     # is how the shared services learn it, so that one keeps its pace.

@@ -75,14 +75,26 @@ class RssSampler:
     def _run(self) -> None:
         me = os.getpid()
         while not self._stop.wait(self.interval):
-            now = time.time()
-            for pid, kind, rss, cpu in _descendants(me, self.kind):
-                if pid == me:
-                    kind = "launcher"
-                else:
-                    if rss > self.peak.get(pid, ("", 0))[1]:
-                        self.peak[pid] = (kind, rss)
-                self.cpu.setdefault(pid, (kind, []))[1].append((now, cpu))
+            self.record(time.time(), _descendants(me, self.kind), me)
+
+    def record(self, now: float, processes, me: int | None = None) -> None:
+        """Fold in one sample, (pid, kind, RSS bytes, CPU seconds) per process (``me``: the launcher).
+
+        A process's kind is the one its latest sample gives: a child sampled between its fork and its
+        exec still shows this process's command line (kind "other"), and a sampler that kept the first
+        kind lost that layer's CPU for good (runs of this stop read 0.000 ms for the information service,
+        or half the entities' time). Its peak RSS starts again when its kind changes.
+        """
+        for pid, kind, rss, cpu in processes:
+            if pid == me:
+                kind = "launcher"
+            else:
+                old = self.peak.get(pid)
+                if old is None or old[0] != kind or rss > old[1]:
+                    self.peak[pid] = (kind, rss)
+            samples = self.cpu[pid][1] if pid in self.cpu else []
+            samples.append((now, cpu))
+            self.cpu[pid] = (kind, samples)
 
     def cpu_between(self, start: float, end: float) -> dict[str, float]:
         """CPU seconds of each kind of process between wall times ``start`` and ``end`` (time.time()),

@@ -396,8 +396,9 @@ def test_the_fleet_benchmark_counts_a_process_sampled_before_its_exec_under_its_
     sampler.record(10.0, [(7, "launcher-ish", 900, 50.0), (8, "other", 500 << 20, 0.0)], me=7)
     sampler.record(11.0, [(7, "launcher-ish", 900, 51.0), (8, "information", 200 << 20, 0.6)], me=7)
     sampler.record(12.0, [(7, "launcher-ish", 900, 52.0), (8, "information", 250 << 20, 1.4)], me=7)
-    got = sampler.cpu_between(10.0, 12.0)
-    assert got == pytest.approx({"launcher": 2.0, "information": 1.4})
+    sampler.record(13.0, [(7, "launcher-ish", 900, 53.0), (8, "other", 10 << 20, 2.0)], me=7)  # unreadable
+    got = sampler.cpu_between(10.0, 13.0)
+    assert got == pytest.approx({"launcher": 3.0, "information": 2.0})
     assert sampler.by_kind() == {"information": [250 << 20]}  # not the fork's 500 MB of the parent
 
 

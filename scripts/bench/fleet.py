@@ -80,15 +80,20 @@ class RssSampler:
     def record(self, now: float, processes, me: int | None = None) -> None:
         """Fold in one sample, (pid, kind, RSS bytes, CPU seconds) per process (``me``: the launcher).
 
-        A process's kind is the one its latest sample gives: a child sampled between its fork and its
-        exec still shows this process's command line (kind "other"), and a sampler that kept the first
-        kind lost that layer's CPU for good (runs of this stop read 0.000 ms for the information service,
-        or half the entities' time). Its peak RSS starts again when its kind changes.
+        A process's kind is the last one other than "other" that its samples gave: a child sampled
+        between its fork and its exec still shows this process's command line (kind "other"), and a
+        sampler that kept the first kind lost that layer's CPU for good (runs of this stop read 0.000 ms
+        for the information service, or half the entities' time). Some samples of a running layer read an
+        empty command line too (seen for a fleet's one entity process); they keep the kind it had. A
+        process never seen as a layer stays "other", counted in "all". Its peak RSS starts again when its
+        kind changes.
         """
         for pid, kind, rss, cpu in processes:
             if pid == me:
                 kind = "launcher"
             else:
+                if kind == "other" and pid in self.cpu:
+                    kind = self.cpu[pid][0]
                 old = self.peak.get(pid)
                 if old is None or old[0] != kind or rss > old[1]:
                     self.peak[pid] = (kind, rss)
@@ -166,10 +171,11 @@ def step_latencies(estimates_by_twin: dict[str, list]) -> list[float]:
     return gaps
 
 
-def run_fleet(n: int, k: int, steps: int, folder: Path) -> dict:
+def run_fleet(n: int, k: int, steps: int, folder: Path, entities: int | None = None) -> dict:
     config = RunConfig(particles=n, steps=steps, twin=f"b{n}k{k}", run_id="bench")
     with RssSampler() as rss:
-        result = launch_fleet(config, k, log_path=folder / f"fleet-{n}-{k}.mcap", timeout=10.0, keep_estimates=True)
+        result = launch_fleet(config, k, log_path=folder / f"fleet-{n}-{k}.mcap", timeout=10.0, keep_estimates=True,
+                              entities=entities)
     if result.failures or result.twin_steps != k * steps:
         raise RuntimeError(f"fleet N={n} K={k} incomplete: {result.twin_steps} of {k * steps} twin-steps, "
                            f"{result.failures}")
@@ -182,7 +188,7 @@ def run_fleet(n: int, k: int, steps: int, folder: Path) -> dict:
             "cpu_ms": {kind: 1e3 * seconds / max(window, 1) for kind, seconds in cpu.items()}}
 
 
-def run_solo(n: int, k: int, steps: int, folder: Path) -> dict:
+def run_solo(n: int, k: int, steps: int, folder: Path, entities: int | None = None) -> dict:
     results: dict[int, object] = {}
 
     def one(i: int) -> None:
@@ -225,7 +231,12 @@ def main(argv=None) -> int:
     parser.add_argument("--steps", type=int, default=None, help="steps per twin (default: 200 at 1e3, 60 at 1e5)")
     parser.add_argument("--solo-max", type=int, default=10,
                         help="run K solo launches for comparison when K is at most this (default: %(default)s)")
+    parser.add_argument("--entities", type=int, default=None, metavar="E",
+                        help="entity processes hosting a fleet's twins, as dtpf launch --entities (default: one "
+                             "per CPU)")
     args = parser.parse_args(argv)
+    if args.entities is not None and args.entities < 1:
+        parser.error(f"--entities must be at least 1, got {args.entities}")
     cases = parse_cases(args.cases) if args.cases else DEFAULT_CASES
     rows = []
     load_before = os.getloadavg()[0]
@@ -238,7 +249,7 @@ def main(argv=None) -> int:
                     if mode == "solo" and k > args.solo_max:
                         continue
                     print(f"N={n} K={k} {mode} ({steps} steps)", file=sys.stderr)
-                    rows.append((n, k, mode, run(n, k, steps, Path(folder))))
+                    rows.append((n, k, mode, run(n, k, steps, Path(folder), args.entities)))
                     for path in Path(folder).glob("*.mcap"):
                         path.unlink()
     print(f"`python -m scripts.bench.fleet{' ' + ' '.join(sys.argv[1:]) if sys.argv[1:] else ''}`: Python "

@@ -315,6 +315,7 @@ class Presence:
         #: made-up names cannot grow the set.
         self.names = None if names is None else frozenset(names)
         self._alive: set[str] = set()
+        self._seen: set[str] = set()
         self._lock = threading.Lock()
         self._changed = threading.Condition(self._lock)
         self._session = session
@@ -335,6 +336,7 @@ class Presence:
         with self._changed:
             if sample.kind == zenoh.SampleKind.PUT:
                 self._alive.add(parts[2])
+                self._seen.add(parts[2])
             else:
                 self._alive.discard(parts[2])
             self._changed.notify_all()
@@ -346,6 +348,13 @@ class Presence:
         """Layers of this twin with a live token (this process's own included)."""
         with self._lock:
             return set(self._alive)
+
+    @property
+    def seen(self) -> set[str]:
+        """Layers of this twin that have had a live token at some time, gone since or not: a peer that came
+        and went between two looks at :attr:`alive` is still known to have been there."""
+        with self._lock:
+            return set(self._seen)
 
     def wait_for(self, layers, timeout: float) -> set[str]:
         """Wait until every layer in ``layers`` is alive; returns those still missing."""

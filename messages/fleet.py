@@ -37,7 +37,8 @@ from messages.config import RunConfig, RunInputError
 from messages.models import ServiceState, Status
 from messages.service import EXIT_GRACE, ExitWatchdog, ServiceShell, Tally, release_memory
 
-__all__ = ["serve_layer", "serve_one", "serve_run", "serve_fleet", "host_twins", "add_fleet_arguments", "ConfigWatch", "Learned"]
+__all__ = ["serve_layer", "serve_one", "serve_run", "serve_fleet", "host_twins", "add_fleet_arguments", "ConfigWatch",
+           "Learned", "twin_gone"]
 
 #: Longest wait between two looks at the twins when nothing arrives.
 _IDLE = 0.2
@@ -167,6 +168,21 @@ class ConfigWatch:
         self.inbox.close()
 
 
+def twin_gone(seen: set[str], alive: set[str], quiet: float, forget_after: float) -> str | None:
+    """Why a fleet's twin is to be dropped, or None to go on serving it.
+
+    ``seen`` and ``alive``: the layers of the twin whose liveliness token was ever seen, and is now
+    (:class:`~messages.bus.Presence`); ``quiet``: seconds since its entity's last status. The entity is
+    gone once its token has been seen and is no more, whenever that was: a token that came and went while
+    the service's loop was busy (a new twin's warm-up) had been missed by the loop's looks at ``alive``,
+    and the twin waited ``forget_after`` to be freed. An entity whose token never came is forgotten after
+    ``forget_after`` seconds without a status.
+    """
+    if "entity" in seen:
+        return None if "entity" in alive else "its entity is gone"
+    return f"its entity was not heard for {forget_after:.0f} s" if quiet > forget_after else None
+
+
 class _Served:
     """One twin a fleet serves: its shell and its layer's work."""
 
@@ -174,7 +190,6 @@ class _Served:
         self.shell = shell
         self.work = work
         self.run_id = run_id
-        self.entity_seen = False
 
 
 def serve_fleet(layer: str, pattern: str, zenoh_config, make_work, *, allow_models=(), forget_after: float = 30.0,
@@ -258,13 +273,10 @@ def serve_fleet(layer: str, pattern: str, zenoh_config, make_work, *, allow_mode
                     trim["due"] = False
                     release_memory()
                 for twin, entry in list(served.items()):
-                    if "entity" in entry.shell.presence.alive:
-                        entry.entity_seen = True
-                    elif entry.entity_seen:
-                        drop(twin, "its entity is gone")
-                        continue
-                    elif now - watch.heard.get(twin, now) > forget_after:
-                        drop(twin, f"its entity was not heard for {forget_after:.0f} s")
+                    presence = entry.shell.presence
+                    why = twin_gone(presence.seen, presence.alive, now - watch.heard.get(twin, now), forget_after)
+                    if why is not None:
+                        drop(twin, why)
                         continue
                     entry.shell.tick(now)
                     rung.add(twin)  # a deadline may have passed

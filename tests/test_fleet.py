@@ -124,6 +124,37 @@ def test_a_killed_twin_leaves_the_others_whole_and_a_late_one_is_served(processe
                                       inprocess.run(config).means, err_msg=config.twin)
 
 
+def test_a_fleet_drops_a_twin_whose_entity_came_and_went_between_two_looks():
+    # CI (stop 27): an entity SIGKILLed while the shared service's loop was busy had never been seen alive
+    # by a sweep, and its twin was kept until forget_after (30 s), past the test above's 20 s.
+    from messages.fleet import twin_gone
+    assert twin_gone(seen={"entity"}, alive=set(), quiet=0.1, forget_after=30.0) == "its entity is gone"
+    assert twin_gone(seen={"entity", "system"}, alive={"entity", "system"}, quiet=99.0, forget_after=30.0) is None
+    assert twin_gone(seen=set(), alive=set(), quiet=5.0, forget_after=30.0) is None  # still starting
+    assert twin_gone(seen=set(), alive=set(), quiet=31.0, forget_after=30.0) == "its entity was not heard for 30 s"
+
+
+def test_presence_remembers_a_peer_that_came_and_went(router):
+    from messages.bus import Presence, open_session, zenoh_config
+    watcher = open_session(zenoh_config(mode="client", connect=[router.endpoint]))
+    peer = open_session(zenoh_config(mode="client", connect=[router.endpoint]))
+    try:
+        presence = Presence(watcher, "seen-1", "information", names=["entity", "information", "system"])
+        token = peer.liveliness().declare_token("dtpf/seen-1/entity/alive")
+        deadline = time.monotonic() + 10.0
+        while "entity" not in presence.alive and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert presence.alive == presence.seen == {"entity"}
+        token.undeclare()
+        while "entity" in presence.alive and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert presence.alive == set() and presence.seen == {"entity"}
+        presence.close()
+    finally:
+        watcher.close()
+        peer.close()
+
+
 def test_a_shared_service_loads_no_model_a_status_names_unless_allowed(processes, router):
     """A status from the bus must not make a shared service import code: a twin of --model REF is refused
     (its entity goes on with plain resampling) unless the service was started with --allow-model REF."""

@@ -138,8 +138,8 @@ def test_presence_remembers_a_peer_that_came_and_went(router):
     from messages.bus import Presence, open_session, zenoh_config
     watcher = open_session(zenoh_config(mode="client", connect=[router.endpoint]))
     peer = open_session(zenoh_config(mode="client", connect=[router.endpoint]))
+    presence = Presence(watcher, "seen-1", "information", names=["entity", "information", "system"])
     try:
-        presence = Presence(watcher, "seen-1", "information", names=["entity", "information", "system"])
         token = peer.liveliness().declare_token("dtpf/seen-1/entity/alive")
         deadline = time.monotonic() + 10.0
         while "entity" not in presence.alive and time.monotonic() < deadline:
@@ -149,8 +149,8 @@ def test_presence_remembers_a_peer_that_came_and_went(router):
         while "entity" in presence.alive and time.monotonic() < deadline:
             time.sleep(0.01)
         assert presence.alive == set() and presence.seen == {"entity"}
-        presence.close()
     finally:
+        presence.close()
         watcher.close()
         peer.close()
 

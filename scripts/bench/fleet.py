@@ -29,6 +29,7 @@ Run from the repository root::
 from __future__ import annotations
 
 import argparse
+import functools
 import os
 import platform
 import sys
@@ -188,7 +189,7 @@ def run_fleet(n: int, k: int, steps: int, folder: Path, entities: int | None = N
             "cpu_ms": {kind: 1e3 * seconds / max(window, 1) for kind, seconds in cpu.items()}}
 
 
-def run_solo(n: int, k: int, steps: int, folder: Path, entities: int | None = None) -> dict:
+def run_solo(n: int, k: int, steps: int, folder: Path) -> dict:
     results: dict[int, object] = {}
 
     def one(i: int) -> None:
@@ -245,11 +246,11 @@ def main(argv=None) -> int:
         for n, ks in cases.items():
             steps = args.steps or DEFAULT_STEPS.get(n, 100)
             for k in ks:
-                for mode, run in (("fleet", run_fleet), ("solo", run_solo)):
+                for mode, run in (("fleet", functools.partial(run_fleet, entities=args.entities)), ("solo", run_solo)):
                     if mode == "solo" and k > args.solo_max:
                         continue
                     print(f"N={n} K={k} {mode} ({steps} steps)", file=sys.stderr)
-                    rows.append((n, k, mode, run(n, k, steps, Path(folder), args.entities)))
+                    rows.append((n, k, mode, run(n, k, steps, Path(folder))))
                     for path in Path(folder).glob("*.mcap"):
                         path.unlink()
     print(f"`python -m scripts.bench.fleet{' ' + ' '.join(sys.argv[1:]) if sys.argv[1:] else ''}`: Python "

@@ -1,7 +1,7 @@
 """Compiled laws of the growth model (Eq. 35, 36), one pass each, no temporary arrays.
 
 Each kernel does the floating-point operations of the numpy expressions in
-:class:`entity.models.GrowthModel` in the same order (numba compiles without
+:class:`dtpf.entity.models.GrowthModel` in the same order (numba compiles without
 fast-math, so nothing is contracted or reassociated): the same numbers, bit
 for bit. The normal draws are numba's port of numpy's
 ``Generator.standard_normal``, which gives the same sequence as

@@ -1,4 +1,4 @@
-"""Compiled kernels of :mod:`entity.resampling`: one pass over the weights each.
+"""Compiled kernels of :mod:`dtpf.entity.resampling`: one pass over the weights each.
 
 Every scheme merges sorted points with the running weight sum C_j and hands
 particle j the points below C_j. Written as "while the next point is below
@@ -21,7 +21,7 @@ Generator methods (the kernels taking ``rng``).
 
 Outputs are written into a caller's (N,) int64 array, once per position
 (plus the overwritten stores, in cache). Nothing here checks the weights;
-:mod:`entity.resampling` does, once.
+:mod:`dtpf.entity.resampling` does, once.
 """
 from __future__ import annotations
 
@@ -139,7 +139,7 @@ def pcg_exponentials(words, out):  # pragma: no cover - compiled
 
 
 #: Copies each particle writes without a branch (one 64-byte store): at most N w_j + 1 copies go to
-#: particle j, so with the weights of scripts.bench.resampling (N w lognormal, median 0.6) 99.5% of
+#: particle j, so with the weights of dtpf.scripts.bench.resampling (N w lognormal, median 0.6) 99.5% of
 #: particles need no loop. Two stores, as before, left the loop's exit mispredicted for the 12% with
 #: three copies or more: systematic took 3.0 ms at N = 1e6, with eight 2.0 ms.
 UNCONDITIONAL = 8

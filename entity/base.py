@@ -7,7 +7,7 @@ system layer's one-step simulation draws them), can ``simulate`` a true path
 with observations, and says what else the entity publishes at a step
 (``step_messages``: the video scenario's frame). States are ``(N, d)`` arrays
 of float64, observations ``(m,)`` per step. The built-in models are in
-:mod:`entity.models` and :mod:`entity.tracking`.
+:mod:`dtpf.entity.models` and :mod:`dtpf.entity.tracking`.
 """
 from __future__ import annotations
 
@@ -104,7 +104,7 @@ class StateSpaceModel(ABC):
 
     def step_messages(self, header: dict, particles=None, weights=None, mean=None) -> list:
         """What else the entity publishes at a step besides its estimate: messages of
-        :mod:`messages.models` built with ``header`` (run_id, twin_id, step), from the step's
+        :mod:`dtpf.messages.models` built with ``header`` (run_id, twin_id, step), from the step's
         ``particles`` and ``weights`` (before resampling) and its estimated ``mean``. None by default;
         the video scenario returns the step's frame and the particles drawn over it, so a log plays
         as a video in Foxglove."""

@@ -2,8 +2,8 @@
 
 ::
 
-    from entity import models
-    from entity.filter import ParticleFilter
+    from dtpf.entity import models
+    from dtpf.entity.filter import ParticleFilter
     model = models.get("ungm")
     truth, observations = model.simulate(100, rng)
     pf = ParticleFilter(model, observations, n_particles=1000, seed=7)
@@ -22,7 +22,7 @@ One step k (DESIGN.md, "One filter step"):
 4. estimate from the weighted set about to be resampled: posterior mean,
    variance and a 95% interval (mean +- 1.96 sd, per dimension);
 5. resample with the configured traditional scheme; weights become uniform;
-6. with a ``jitter`` (not the paper's; :mod:`entity.jitter`), move every
+6. with a ``jitter`` (not the paper's; :mod:`dtpf.entity.jitter`), move every
    resampled particle by roughening or the regularised filter's kernel, with
    numbers from ``stream(seed, twin, k, "jitter")``.
 
@@ -41,11 +41,12 @@ from typing import Protocol
 
 import numpy as np
 
-from entity import jitter as jitters
-from entity import resampling
-from entity.models import StateSpaceModel
-from messages.arrays import check_particles, check_set
-from messages.streams import stream
+from dtpf.entity import jitter as jitters
+from dtpf.entity import resampling
+from dtpf.entity.models import StateSpaceModel
+from dtpf.messages.arrays import check_particles, check_set
+from dtpf.messages.errors import DtpfError
+from dtpf.messages.streams import stream
 
 __all__ = ["ParticleFilter", "FilterStep", "PendingStep", "Preprocessor", "Preprocessed", "PreprocessReport", "FilterError"]
 
@@ -53,7 +54,7 @@ __all__ = ["ParticleFilter", "FilterStep", "PendingStep", "Preprocessor", "Prepr
 Z95 = 1.959963984540054
 
 
-class FilterError(ValueError):
+class FilterError(DtpfError, ValueError):
     """The filter cannot go on (for example every weight is zero at a step)."""
 
 
@@ -205,7 +206,7 @@ def moments(particles: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.
 
 
 class ParticleFilter:
-    """A bootstrap particle filter over a :class:`~entity.models.StateSpaceModel`.
+    """A bootstrap particle filter over a :class:`~dtpf.entity.models.StateSpaceModel`.
 
     Parameters
     ----------
@@ -215,7 +216,7 @@ class ParticleFilter:
     n_particles : int
         N.
     resampler : str
-        Name of a traditional scheme in :data:`entity.resampling.RESAMPLERS`.
+        Name of a traditional scheme in :data:`dtpf.entity.resampling.RESAMPLERS`.
     resample_below : float or None
         None (default, the paper's setting): resample at every step.
         A fraction in (0, 1]: resample when ESS < resample_below * N.
@@ -226,7 +227,7 @@ class ParticleFilter:
     preprocessor : Preprocessor, optional
         Runs before each resampling (the digital twin); None: plain resampling.
     jitter : str
-        A move after each resampling (:data:`entity.jitter.JITTERS`): "none"
+        A move after each resampling (:data:`dtpf.entity.jitter.JITTERS`): "none"
         (default, the paper), "roughening" or "regularised".
     innovation : bool
         Also compute each step's normalised innovation (where the model gives

@@ -1,7 +1,7 @@
 """Which live observations become filter steps: the entity's intake, without transport.
 
 A sensor numbers its measurements 1, 2, ... (the ``step`` of an
-:class:`~messages.models.Observation`). The intake accepts an observation
+:class:`~dtpf.messages.models.Observation`). The intake accepts an observation
 only if it is newer than the last one accepted and has the model's number of
 values; everything else is counted by reason and skipped, and the filter
 never stops for it::
@@ -17,7 +17,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from messages.models import ObservationCounts
+from dtpf.messages.models import ObservationCounts
 
 __all__ = ["ObservationIntake", "Rejection"]
 

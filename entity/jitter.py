@@ -6,7 +6,7 @@ remedies move every resampled particle by a small random amount. They are
 not the paper's method; dtpf offers them to compare the paper's
 preprocessing against (``--jitter``)::
 
-    from entity import jitter
+    from dtpf.entity import jitter
     moved = jitter.roughening(resampled, rng)                  # Gordon, Salmond and Smith (1993)
     moved = jitter.regularised(resampled, particles, weights, rng)   # Musso, Oudjane and Le Gland (2001)
 

@@ -2,7 +2,7 @@
 
 ::
 
-    from entity.model_check import check_model, load_checked
+    from dtpf.entity.model_check import check_model, load_checked
     check_model(model)                                  # raises ModelError, or returns None
     model = load_checked("my_model.py:MyModel", needs_sampling="policy 'predictive'")
 
@@ -25,7 +25,7 @@ the model once, the way the filter does:
 7. ``observation_moments`` is None or ((n, obs_dim) finite means,
    (obs_dim,) finite non-negative variances).
 
-Each failure is a :class:`~entity.model_ref.ModelError` with a one-line
+Each failure is a :class:`~dtpf.entity.model_ref.ModelError` with a one-line
 message naming the model, the method, what it returned and what was
 expected; an exception raised by a model method is reported as
 ``<method> raised <Type>: <first line of its message>``.
@@ -36,8 +36,8 @@ import threading
 
 import numpy as np
 
-from entity.model_ref import ModelError, dimension, resolve
-from entity.models import StateSpaceModel
+from dtpf.entity.model_ref import ModelError, dimension, resolve
+from dtpf.entity.models import StateSpaceModel
 
 __all__ = ["check_model", "load_checked"]
 
@@ -139,7 +139,7 @@ def check_model(model, *, observation=None, needs_sampling: bool | str = False, 
 
 
 def load_checked(ref: str, *, observation=None, needs_sampling: bool | str = False) -> StateSpaceModel:
-    """:func:`~entity.model_ref.resolve` ``ref`` and :func:`check_model` it, once per (ref, needs_sampling)."""
+    """:func:`~dtpf.entity.model_ref.resolve` ``ref`` and :func:`check_model` it, once per (ref, needs_sampling)."""
     key = (ref, needs_sampling)
     with _LOCK:
         model = _CHECKED.get(key)

@@ -3,7 +3,7 @@
 Wherever dtpf takes a model name, it takes a *reference* of one of four forms:
 
 =================================  ===========================================
-``ungm``                           a built-in model (:data:`entity.models.MODELS`)
+``ungm``                           a built-in model (:data:`dtpf.entity.models.MODELS`)
 ``cv-radar``                       a name an installed package registers in the
                                    entry-point group ``dtpf.models``
 ``mypkg.models:RADAR``             ``NAME`` in an importable module
@@ -12,7 +12,7 @@ Wherever dtpf takes a model name, it takes a *reference* of one of four forms:
 =================================  ===========================================
 
 ``NAME`` (a dotted attribute path is allowed: ``models:Factory.build``) is a
-:class:`~entity.models.StateSpaceModel` instance, a subclass of it (built with
+:class:`~dtpf.entity.models.StateSpaceModel` instance, a subclass of it (built with
 no arguments) or a zero-argument factory returning an instance. A reference
 is a file path when the part before its last ``:`` ends with ``.py`` or
 contains a ``/`` or ``\\``. A file is imported once per process, under a
@@ -21,7 +21,7 @@ module name derived from its resolved path, and its folder is *not* put on
 
 The recommended import is::
 
-    from entity import model_ref
+    from dtpf.entity import model_ref
     model = model_ref.resolve("docs/examples/range_bearing.py:RangeBearingTarget")
     truth, observations = model.simulate(100, rng)
 
@@ -51,9 +51,9 @@ import threading
 import traceback
 from pathlib import Path
 
-from messages.config import RunInputError
-from entity import models
-from entity.models import StateSpaceModel
+from dtpf.entity import models
+from dtpf.entity.models import StateSpaceModel
+from dtpf.messages.config import RunInputError
 
 __all__ = ["ModelError", "resolve", "registered_names", "is_reference", "ENTRY_POINT_GROUP"]
 
@@ -317,7 +317,7 @@ def _finish(model: StateSpaceModel, ref: str, where: str) -> StateSpaceModel:
 
 
 def dimension(model, attribute: str, where: str) -> int:
-    """``model.<attribute>`` as a positive int, or a ModelError naming it (shared with :mod:`entity.model_check`)."""
+    """``model.<attribute>`` as a positive int, or a ModelError naming it (shared with :mod:`dtpf.entity.model_check`)."""
     try:
         value = getattr(model, attribute)
     except AttributeError:

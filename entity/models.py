@@ -9,7 +9,7 @@ States are ``(N, d)`` arrays of float64, observations ``(m,)`` per step.
 
 The recommended import is::
 
-    from entity import models
+    from dtpf.entity import models
     model = models.get("ungm")                 # the standard benchmark
     truth, observations = model.simulate(100, rng)
 
@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from entity.base import StateSpaceModel
+from dtpf.entity.base import StateSpaceModel
 
 __all__ = ["StateSpaceModel", "GrowthModel", "DriftModel", "MODELS", "get"]
 
@@ -61,16 +61,16 @@ class GrowthModel(StateSpaceModel):
         return rng.normal(self.prior_mean, math.sqrt(self.prior_var), size=(n, 1))
 
     def propagation_noise(self, n, k, rng):
-        from entity import _growth  # numba on first use: a process that only reads models (the recorder) skips it
+        from dtpf.entity import _growth  # numba on first use: a process that only reads models (the recorder) skips it
 
         if n * self.dim < _growth.COMPILED_DRAWS:
             return rng.standard_normal((n, self.dim))
         return _growth.normals(rng, np.empty((n, self.dim)))
 
     def propagate(self, particles, k, rng, noise=None):
-        # One compiled pass (entity._growth): the numbers of
+        # One compiled pass (dtpf.entity._growth): the numbers of
         # noise * sqrt(Q) + transition_mean(particles, k), noise ~ N(0, 1).
-        from entity import _growth
+        from dtpf.entity import _growth
 
         x = np.ascontiguousarray(particles, dtype=np.float64)
         args = (math.sqrt(self.process_var), self.growth, 8.0 * math.cos(1.2 * (k - 1)))
@@ -81,7 +81,7 @@ class GrowthModel(StateSpaceModel):
         return _growth.propagate(x, noise, *args)
 
     def log_likelihood(self, particles, observation, k):
-        from entity import _growth
+        from dtpf.entity import _growth
 
         z = float(np.asarray(observation).reshape(-1)[0])
         constant = 0.5 * math.log(2.0 * math.pi * self.observation_var)
@@ -109,7 +109,7 @@ class GrowthModel(StateSpaceModel):
 
 
 def _video_model() -> StateSpaceModel:
-    from entity.tracking import VideoTrackingModel  # imports this module: only on first use
+    from dtpf.entity.tracking import VideoTrackingModel  # imports this module: only on first use
     return VideoTrackingModel()
 
 
@@ -119,7 +119,7 @@ def _drift_model() -> StateSpaceModel:
 
 #: Registered models by name. ``ungm`` is the standard benchmark (25),
 #: ``ungm-printed`` the form printed in the paper's Eq. 35 (0.25), ``video``
-#: the tracking scenario of section 5 (:mod:`entity.tracking`), ``drift`` a slowly drifting constant
+#: the tracking scenario of section 5 (:mod:`dtpf.entity.tracking`), ``drift`` a slowly drifting constant
 #: where particles impoverish (:class:`DriftModel`, not in the paper). A value may be
 #: a zero-argument factory, built once by :func:`get`.
 MODELS: dict[str, StateSpaceModel] = {

@@ -39,7 +39,7 @@ NumPy archive (``.npz``, as written by ``np.savez``)
 
 In Python::
 
-    from entity.observations import read_observations
+    from dtpf.entity.observations import read_observations
     table = read_observations("radar.csv", obs_dim=2, state_dim=4)
     table.observations      # (T, 2) float64: range, bearing per step
     table.truth             # (T, 4) float64, or None without truth columns
@@ -89,7 +89,7 @@ from typing import Sequence
 import numpy as np
 from numpy.lib import format as npy_format
 
-from messages.config import RunInputError
+from dtpf.messages.config import RunInputError
 
 __all__ = ["ObservationError", "ObservationTable", "read_observations",
            "MAX_FILE_BYTES", "MAX_COLUMNS", "MAX_LINE_CHARS"]

@@ -2,7 +2,7 @@
 
 The recommended import is::
 
-    from entity import resampling as rs
+    from dtpf.entity import resampling as rs
     ancestors = rs.systematic(weights, rng)
     particles = particles[ancestors]
 
@@ -19,7 +19,7 @@ rng : numpy.random.Generator
 out : (N,) ndarray of int64, optional, keyword only
     Where to write the ancestors (C-contiguous, writeable); a new array if None.
 checked : bool, keyword only
-    The weights passed :func:`~messages.arrays.check_weights` already (the
+    The weights passed :func:`~dtpf.messages.arrays.check_weights` already (the
     filter normalised them, or a decoded message was checked): if they are
     a float64 vector they are not scanned again. Validation belongs where
     the weights are made, once per step, not in every kernel the step calls.
@@ -34,7 +34,7 @@ All four are unbiased: the expected number of copies of particle i is N w_i.
 They differ in the variance of that number: multinomial (largest),
 residual, stratified, systematic (smallest in practice).
 
-Each scheme is one compiled pass (numba, :mod:`entity._merge`) over the
+Each scheme is one compiled pass (numba, :mod:`dtpf.entity._merge`) over the
 particles that hands each particle the sorted points falling below its
 running weight sum; the points are never searched for (``np.searchsorted``
 costs a binary search per point and is 2-3x slower at N = 1e6), and the
@@ -43,7 +43,7 @@ PCG64 generator (``np.random.default_rng``'s) the uniforms and exponentials
 are drawn inside the pass from a copy of its state, which goes back into the
 generator after. At N = 1e6 systematic takes 0.6 of one ``np.cumsum`` of the
 weights, stratified 1.7, residual 2.6, multinomial 3.2;
-``python -m scripts.bench.resampling`` measures every scheme against that
+``python -m dtpf.scripts.bench.resampling`` measures every scheme against that
 floor. The numbers are those of the plain merge for the same seed, bit for
 bit, and the generator ends where the plain merge leaves it
 (``tests/test_resampling.py`` keeps the plain merge as the reference).
@@ -55,8 +55,8 @@ from typing import Callable
 import numba
 import numpy as np
 
-from entity import _merge
-from messages.arrays import check_weights, is_plain_float64
+from dtpf.entity import _merge
+from dtpf.messages.arrays import check_weights, is_plain_float64
 
 __all__ = [
     "multinomial",
@@ -172,7 +172,7 @@ def gather(particles: np.ndarray, ancestors: np.ndarray, out: np.ndarray | None 
     """The resampled set ``particles[ancestors]`` of an (N, d) float64 set, into ``out`` if given.
 
     ``threads`` > 1: from PARALLEL_GATHER particles on, the rows are copied on that many of
-    numba's threads, the same array whatever their number. It does not pay on the 2-core machine of ``scripts.bench.resampling`` while
+    numba's threads, the same array whatever their number. It does not pay on the 2-core machine of ``dtpf.scripts.bench.resampling`` while
     anything else runs there (2 threads took 3x one at N = 1e6), so the filter gathers on one.
     """
     x = np.ascontiguousarray(particles, dtype=np.float64)

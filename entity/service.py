@@ -10,10 +10,10 @@ stalls the filter: that step falls back to plain resampling and its estimate
 says ``degraded``. While it waits, it does what the answer does not change:
 it resamples with its own weights (used if the answer keeps them, as the
 default "inherit" rule does) and draws the next step's propagation noise
-(:meth:`entity.filter.ParticleFilter.work_ahead`; the same numbers as doing it
+(:meth:`dtpf.entity.filter.ParticleFilter.work_ahead`; the same numbers as doing it
 in order), so that work is off the lockstep's critical path.
 
-Run ``python -m entity.service --help`` for the options.
+Run ``python -m dtpf.entity.service --help`` for the options.
 """
 from __future__ import annotations
 
@@ -24,17 +24,17 @@ import time
 import numpy as np
 import zenoh
 
-from entity import sources
-from entity.cloud import FIELDS, POINT_STRIDE, cloud_points
-from entity.filter import ParticleFilter, PendingStep, Preprocessed, PreprocessReport
-from entity.intake import ObservationIntake
-from messages.admission import RunShape
-from messages.bus import Doorbell, add_zenoh_arguments
-from messages.config import RunConfig, add_run_arguments
-from messages.models import (ARRAYS_CHECKED, BASE64_CHECKED, Estimate, Observation, PackedElementField, ParticleSet,
-                             ParticleSetKind, PointCloud, ServiceState, Time)
-from messages.fleet import host_twins, serve_run
-from messages.service import TAKE_BUDGET, ServiceShell, add_service_arguments, run_service
+from dtpf.entity import sources
+from dtpf.entity.cloud import FIELDS, POINT_STRIDE, cloud_points
+from dtpf.entity.filter import ParticleFilter, PendingStep, Preprocessed, PreprocessReport
+from dtpf.entity.intake import ObservationIntake
+from dtpf.messages.admission import RunShape
+from dtpf.messages.config import RunConfig, add_run_arguments
+from dtpf.messages.foxglove import BASE64_CHECKED, PackedElementField, PointCloud
+from dtpf.messages.models import ARRAYS_CHECKED, Estimate, Observation, ParticleSet, ParticleSetKind, ServiceState, Time
+from dtpf.shell.bus import Doorbell, add_zenoh_arguments
+from dtpf.shell.fleet import host_twins, serve_run
+from dtpf.shell.service import TAKE_BUDGET, ServiceShell, add_service_arguments, run_service
 
 __all__ = ["ZenohTwin", "TwinRun", "LiveObservations", "main"]
 
@@ -167,9 +167,9 @@ class TwinRun:
     to. Then, one filter step at a time: the next observation (the next of a
     simulation or a file, at most ``--rate`` a second; or the sensor's next
     accepted one), the step up to the preprocessor's question
-    (:meth:`entity.filter.ParticleFilter.begin_step`), the set out to the
+    (:meth:`dtpf.entity.filter.ParticleFilter.begin_step`), the set out to the
     information layer, and, while the answer is awaited, what the answer does
-    not change (:meth:`~entity.filter.ParticleFilter.work_ahead`: resampling
+    not change (:meth:`~dtpf.entity.filter.ParticleFilter.work_ahead`: resampling
     with its own weights, the next step's propagation noise); with the answer
     or without it, the rest of the step and its estimate. :attr:`code` is the
     exit code once it has ended (0 done, 130 stopped).
@@ -370,7 +370,7 @@ class LiveObservations:
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog="python -m entity.service",
+        prog="python -m dtpf.entity.service",
         description="dtpf entity layer: runs the particle filter on a scenario, an observation file or a "
                     "live sensor, publishes each step's particle set and estimate, and resamples the "
                     "preprocessed set the information layer sends back.")

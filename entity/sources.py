@@ -1,18 +1,18 @@
 """Where a run's model and observations come from, the same in every process of a twin.
 
-A run (:class:`~messages.config.RunConfig`) names its model (``--scenario``
+A run (:class:`~dtpf.messages.config.RunConfig`) names its model (``--scenario``
 or ``--model REF``) and its observations (``--observations``): none (the
 model is simulated, so the truth is known), a file, or a live sensor::
 
-    from entity import sources
+    from dtpf.entity import sources
     model = sources.load_model(config)                 # resolved and checked on a probe
     data = sources.observations_of(config, model)      # file or simulation; None when live
     data.observations, data.truth                      # (T, m), (T, d) or None
 
 Every layer process calls :func:`load_model`, so the information layer's
 likelihood rule and the system layer's simulation use the model the entity
-filters with. Mistakes raise :class:`~entity.model_ref.ModelError` or
-:class:`~entity.observations.ObservationError` (both ValueError), one line each.
+filters with. Mistakes raise :class:`~dtpf.entity.model_ref.ModelError` or
+:class:`~dtpf.entity.observations.ObservationError` (both ValueError), one line each.
 """
 from __future__ import annotations
 
@@ -20,12 +20,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from entity.model_check import load_checked
-from entity.model_ref import ModelError
-from entity.models import StateSpaceModel
-from entity.observations import ObservationTable, read_observations
-from messages import names
-from messages.streams import stream
+from dtpf.entity.model_check import load_checked
+from dtpf.entity.model_ref import ModelError
+from dtpf.entity.models import StateSpaceModel
+from dtpf.entity.observations import ObservationTable, read_observations
+from dtpf.messages import names
+from dtpf.messages.streams import stream
 
 __all__ = ["RunData", "load_model", "observations_of", "sampling_need", "ModelError"]
 
@@ -74,7 +74,7 @@ def load_model(config, *, check: bool = True, sensor: bool = False) -> StateSpac
 
     Raises ModelError (or ObservationError for the probe's observation file).
     """
-    from entity import model_ref
+    from dtpf.entity import model_ref
 
     model = model_ref.resolve(config.model_ref)
     if not check:

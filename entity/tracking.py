@@ -4,10 +4,10 @@ State x = (cx, cy, vx, vy, s): the centre of the circle around the target in
 pixels, its velocity in pixels per frame, and its scale s, the radius of the
 circle relative to the radius the user drew around the target on frame 1.
 The observation of step k is the frame number k as a (1,) array: every
-process renders the same deterministic video (:mod:`entity.video`) from the
+process renders the same deterministic video (:mod:`dtpf.entity.video`) from the
 model's parameters, so only the frame number crosses Zenoh::
 
-    from entity import models
+    from dtpf.entity import models
     model = models.get("video")
     truth, observations = model.simulate(50, rng)      # truth (50, 5), observations [[1], .., [50]]
     model.log_likelihood(particles, observations[k - 1], k)
@@ -54,8 +54,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from entity.base import StateSpaceModel
-from entity.video import Video, VideoScene, render
+from dtpf.entity.base import StateSpaceModel
+from dtpf.entity.video import Video, VideoScene, render
 
 __all__ = ["VideoTrackingModel", "disc_offsets", "hsv_bins", "encode_jpeg", "FRAME_SCENARIO_HINT"]
 
@@ -108,7 +108,7 @@ def hsv_bins(frame: np.ndarray, hue_bins: int, saturation_bins: int, value_bins:
 
 @dataclass(frozen=True, eq=False)
 class VideoTrackingModel(StateSpaceModel):
-    """Colour-histogram tracking of the walking figure of :mod:`entity.video` (section 5).
+    """Colour-histogram tracking of the walking figure of :mod:`dtpf.entity.video` (section 5).
 
     Parameters are the video's (``scene``), the histogram's, the likelihood's
     sigma and the noise of the motion model; defaults are tuned for the
@@ -163,8 +163,16 @@ class VideoTrackingModel(StateSpaceModel):
         the estimate's circle (its position and scale times r_1)."""
         import base64
 
-        from messages.models import (BASE64_CHECKED, CircleAnnotation, Color, CompressedImage, ImageAnnotations,
-                                     Point2, PointsAnnotation, Time)
+        from dtpf.messages.foxglove import (
+            BASE64_CHECKED,
+            CircleAnnotation,
+            Color,
+            CompressedImage,
+            ImageAnnotations,
+            Point2,
+            PointsAnnotation,
+        )
+        from dtpf.messages.models import Time
 
         stamp = Time.now()
         frame = encode_jpeg(self.video.frame(header["step"]))

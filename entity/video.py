@@ -3,7 +3,7 @@
 The paper tracks a walking person in a 640x480 indoor video of 50 frames. We
 have no video, so this module renders one, deterministically, with numpy only::
 
-    from entity.video import VideoScene, render
+    from dtpf.entity.video import VideoScene, render
     video = render(VideoScene())          # cached: each process renders once
     video.frames[0]                       # (480, 640, 3) uint8 RGB, frame 1
     video.truth[0]                        # (cx, cy, radius) of frame 1, pixels

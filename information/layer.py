@@ -19,11 +19,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from entity.models import StateSpaceModel
-from information import rules
-from information.mirror import WeightSummary, summarise
-from messages.arrays import check_probability
-from messages.streams import stream
+from dtpf.entity.models import StateSpaceModel
+from dtpf.information import rules
+from dtpf.information.mirror import WeightSummary, summarise
+from dtpf.messages.arrays import check_probability
+from dtpf.messages.streams import stream
 
 __all__ = ["InformationLayer", "InformationOutput"]
 
@@ -55,7 +55,7 @@ class InformationLayer:
     ps : float
         PS in force until the system layer says otherwise.
     threshold_rule, weight_rule, move_rule :
-        Options of :func:`information.rules.preprocess`.
+        Options of :func:`dtpf.information.rules.preprocess`.
     seed, twin :
         Key of the random streams: step k draws from
         ``stream(seed, twin, k, "information")``.
@@ -95,7 +95,7 @@ class InformationLayer:
         lockstep timeout, and one that warmed up every class and kind did not come up within the
         entity's 20 s startup timeout on a cold cache (21 s of compiling).
         """
-        stream(self.seed, self.twin, 0, "information")  # the compiled SeedSequence (messages._seedseq)
+        stream(self.seed, self.twin, 0, "information")  # the compiled SeedSequence (dtpf.messages._seedseq)
         size = rules.size_class(particles)
         key = (self.threshold_rule if isinstance(self.threshold_rule, str) else "a value", size)
         if key in _WARMED:
@@ -150,7 +150,7 @@ class InformationLayer:
         The first half of :meth:`process`: what the entity waits for. W comes
         from the layer's threshold rule, as the mirror computes it.
         ``checked``: the arrays come from a decoded (validated) message; see
-        :func:`information.rules.preprocess`.
+        :func:`dtpf.information.rules.preprocess`.
         """
         ps = self.ps_for(step)
         if not self.enabled:
@@ -167,7 +167,7 @@ class InformationLayer:
 
     def mirror(self, particles, weights, parents: int | None = None,
                threshold: float | None = None, *, checked: bool = False) -> WeightSummary:
-        """The weight-state summary of the entity's set (see :func:`information.mirror.summarise`).
+        """The weight-state summary of the entity's set (see :func:`dtpf.information.mirror.summarise`).
 
         ``threshold``: W if :meth:`preprocess` already found it (the same number).
         """
@@ -176,7 +176,7 @@ class InformationLayer:
 
     def process(self, step: int, particles, weights, observation, parents: int | None = None) -> InformationOutput:
         """Mirror and preprocess the entity's particle set of ``step`` (``parents``: see
-        :func:`information.mirror.summarise`)."""
+        :func:`dtpf.information.mirror.summarise`)."""
         result = self.preprocess(step, particles, weights, observation)
         summary = self.mirror(particles, weights, parents, result.report.threshold)
         return InformationOutput(step, result, summary)

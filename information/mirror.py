@@ -3,7 +3,7 @@
 The information layer keeps this summary of every particle set it receives
 and sends it to the system layer, which predicts degradation from it::
 
-    from information.mirror import summarise
+    from dtpf.information.mirror import summarise
     state = summarise(particles, weights)
     state.ess_ratio, state.distinct
 """
@@ -14,9 +14,9 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from information.rules import threshold as threshold_of
-from information.select import quantiles
-from messages.arrays import check_set
+from dtpf.information.rules import threshold as threshold_of
+from dtpf.information.select import quantiles
+from dtpf.messages.arrays import check_set
 
 __all__ = ["WeightSummary", "summarise", "ess"]
 
@@ -92,7 +92,7 @@ def summarise(particles, weights, threshold_rule: str | float = "neff", parents:
     distinct ancestors of the resampling before the last propagation), which
     the entity knows in O(N). Without it, distinct states are counted by
     sorting, O(N log N); after a propagation with noise that is N.
-    ``checked``: as in :func:`information.rules.preprocess`.
+    ``checked``: as in :func:`dtpf.information.rules.preprocess`.
     """
     x, w = check_set(particles, weights, checked=checked)
     n = w.size

@@ -3,7 +3,7 @@
 Before the traditional resampling runs, the particles with small weights are
 moved towards particles with large weights::
 
-    from information import rules
+    from dtpf.information import rules
     result = rules.preprocess(particles, weights, ps=0.81, rng=rng)
     result.particles, result.weights, result.report
 
@@ -60,9 +60,9 @@ from typing import Callable, Literal
 import numba
 import numpy as np
 
-from information.select import RADIX_MIN, kth_largest
-from entity.filter import PreprocessReport  # the filter's contract: what it receives
-from messages.arrays import check_probability, check_set
+from dtpf.entity.filter import PreprocessReport  # the filter's contract: what it receives
+from dtpf.information.select import RADIX_MIN, kth_largest
+from dtpf.messages.arrays import check_probability, check_set
 
 __all__ = [
     "THRESHOLD_RULES",
@@ -397,7 +397,7 @@ def _move_relative(x: np.ndarray, w: np.ndarray, limit: float, ps: float, rng: n
 
 
 #: Below this many particles :func:`preprocess` makes one compiled call (numba's np.partition selects W);
-#: from it on, numpy's partition or the radix select (information.select) is faster than that.
+#: from it on, numpy's partition or the radix select (dtpf.information.select) is faster than that.
 SMALL_SET = 1 << 12
 
 
@@ -472,8 +472,8 @@ def preprocess(
     log_likelihood : callable, optional
         ``(M, d) -> (M,)`` log p(z_k | x); required by ``"likelihood"``.
     checked : bool
-        The arrays passed :func:`~messages.arrays.check_weights` and
-        :func:`~messages.arrays.check_particles` already (a decoded message):
+        The arrays passed :func:`~dtpf.messages.arrays.check_weights` and
+        :func:`~dtpf.messages.arrays.check_particles` already (a decoded message):
         only their dtype, rank and lengths are checked again.
     move_rule : "paper" or "relative"
         Eq. 29-30 as printed (default), or the translation-invariant rule

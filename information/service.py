@@ -8,7 +8,7 @@ with the PS in force and publishes the preprocessed set on
 the decision the system layer made at step k - 1, and keeps the last PS if
 none comes.
 
-Run ``python -m information.service --help`` for the options.
+Run ``python -m dtpf.information.service --help`` for the options.
 """
 from __future__ import annotations
 
@@ -16,15 +16,15 @@ import argparse
 
 import zenoh
 
-from entity import sources
-from information.layer import InformationLayer
-from messages.admission import RunShape
-from messages import names
-from messages.bus import add_zenoh_arguments
-from messages.fleet import add_fleet_arguments, serve_layer
-from messages.config import RunConfig, add_run_arguments
-from messages.models import ARRAYS_CHECKED, ParticleSet, ParticleSetKind, PSCommand, WeightState
-from messages.service import ServiceShell, add_service_arguments, run_service
+from dtpf.entity import sources
+from dtpf.information.layer import InformationLayer
+from dtpf.messages import names
+from dtpf.messages.admission import RunShape
+from dtpf.messages.config import RunConfig, add_run_arguments
+from dtpf.messages.models import ARRAYS_CHECKED, ParticleSet, ParticleSetKind, PSCommand, WeightState
+from dtpf.shell.bus import add_zenoh_arguments
+from dtpf.shell.fleet import add_fleet_arguments, serve_layer
+from dtpf.shell.service import ServiceShell, add_service_arguments, run_service
 
 __all__ = ["main", "TwinInformation"]
 
@@ -154,7 +154,7 @@ def main(config: RunConfig, zenoh_config: zenoh.Config, args: argparse.Namespace
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog="python -m information.service",
+        prog="python -m dtpf.information.service",
         description="dtpf information layer: mirrors the entity's particle sets, moves small-weight "
                     "particles towards large-weight ones (Eq. 28-30) with the PS in force, and reports "
                     "the weight state to the system layer.")

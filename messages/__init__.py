@@ -2,7 +2,7 @@
 
 The recommended import is::
 
-    from messages import ParticleSet, WeightState, encode, decode, keys
+    from dtpf.messages import ParticleSet, WeightState, encode, decode, keys
 
 Publish::
 
@@ -20,11 +20,11 @@ Record (MCAP): the key expression is the topic;
 with ``make_reader(f, decoder_factories=[McapDecoderFactory()])``.
 
 Particle sets travel in a binary envelope (JSON header + raw little-endian
-float64; layout in :mod:`messages.codec` and ``docs/encoding.md``), every other
+float64; layout in :mod:`dtpf.messages.codec` and ``docs/encoding.md``), every other
 message as plain JSON that Foxglove can plot. Array validation shared with the
-algorithms lives in :mod:`messages.arrays`, per-step random streams in
-:mod:`messages.streams`, the names a configuration may use in
-:mod:`messages.names`.
+algorithms lives in :mod:`dtpf.messages.arrays`, per-step random streams in
+:mod:`dtpf.messages.streams`, the names a configuration may use in
+:mod:`dtpf.messages.names`.
 
 The wire contract is the ground floor: it imports no layer (entity,
 information, system) and no command; every other package may import it.
@@ -37,14 +37,14 @@ __all__ = [
     "keys",
 ]
 
-# Names are imported on first use (PEP 562), so that ``import messages.arrays``
+# Names are imported on first use (PEP 562), so that ``import dtpf.messages.arrays``
 # from the numeric code does not pull in pydantic, mcap and the codec.
 _HOMES = {
     **dict.fromkeys(["Estimate", "Layer", "Message", "ParticleSet", "ParticleSetKind", "PSCommand",
-                     "ServiceState", "Status", "Time", "WeightState", "Observation"], "messages.models"),
+                     "ServiceState", "Status", "Time", "WeightState", "Observation"], "dtpf.messages.models"),
     **dict.fromkeys(["MessageError", "encode", "decode", "decode_for_key", "McapDecoderFactory",
-                     "SchemaRecord", "message_encoding", "schema_for"], "messages.codec"),
-    "json_schema": "messages.schema",
+                     "SchemaRecord", "message_encoding", "schema_for"], "dtpf.messages.codec"),
+    "json_schema": "dtpf.messages.schema",
 }
 
 
@@ -52,7 +52,7 @@ def __getattr__(name: str):
     import importlib
 
     if name == "keys":
-        return importlib.import_module("messages.keys")
+        return importlib.import_module("dtpf.messages.keys")
     if name in _HOMES:
         return getattr(importlib.import_module(_HOMES[name]), name)
     raise AttributeError(f"module 'messages' has no attribute {name!r}")

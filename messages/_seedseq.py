@@ -1,4 +1,4 @@
-"""SeedSequence's state, compiled (for :func:`messages.streams.stream`).
+"""SeedSequence's state, compiled (for :func:`dtpf.messages.streams.stream`).
 
 numpy builds ``SeedSequence(entropy).generate_state(4, uint64)``, the 256 bits
 that seed a PCG64, in Python loops over uint32 scalars: 14 us of the 17 a
@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import numba
 import numpy as np
-
 
 _INIT_A, _MULT_A, _INIT_B, _MULT_B = 0x43B0D7E5, 0x931E8875, 0x8B51F9DD, 0x58F38DED
 _MIX_MULT_L, _MIX_MULT_R, _MASK32, _POOL = 0xCA01F9DD, 0x4973F715, 0xFFFFFFFF, 4

@@ -18,7 +18,7 @@ import re
 from dataclasses import dataclass
 from typing import NamedTuple
 
-from messages.models import Estimate, Message, Observation, ParticleSet, PSCommand, WeightState
+from dtpf.messages.models import Estimate, Message, Observation, ParticleSet, PSCommand, WeightState
 
 __all__ = ["RunShape", "Misfit", "kind_of"]
 
@@ -75,7 +75,7 @@ class RunShape:
     def misfit(self, message: Message) -> Misfit | None:
         """None if ``message`` can apply to this run, else what is wrong with it."""
         if isinstance(message, Observation):
-            return None  # a sensor's sequence numbers are the intake's business (entity.intake)
+            return None  # a sensor's sequence numbers are the intake's business (dtpf.entity.intake)
         step = message.step
         run_level = step == 0
         if not run_level and step > self.last_step:

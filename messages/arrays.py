@@ -4,7 +4,7 @@ The algorithms (resampling, preprocessing rules, mirror) and the message
 decoders share these checks, so a bad weight vector is rejected with the same
 words wherever it appears::
 
-    from messages.arrays import check_weights, check_particles
+    from dtpf.messages.arrays import check_weights, check_particles
     weights = check_weights(weights)            # (N,) float64, sums to 1
     particles = check_particles(particles, n=len(weights))   # (N, d) float64
     particles, weights = check_set(particles, weights)       # both at once
@@ -13,6 +13,7 @@ Every failure raises :class:`ValueError` naming the problem and the value.
 """
 from __future__ import annotations
 
+import re
 import warnings
 
 import numpy as np
@@ -21,7 +22,7 @@ import numpy as np
 # encountered in reduce"); the full passes then name the value in the error, or find every value finite
 # (a sum that overflowed), so the warning says nothing and a service would print it to its log: not shown.
 warnings.filterwarnings("ignore", r"(invalid value|overflow) encountered in reduce", RuntimeWarning,
-                        r"messages\.arrays")
+                        re.escape(__name__))
 
 #: Relative tolerance on ``sum(weights) == 1`` for normalised weights.
 #: Summing N float64 values loses at most about N * 2**-53 relative, so 1e-6

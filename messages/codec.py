@@ -2,7 +2,7 @@
 
 ::
 
-    from messages.codec import encode, decode, decode_for_key, MessageError
+    from dtpf.messages.codec import encode, decode, decode_for_key, MessageError
     payload = encode(message)                       # bytes
     message = decode(payload)                       # any message
     message = decode(payload, expected=WeightState) # or fail
@@ -10,10 +10,10 @@
 
 Two encodings:
 
-- JSON messages (everything but :class:`~messages.models.ParticleSet`):
+- JSON messages (everything but :class:`~dtpf.messages.models.ParticleSet`):
   the UTF-8 JSON of the model, every field present (``null`` for absent
   optionals). MCAP message encoding ``json``, schema encoding ``jsonschema``.
-- :class:`~messages.models.ParticleSet`: the binary envelope, MCAP message
+- :class:`~dtpf.messages.models.ParticleSet`: the binary envelope, MCAP message
   encoding ``dtpf-envelope``. All integers little-endian::
 
       offset  size  content
@@ -55,9 +55,11 @@ import numpy as np
 from mcap.decoder import DecoderFactory
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from messages import keys
-from messages.models import MESSAGE_CLASSES, Message, ParticleSet, ParticleSetHeader
-from messages.schema import json_schema
+from dtpf.messages import keys
+from dtpf.messages.errors import DtpfError
+from dtpf.messages.keys import MESSAGE_CLASSES
+from dtpf.messages.models import Message, ParticleSet, ParticleSetHeader
+from dtpf.messages.schema import json_schema
 
 MAGIC = b"DTPF"
 VERSION = 1
@@ -79,7 +81,7 @@ FOREIGN_SCHEMA_NAMES = {"CompressedImage": "foxglove.CompressedImage", "PointClo
                         "ImageAnnotations": "foxglove.ImageAnnotations"}
 
 
-class MessageError(ValueError):
+class MessageError(DtpfError, ValueError):
     """A payload that cannot be decoded into a valid message.
 
     Attributes
@@ -137,7 +139,7 @@ def encode(message: Message) -> bytes:
     if isinstance(message, ParticleSet):
         return _encode_envelope(message)
     if isinstance(message, Message):
-        # Absent, not null: the schemas (Foxglove's subset, messages.schema) give an optional field its
+        # Absent, not null: the schemas (Foxglove's subset, dtpf.messages.schema) give an optional field its
         # plain type and leave it out of "required", so a null would fail them.
         return message.model_dump_json(exclude_none=True).encode("utf-8")
     raise TypeError(f"encode() takes a dtpf message, got {type(message).__name__}")

@@ -3,7 +3,7 @@
 Every field is declared with its meaning and validated at construction, so a
 bad resampler or model name fails at startup, not at step 500::
 
-    from messages.config import RunConfig
+    from dtpf.messages.config import RunConfig
     config = RunConfig(particles=1000, steps=100, seed=7)
 """
 from __future__ import annotations
@@ -15,14 +15,15 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from messages import names
+from dtpf.messages import names
+from dtpf.messages.errors import DtpfError
 
 __all__ = ["RunConfig", "RunInputError", "ID_PATTERN", "add_run_arguments", "config_from_args"]
 
 
-class RunInputError(ValueError):
+class RunInputError(DtpfError, ValueError):
     """What the user gave a run cannot be used: a model, an observation file. A service exits 2 with
-    the one-line message, no traceback (entity.model_ref.ModelError, entity.observations.ObservationError)."""
+    the one-line message, no traceback (dtpf.entity.model_ref.ModelError, dtpf.entity.observations.ObservationError)."""
 
 #: Run and twin ids: safe inside a Zenoh key expression and a file name.
 ID_PATTERN = r"^[A-Za-z0-9_.-]+$"
@@ -99,7 +100,7 @@ class RunConfig(BaseModel):
         if not value:
             raise ValueError("observations must name a file, 'live' or 'live:KEY'")
         if value.startswith("live:"):
-            from messages import keys
+            from dtpf.messages import keys
             key = value[len("live:"):]
             try:
                 topic = keys.topic_of(key)
@@ -170,7 +171,7 @@ class RunConfig(BaseModel):
         if self.steps is None and self.simulated:
             raise ValueError("steps: a simulated scenario needs a number of steps")
         if self.model is not None:
-            return self  # a user model is checked when it is loaded (entity.model_check)
+            return self  # a user model is checked when it is loaded (dtpf.entity.model_check)
         # A simulating policy draws observations from the model; a video scenario cannot.
         if self.policy in names.SIMULATING_POLICIES and self.scenario in names.CANNOT_SAMPLE:
             raise ValueError(f"policy {self.policy!r} simulates observations, which scenario "

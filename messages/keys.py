@@ -4,7 +4,7 @@ The key expression of a message is also its MCAP topic. Build and read keys
 here rather than with f-strings, so a bad twin id or an unknown layer fails
 with a message that says so::
 
-    from messages import keys
+    from dtpf.messages import keys
     keys.key("ungm-1", "entity", "particles")   # 'dtpf/ungm-1/entity/particles'
     keys.parse("dtpf/ungm-1/entity/particles")  # ('ungm-1', Layer.ENTITY, 'particles')
     keys.topic_of("dtpf/ungm-1/entity/particles").message   # ParticleSet
@@ -16,16 +16,14 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
-from messages.models import (
-    CompressedImage,
+from dtpf.messages.foxglove import CompressedImage, ImageAnnotations, PointCloud
+from dtpf.messages.models import (
     Estimate,
-    ImageAnnotations,
     Layer,
     Message,
     Observation,
     ParticleSet,
     ParticleSetKind,
-    PointCloud,
     PSCommand,
     Rejected,
     Status,
@@ -68,6 +66,12 @@ TOPICS: dict[tuple[Layer, str], Topic] = {
         Topic(Layer.RECORDER, "rejected", Rejected),  # a sample of what the recorder did not record
         *(Topic(layer, "status", Status) for layer in Layer),
     )
+}
+
+#: Every message class, by name.
+MESSAGE_CLASSES: dict[str, type[Message]] = {
+    cls.__name__: cls for cls in (ParticleSet, WeightState, PSCommand, Estimate, Status, CompressedImage,
+                                  Observation, Rejected, PointCloud, ImageAnnotations)
 }
 
 

@@ -4,7 +4,7 @@ Every message carries the same header (:class:`Message`): who sent it (run,
 twin, layer), for which filter step, and when. Construction validates every
 field, so a bad message fails where it is made, not where it is read::
 
-    from messages.models import ParticleSet
+    from dtpf.messages.models import ParticleSet
     ps = ParticleSet(run_id="r1", twin_id="ungm-1", step=3, kind="propagated",
                      particles=x, weights=w, observation=[z])
 
@@ -28,7 +28,7 @@ import binascii
 import enum
 import re
 import time
-from typing import Annotated, Any, ClassVar, Literal
+from typing import Annotated, Any, ClassVar
 
 import numpy as np
 from pydantic import (
@@ -43,7 +43,7 @@ from pydantic import (
     model_validator,
 )
 
-from messages.arrays import check_particles, check_probability, check_weights, is_plain_float64
+from dtpf.messages.arrays import check_particles, check_probability, check_weights, is_plain_float64
 
 UINT32_MAX = 2**32 - 1
 
@@ -115,8 +115,8 @@ def _read_only(array: np.ndarray) -> np.ndarray:
     return view
 
 
-#: Validation context for arrays that passed :func:`~messages.arrays.check_particles` and
-#: :func:`~messages.arrays.check_weights` already, where a layer publishes its own output:
+#: Validation context for arrays that passed :func:`~dtpf.messages.arrays.check_particles` and
+#: :func:`~dtpf.messages.arrays.check_weights` already, where a layer publishes its own output:
 #: ``ParticleSet.model_validate(fields, context=ARRAYS_CHECKED)``. Float64 arrays of the right
 #: rank become read-only views without a second scan; every other field, and the lengths,
 #: are validated as always. Receivers never use it: decoding checks every array.
@@ -157,13 +157,14 @@ RunId = Annotated[str, AfterValidator(_run_id), Field(json_schema_extra={"patter
 TwinId = Annotated[str, AfterValidator(_twin_id), Field(json_schema_extra={"pattern": ID_PATTERN})]
 Count = Annotated[int, Field(ge=0, le=UINT32_MAX)]
 
-_CONFIG = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+#: Every model: unknown fields rejected, frozen, finite floats only.
+STRICT_CONFIG = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 class Time(BaseModel):
     """Wall-clock time as Foxglove's ``{sec, nsec}`` (both uint32)."""
 
-    model_config = _CONFIG
+    model_config = STRICT_CONFIG
 
     sec: int = Field(ge=0, le=UINT32_MAX, description="Whole seconds since the Unix epoch.")
     nsec: int = Field(ge=0, le=999_999_999, description="Nanoseconds within the second.")
@@ -191,7 +192,7 @@ class Message(BaseModel):
     then defaults to it and any other value is rejected.
     """
 
-    model_config = _CONFIG
+    model_config = STRICT_CONFIG
 
     #: The layer that publishes this message class (None: any layer).
     producer: ClassVar[Layer | None] = None
@@ -261,7 +262,7 @@ class ParticleSetHeader(Message):
     """Everything of a :class:`ParticleSet` but its arrays.
 
     This is the ``fields`` object of the binary envelope's JSON header (see
-    :mod:`messages.codec`).
+    :mod:`dtpf.messages.codec`).
     """
 
     kind: ParticleSetKind = Field(
@@ -304,7 +305,7 @@ class ParticleSetHeader(Message):
 class ParticleSet(ParticleSetHeader):
     """The particle set of one step: entity -> information (propagated) and back (preprocessed).
 
-    Travels in the binary envelope of :mod:`messages.codec`, not as JSON.
+    Travels in the binary envelope of :mod:`dtpf.messages.codec`, not as JSON.
     ``particles`` is (N, d) float64, ``weights`` (N,) float64, normalised.
     Both are read-only, C-contiguous views; if the input already was float64
     and C-contiguous, they share its memory, so do not modify the input after
@@ -471,7 +472,7 @@ class Estimate(Message):
 class ObservationCounts(BaseModel):
     """What a live entity did with the observations that arrived (:class:`Status`)."""
 
-    model_config = _CONFIG
+    model_config = STRICT_CONFIG
 
     accepted: Count = Field(description="Observations that became filter steps.")
     duplicate: Count = Field(description="Rejected: the sequence number of the last accepted one again.")
@@ -490,7 +491,7 @@ MAX_STATUS_COUNTS = 101
 class NamedCount(BaseModel):
     """One line of a tally: a name (a kind of rejection, a key expression) and how often."""
 
-    model_config = _CONFIG
+    model_config = STRICT_CONFIG
 
     name: str = Field(max_length=300, description="What was counted: a kind of rejection or a key expression.")
     count: Count = Field(description="How many times.")
@@ -507,7 +508,7 @@ class Status(Message):
     peers_alive: list[Layer] = Field(default_factory=list, description="Layers this process currently sees alive.")
     config_json: str | None = Field(
         default=None, max_length=65536,
-        description="The run configuration this process runs (messages.config.RunConfig as JSON), "
+        description="The run configuration this process runs (dtpf.messages.config.RunConfig as JSON), "
                     "so a log says how to re-run its layers.")
     detail: str | None = Field(default=None, max_length=1000,
                                description="What the process is doing or waiting for, in words.")
@@ -530,7 +531,8 @@ class Status(Message):
 BASE64_CHECKED = {"base64_checked": True}
 
 
-def _base64(value: str, info: ValidationInfo) -> str:
+def base64_text(value: str, info: ValidationInfo) -> str:
+    """``value`` if it is standard base64 (or was made so under :data:`BASE64_CHECKED`), else ValueError."""
     if info.context and info.context.get("base64_checked") is True and isinstance(value, str):
         return value
     try:
@@ -538,156 +540,6 @@ def _base64(value: str, info: ValidationInfo) -> str:
     except (binascii.Error, ValueError):
         raise ValueError(f"data must be standard base64, got {value[:40]!r}...") from None
     return value
-
-
-class CompressedImage(Message):
-    """One video frame, in the shape of Foxglove's ``foxglove.CompressedImage``: entity -> recorder.
-
-    ``timestamp``, ``frame_id``, ``data`` and ``format`` are Foxglove's
-    fields (the MCAP schema is named ``foxglove.CompressedImage``, so
-    Foxglove's Image panel shows the channel); the dtpf header comes with
-    them. ``data`` is the JPEG or PNG file, standard base64 in JSON.
-    """
-
-    producer: ClassVar[Layer] = Layer.ENTITY
-
-    timestamp: Time = Field(description="Time of the frame (the step's publish time).")
-    frame_id: str = Field(description="Coordinate frame of the image (the camera).")
-    data: Annotated[str, AfterValidator(_base64)] = Field(
-        json_schema_extra={"contentEncoding": "base64"}, description="The compressed image file, base64.")
-    format: Literal["jpeg", "png"] = Field(description="Image format: 'jpeg' or 'png'.")
-
-
-class Vector3(BaseModel):
-    """A point or direction in 3-D (Foxglove's ``foxglove.Vector3``)."""
-
-    model_config = _CONFIG
-
-    x: float = Field(0.0, description="x")
-    y: float = Field(0.0, description="y")
-    z: float = Field(0.0, description="z")
-
-
-class Quaternion(BaseModel):
-    """A rotation (Foxglove's ``foxglove.Quaternion``); the identity by default."""
-
-    model_config = _CONFIG
-
-    x: float = Field(0.0, description="x")
-    y: float = Field(0.0, description="y")
-    z: float = Field(0.0, description="z")
-    w: float = Field(1.0, description="w")
-
-
-class Pose(BaseModel):
-    """Position and orientation (Foxglove's ``foxglove.Pose``)."""
-
-    model_config = _CONFIG
-
-    position: Vector3 = Field(default_factory=Vector3, description="Position.")
-    orientation: Quaternion = Field(default_factory=Quaternion, description="Orientation.")
-
-
-class PackedElementField(BaseModel):
-    """One field of a packed point (Foxglove's ``foxglove.PackedElementField``)."""
-
-    model_config = _CONFIG
-
-    name: str = Field(max_length=64, description="Name of the field (x, y, z, weight).")
-    offset: Count = Field(description="Byte offset of the field within a point.")
-    type: int = Field(ge=0, le=8, description="Numeric type (Foxglove's NumericType): 8 is FLOAT64.")
-
-
-#: Most points a cloud message may carry.
-MAX_CLOUD_POINTS = 1_000_000
-
-
-class PointCloud(Message):
-    """The particle set of a step as Foxglove's ``foxglove.PointCloud``: entity -> recorder, viewers.
-
-    ``timestamp``, ``frame_id``, ``pose``, ``point_stride``, ``fields`` and
-    ``data`` are Foxglove's fields (the MCAP schema is named
-    ``foxglove.PointCloud``, so Foxglove's 3D panel shows the particles); the
-    dtpf header comes with them. ``data`` is the packed float64 points,
-    standard base64.
-    """
-
-    producer: ClassVar[Layer] = Layer.ENTITY
-
-    timestamp: Time = Field(description="Time of the step's particle set.")
-    frame_id: str = Field(max_length=64, description="Coordinate frame of the points (the state space).")
-    pose: Pose = Field(default_factory=Pose, description="Origin of the points: the identity.")
-    point_stride: int = Field(ge=1, le=4096, description="Bytes from one point to the next.")
-    fields: list[PackedElementField] = Field(max_length=16, description="Fields of each point.")
-    data: Annotated[str, AfterValidator(_base64)] = Field(
-        json_schema_extra={"contentEncoding": "base64"}, description="The packed points, base64.")
-
-
-class Point2(BaseModel):
-    """A point in an image, in pixels (Foxglove's ``foxglove.Point2``)."""
-
-    model_config = _CONFIG
-
-    x: float = Field(description="x, pixels from the left.")
-    y: float = Field(description="y, pixels from the top.")
-
-
-class Color(BaseModel):
-    """An RGBA colour, each part in [0, 1] (Foxglove's ``foxglove.Color``)."""
-
-    model_config = _CONFIG
-
-    r: float = Field(ge=0.0, le=1.0, description="red")
-    g: float = Field(ge=0.0, le=1.0, description="green")
-    b: float = Field(ge=0.0, le=1.0, description="blue")
-    a: float = Field(ge=0.0, le=1.0, description="alpha")
-
-
-class CircleAnnotation(BaseModel):
-    """A circle over an image (Foxglove's ``foxglove.CircleAnnotation``)."""
-
-    model_config = _CONFIG
-
-    timestamp: Time = Field(description="Time of the image it belongs to.")
-    position: Point2 = Field(description="Centre.")
-    diameter: float = Field(ge=0.0, description="Diameter in pixels.")
-    thickness: float = Field(ge=0.0, description="Line thickness in pixels.")
-    fill_color: Color = Field(description="Fill colour.")
-    outline_color: Color = Field(description="Outline colour.")
-
-
-class PointsAnnotation(BaseModel):
-    """Points or lines over an image (Foxglove's ``foxglove.PointsAnnotation``)."""
-
-    model_config = _CONFIG
-
-    timestamp: Time = Field(description="Time of the image it belongs to.")
-    type: int = Field(ge=0, le=4, description="0 unknown, 1 points, 2 line loop, 3 line strip, 4 line list.")
-    points: list[Point2] = Field(max_length=100_000, description="The points.")
-    outline_color: Color = Field(description="Colour of the points or lines.")
-    outline_colors: list[Color] = Field(default_factory=list, max_length=100_000,
-                                        description="One colour per point (empty: outline_color for all).")
-    fill_color: Color = Field(description="Fill colour.")
-    thickness: float = Field(ge=0.0, description="Point size or line thickness in pixels.")
-
-
-#: Most annotations of one kind a message may carry.
-MAX_ANNOTATIONS = 1000
-
-
-class ImageAnnotations(Message):
-    """What to draw over a video frame (Foxglove's ``foxglove.ImageAnnotations``): entity -> viewers.
-
-    The video scenario draws each step's particles (their positions) and the
-    estimate (its circle) over the frame of the same step and time.
-    """
-
-    producer: ClassVar[Layer] = Layer.ENTITY
-
-    circles: list[CircleAnnotation] = Field(default_factory=list, max_length=MAX_ANNOTATIONS,
-                                            description="Circles.")
-    points: list[PointsAnnotation] = Field(default_factory=list, max_length=MAX_ANNOTATIONS,
-                                           description="Point sets and lines.")
 
 
 #: Longest observation vector a message may carry.
@@ -733,13 +585,6 @@ class Rejected(Message):
     key: str = Field(max_length=300, description="Key expression the payload arrived on (cut to 300 characters).")
     reason: str = Field(max_length=500, description="Why a service would reject it.")
     size: Count = Field(description="Size of the payload in bytes.")
-    sample: Annotated[str, AfterValidator(_base64)] = Field(
+    sample: Annotated[str, AfterValidator(base64_text)] = Field(
         max_length=4 * MAX_REJECTED_SAMPLE // 3 + 4, json_schema_extra={"contentEncoding": "base64"},
         description=f"The payload's first {MAX_REJECTED_SAMPLE} bytes, base64.")
-
-
-#: Every message class, by name.
-MESSAGE_CLASSES: dict[str, type[Message]] = {
-    cls.__name__: cls for cls in (ParticleSet, WeightState, PSCommand, Estimate, Status, CompressedImage,
-                                  Observation, Rejected, PointCloud, ImageAnnotations)
-}

@@ -1,6 +1,6 @@
 """The names a run configuration may use: part of the wire contract.
 
-A :class:`~messages.config.RunConfig` travels in every Status message and
+A :class:`~dtpf.messages.config.RunConfig` travels in every Status message and
 every log, so the names it may hold are part of the contract, here, where
 the contract's readers can check them without loading a layer. Each layer
 implements the names of its own room and a test holds the two equal
@@ -17,25 +17,25 @@ import sys
 __all__ = ["SCENARIOS", "MODEL_ENTRY_POINTS", "CANNOT_SAMPLE", "RESAMPLERS", "THRESHOLD_RULES", "WEIGHT_RULES", "MOVE_RULES", "JITTERS",
            "POLICIES", "SIMULATING_POLICIES", "POLICIES_STARTING_OFF", "scenario_names"]
 
-#: Built-in scenarios (entity.models): Eq. 35 with 25, Eq. 35 as printed (0.25), the tracking video, and a
+#: Built-in scenarios (dtpf.entity.models): Eq. 35 with 25, Eq. 35 as printed (0.25), the tracking video, and a
 #: slowly drifting constant with precise observations (where particles impoverish; not in the paper).
 SCENARIOS = ("ungm", "ungm-printed", "video", "drift")
 #: The entry-point group where an installed package registers scenario names of its own.
 MODEL_ENTRY_POINTS = "dtpf.models"
 #: Built-in scenarios whose model cannot draw observations (no simulating policy with them).
 CANNOT_SAMPLE = frozenset({"video"})
-#: Traditional resampling schemes (entity.resampling).
+#: Traditional resampling schemes (dtpf.entity.resampling).
 RESAMPLERS = ("multinomial", "residual", "stratified", "systematic")
-#: Named rules for the threshold W of Eq. 28 (information.rules); a number is allowed too.
+#: Named rules for the threshold W of Eq. 28 (dtpf.information.rules); a number is allowed too.
 THRESHOLD_RULES = ("neff", "inverse-n")
-#: Weights of processed particles (information.rules).
+#: Weights of processed particles (dtpf.information.rules).
 WEIGHT_RULES = ("inherit", "likelihood")
-#: How small particles are moved (information.rules): the paper's Eq. 29-30, or the translation-invariant rule.
+#: How small particles are moved (dtpf.information.rules): the paper's Eq. 29-30, or the translation-invariant rule.
 MOVE_RULES = ("paper", "relative")
-#: What the entity does to the particles after resampling (entity.jitter): nothing (the paper), roughening
+#: What the entity does to the particles after resampling (dtpf.entity.jitter): nothing (the paper), roughening
 #: (Gordon, Salmond and Smith 1993) or the regularised filter's kernel (Musso, Oudjane and Le Gland 2001).
 JITTERS = ("none", "roughening", "regularised")
-#: PS policies of the system layer (system.policy), and those that simulate observations (sample_observation).
+#: PS policies of the system layer (dtpf.system.policy), and those that simulate observations (sample_observation).
 POLICIES = ("fixed", "guard", "guard-observed", "predictive", "rule")
 SIMULATING_POLICIES = frozenset({"guard", "predictive", "rule"})
 #: Policies whose first step is not preprocessed (the information layer starts with preprocessing off).

@@ -6,7 +6,7 @@ neither (nor ``type: null``, nor arrays of arrays, nor a property without a
 ``type``). :func:`json_schema` rewrites the pydantic schema into that subset
 and checks the result::
 
-    from messages.schema import json_schema
+    from dtpf.messages.schema import json_schema
     schema = json_schema(WeightState)      # dict, ready for json.dumps
 
 Rewrites: every ``$ref`` is replaced by a copy of its definition (sibling keys

@@ -59,12 +59,12 @@ def _uint32_words(values: list[int]) -> np.ndarray:
 
 
 class _PCG64Seed(ISeedSequence):
-    """The 4 uint64 words SeedSequence(entropy) hands a PCG64, computed by :mod:`messages._seedseq`."""
+    """The 4 uint64 words SeedSequence(entropy) hands a PCG64, computed by :mod:`dtpf.messages._seedseq`."""
 
     __slots__ = ("state",)
 
     def __init__(self, entropy: list[int]):
-        from messages import _seedseq  # numba on first use: processes that draw nothing skip it
+        from dtpf.messages import _seedseq  # numba on first use: processes that draw nothing skip it
 
         self.state = _seedseq.state_words(_uint32_words(entropy)).view(np.uint64)
 

@@ -5,11 +5,11 @@ the recorder as processes), ``record`` (the recorder service), ``sensor`` (a
 live sensor stand-in), ``inprocess`` (the three layers in one process) and
 ``console`` (progress on stderr, shared by everything below). Three rooms:
 
-- :mod:`scripts.logs`: the log tools (``dtpf info``, ``summary``, ``recover``,
+- :mod:`dtpf.scripts.logs`: the log tools (``dtpf info``, ``summary``, ``recover``,
   ``plot``, ``play``, ``verify``);
-- :mod:`scripts.paper`: the paper's reproduction (experiments, tracking,
+- :mod:`dtpf.scripts.paper`: the paper's reproduction (experiments, tracking,
   policy evaluation), research, not product;
-- :mod:`scripts.bench`: benchmarks and soak runs.
+- :mod:`dtpf.scripts.bench`: benchmarks and soak runs.
 
 Imports run down the floors messages < entity < information < system <
 scripts; inside scripts, the rooms import this folder's modules, never each

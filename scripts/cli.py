@@ -12,10 +12,10 @@ from pathlib import Path
 
 import numpy as np
 
-from entity import sources
-from scripts.console import ProgressBar, run_command
-from messages import names
-from messages.config import add_run_arguments, config_from_args
+from dtpf.entity import sources
+from dtpf.messages import names
+from dtpf.messages.config import add_run_arguments, config_from_args
+from dtpf.scripts.console import ProgressBar, run_command
 
 __all__ = ["main"]
 
@@ -25,7 +25,7 @@ __all__ = ["main"]
 def resolved_config(args: argparse.Namespace):
     """The RunConfig of the arguments, with T fixed to the observation file's rows when --steps is
     not given (so every process and the progress bar know T)."""
-    from entity.observations import read_observations
+    from dtpf.entity.observations import read_observations
 
     config = config_from_args(args)
     if config.observation_file is not None and config.steps is None:
@@ -47,7 +47,7 @@ def fit_simulation(config, args: argparse.Namespace):
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    from scripts.inprocess import run
+    from dtpf.scripts.inprocess import run
 
     # run() reads the file once; T is its rows unless --steps is smaller
     config = fit_simulation(config_from_args(args), args)
@@ -84,7 +84,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def cmd_launch(args: argparse.Namespace) -> int:
-    from scripts.launch import LaunchError, launch
+    from dtpf.scripts.launch import LaunchError, launch
 
     config = resolved_config(args)
     sources.load_model(config)  # a wrong model or file: one line here, before any process starts
@@ -95,7 +95,7 @@ def cmd_launch(args: argparse.Namespace) -> int:
     source = f", observations from {config.observations}" if config.observations else ""
     how = "embedded Zenoh on 127.0.0.1"
     if args.secure:
-        from messages.secure import SecureError, open_secure_dir
+        from dtpf.shell.secure import SecureError, open_secure_dir
         try:
             how += " secured by " + ("mutual TLS" if open_secure_dir(args.secure).kind == "tls"
                                      else "user/password") + " and access control"
@@ -138,8 +138,8 @@ def _finish(summary: str, failure: str | None, interrupted: bool) -> int:
 
 
 def _launch_fleet(config, args: argparse.Namespace) -> int:
-    from scripts.fleet import launch_fleet
-    from scripts.launch import LaunchError
+    from dtpf.scripts.fleet import launch_fleet
+    from dtpf.scripts.launch import LaunchError
 
     try:
         result = launch_fleet(config, args.twins, log_path=args.log, port=args.port, timeout=args.timeout,
@@ -157,7 +157,7 @@ def _launch_fleet(config, args: argparse.Namespace) -> int:
 
 
 def _address(text: str):
-    from scripts.foxglove_bridge import parse_address
+    from dtpf.scripts.foxglove_bridge import parse_address
     return parse_address(text)
 
 
@@ -246,8 +246,8 @@ def build_parser() -> argparse.ArgumentParser:
     group.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
     launch.set_defaults(handler=cmd_launch)
 
-    from scripts import foxglove_bridge, foxglove_layout, router, secure, sensor
-    from scripts.logs import play, plot, select, summary, verify
+    from dtpf.scripts import foxglove_bridge, foxglove_layout, router, secure, sensor
+    from dtpf.scripts.logs import play, plot, select, summary, verify
     summary.register(commands)
     select.register(commands)
     plot.register(commands)

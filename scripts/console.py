@@ -9,6 +9,8 @@ from __future__ import annotations
 import sys
 import time
 
+from dtpf.messages.errors import DtpfError
+
 __all__ = ["ProgressBar", "TaskProgress", "run_command", "stop_on_signals"]
 
 
@@ -25,11 +27,11 @@ def stop_on_signals():
 
 
 def run_command(parser, args) -> int:
-    """Call the handler a subcommand set (``args.handler``): a ValueError is one line and exit 2,
-    Ctrl-C exit 130, output piped into ``head`` and closed a quiet exit 0."""
+    """Call the handler a subcommand set (``args.handler``): any :class:`DtpfError` (or ValueError) is
+    one line and exit 2, Ctrl-C exit 130, output piped into ``head`` and closed a quiet exit 0."""
     try:
         return args.handler(args)
-    except ValueError as error:
+    except (DtpfError, ValueError) as error:
         parser.exit(2, f"dtpf {args.command}: error: {error}\n")
     except KeyboardInterrupt:
         return 130

@@ -3,9 +3,9 @@
 The twins are ``<twin>-1`` .. ``<twin>-K``, with the run's options (the same
 seed: the random streams are derived per twin, so every twin's numbers are
 those of its own ``dtpf run --twin <twin>-i``), hosted by a few entity
-processes (``entity.service --twins``, one per CPU by default). The
+processes (``dtpf.entity.service --twins``, one per CPU by default). The
 information and system services are started with ``--twins '<twin>-*'`` and
-learn each twin from its entity (:mod:`messages.fleet`); the recorder records
+learn each twin from its entity (:mod:`dtpf.shell.fleet`); the recorder records
 every twin into one log (``--all-twins``). The run ends when every entity has
 ended; the summary gives a line per twin and the fleet's totals.
 """
@@ -17,14 +17,25 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from messages import keys
-from messages.bus import Inbox, Presence
-from messages.codec import MessageError, decode_for_key
-from messages.config import RunConfig
-from messages.models import Estimate, Layer, Status
-from scripts.launch import (DEFAULT_RESTARTS, Bridge, EstimateTally, LaunchError, _describe_code, _stop,
-                            _wait_for_recorder, segment_path,
-                            default_log_path, open_router, rejected_by_layer, service_command)
+from dtpf.messages import keys
+from dtpf.messages.codec import MessageError, decode_for_key
+from dtpf.messages.config import RunConfig
+from dtpf.messages.models import Estimate, Layer, Status
+from dtpf.scripts.launch import (
+    DEFAULT_RESTARTS,
+    Bridge,
+    EstimateTally,
+    LaunchError,
+    _describe_code,
+    _stop,
+    _wait_for_recorder,
+    default_log_path,
+    open_router,
+    rejected_by_layer,
+    segment_path,
+    service_command,
+)
+from dtpf.shell.bus import Inbox, Presence
 
 __all__ = ["launch_fleet", "FleetResult", "twin_configs", "entity_groups"]
 
@@ -130,7 +141,7 @@ def launch_fleet(config: RunConfig, count: int, *, log_path: Path | None = None,
     ``keep_estimates``: keep every twin's estimates (in ``tallies[twin].estimates``).
     ``restarts``: how many times a dead shared information or system service or recorder is started
     again. The twins run on with plain resampling while a shared layer is gone; while a recorder is, the
-    launcher records the fleet's keys into a segment of its own (:class:`~scripts.launch.Bridge`), and the
+    launcher records the fleet's keys into a segment of its own (:class:`~dtpf.scripts.launch.Bridge`), and the
     new recorder writes the next segment (``run.1.mcap``, ``run.2.mcap``, ...; ``result.segments``), so a
     recorder's death loses only what it had not flushed.
     """

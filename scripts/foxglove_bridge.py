@@ -19,11 +19,11 @@ import sys
 import threading
 import time
 
-from messages import keys
-from messages.bus import BusError, Inbox, add_zenoh_arguments, open_session, zenoh_config_from_args
-from messages.codec import ENVELOPE_ENCODING, message_encoding, schema_for
-from messages.models import ParticleSet
-from scripts.console import stop_on_signals
+from dtpf.messages import keys
+from dtpf.messages.codec import ENVELOPE_ENCODING, message_encoding, schema_for
+from dtpf.messages.models import ParticleSet
+from dtpf.scripts.console import stop_on_signals
+from dtpf.shell.bus import BusError, Inbox, add_zenoh_arguments, open_session, zenoh_config_from_args
 
 __all__ = ["FoxgloveBridge", "parse_address", "register"]
 

@@ -5,8 +5,8 @@ where, over Zenoh, it would publish and wait. Random streams are keyed by
 (seed, twin, step, layer), so a lockstep run over Zenoh reproduces these
 numbers exactly::
 
-    from messages.config import RunConfig
-    from scripts.inprocess import run
+    from dtpf.messages.config import RunConfig
+    from dtpf.scripts.inprocess import run
     result = run(RunConfig(particles=1000, steps=100, seed=7))
     result.rmse, result.mean_ess
 """
@@ -17,14 +17,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from entity import sources
-from entity.filter import FilterStep, ParticleFilter, Preprocessed
-from information.layer import InformationLayer
-from messages.config import RunConfig
-from messages.streams import stream
-from system.layer import SystemLayer
-from system.policy import PSDecision
-from system.predict import Snapshot
+from dtpf.entity import sources
+from dtpf.entity.filter import FilterStep, ParticleFilter, Preprocessed
+from dtpf.information.layer import InformationLayer
+from dtpf.messages.config import RunConfig
+from dtpf.messages.streams import stream
+from dtpf.system.layer import SystemLayer
+from dtpf.system.policy import PSDecision
+from dtpf.system.predict import Snapshot
 
 __all__ = ["InProcessTwin", "RunResult", "build", "run", "simulate"]
 
@@ -131,7 +131,7 @@ def build(config: RunConfig, observations, model=None, innovation: bool = False)
     """The filter of ``config``, wired to an in-process twin when preprocessing is on.
 
     ``model``: the run's model if it is loaded already (default: the one the
-    configuration names); ``innovation``: see :class:`~entity.filter.ParticleFilter`.
+    configuration names); ``innovation``: see :class:`~dtpf.entity.filter.ParticleFilter`.
     """
     if model is None:
         model = sources.load_model(config, check=False)

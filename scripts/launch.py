@@ -26,27 +26,28 @@ from pathlib import Path
 
 import numpy as np
 
-from messages import keys
-from messages.bus import BusError, Inbox, Presence, free_port, open_session, zenoh_config
-from messages.codec import MessageError, decode_for_key
-from messages.config import RunConfig
-from messages.models import Estimate, Layer, Status
-from messages.service import release_memory
+from dtpf.messages import keys
+from dtpf.messages.codec import MessageError, decode_for_key
+from dtpf.messages.config import RunConfig
+from dtpf.messages.errors import DtpfError
+from dtpf.messages.models import Estimate, Layer, Status
+from dtpf.shell.bus import BusError, Inbox, Presence, free_port, open_session, zenoh_config
+from dtpf.shell.service import release_memory
 
 __all__ = ["launch", "LaunchResult", "LaunchError", "EstimateTally", "Restart", "segment_path", "open_router",
            "rejected_by_layer"]
 
 #: Start order: the recorder first (so nothing is missed), the entity last.
 LAYERS = ("recorder", "system", "information", "entity")
-MODULES = {"recorder": "scripts.record", "system": "system.service",
-           "information": "information.service", "entity": "entity.service"}
+MODULES = {"recorder": "dtpf.scripts.record", "system": "dtpf.system.service",
+           "information": "dtpf.information.service", "entity": "dtpf.entity.service"}
 #: How many times a dead layer is started again by default.
 DEFAULT_RESTARTS = 3
 #: Most messages the launcher takes from its inbox before it looks at its children again.
 _BATCH = 64
 
 
-class LaunchError(RuntimeError):
+class LaunchError(DtpfError, RuntimeError):
     """A service could not be started or failed; the message says which and why."""
 
 
@@ -256,12 +257,12 @@ class Bridge:
     what a service would accept into a segment of its own, until the new
     recorder is listening; so a recorder's death loses only what it had not
     flushed. The new recorder's first messages may also be in the bridge's
-    segment: :func:`messages.logfile.join_logs` drops such repeats.
+    segment: :func:`dtpf.recording.logfile.join_logs` drops such repeats.
     """
 
     def __init__(self, router, config: RunConfig, path: Path, patterns: tuple[str, ...] | None = None):
-        from messages.admission import RunShape
-        from messages.recording import McapRecording
+        from dtpf.messages.admission import RunShape
+        from dtpf.recording.writer import McapRecording
 
         self.config = config
         self.path = path
@@ -308,7 +309,9 @@ def service_command(layer: str, config: RunConfig, endpoint: str, *, timeout: fl
                     secure: Path | None = None, wait_for_recorder: bool = True) -> list[str]:
     """The command line of one child service (``secure``: the secure folder; its role is the layer;
     ``wait_for_recorder``: the entity waits for its twin's recorder too)."""
-    command = [sys.executable, "-m", MODULES[layer],
+    # -P: the child never imports from the working directory, where a user's own messages.py or
+    # entity.py may sit beside their model.
+    command = [sys.executable, "-P", "-m", MODULES[layer],
                "--scenario", config.scenario, "--particles", str(config.particles),
                "--resampler", config.resampler, "--threshold", str(config.threshold),
                "--weight-rule", config.weight_rule, "--policy", config.policy, "--ps", repr(config.ps),
@@ -364,8 +367,8 @@ def launch(config: RunConfig, *, log_path: Path | None = None, port: int | None 
     ``notify(text)`` is told at once when a layer dies or is started again
     (default: a line on stderr). ``cloud_points``: the entity's ``--cloud-points``
     (None: its default). ``foxglove``: (host, port) to serve the run live to
-    Foxglove from the launcher (:mod:`scripts.foxglove_bridge`). ``secure``: a
-    folder of ``dtpf secure init`` (:mod:`messages.secure`); the router then
+    Foxglove from the launcher (:mod:`dtpf.scripts.foxglove_bridge`). ``secure``: a
+    folder of ``dtpf secure init`` (:mod:`dtpf.shell.secure`); the router then
     listens on its protocol (``tls/`` or ``tcp/`` with passwords) and enforces
     its access control, and each service connects as the role of its layer.
     ``record``: False runs no recorder (the split alone, for benchmarks); nothing is logged.
@@ -417,7 +420,7 @@ def launch(config: RunConfig, *, log_path: Path | None = None, port: int | None 
     presence = watch = bridge_to_foxglove = None
     try:
         if foxglove is not None:
-            from scripts.foxglove_bridge import FoxgloveBridge
+            from dtpf.scripts.foxglove_bridge import FoxgloveBridge
             try:
                 bridge_to_foxglove = FoxgloveBridge(router, config.twin, *foxglove)
             except Exception as error:  # foxglove-sdk: a port in use, mostly
@@ -498,7 +501,7 @@ def open_router(port: int | None, secure=None):
     protocol and enforces its access control. LaunchError names what went wrong."""
     port = port or free_port()
     if secure is not None:
-        from messages.secure import SecureError, open_secure_dir
+        from dtpf.shell.secure import SecureError, open_secure_dir
         try:
             secure = open_secure_dir(secure)
         except SecureError as error:
@@ -524,7 +527,7 @@ def _wait_for_recorder(recorder: subprocess.Popen, presence: Presence, timeout: 
 
 def _rows(config: RunConfig) -> int:
     """The number of rows of the run's observation file (its steps when ``--steps`` is not given)."""
-    from entity.observations import read_observations
+    from dtpf.entity.observations import read_observations
     return read_observations(config.observation_file).steps
 
 

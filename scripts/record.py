@@ -11,7 +11,7 @@ received are written and the file is finished (summary and footer), so the
 log stays readable; a SIGKILL loses at most the last ``--flush-interval``
 seconds.
 
-Run ``python -m scripts.record --help`` for the options.
+Run ``python -m dtpf.scripts.record --help`` for the options.
 """
 from __future__ import annotations
 
@@ -21,15 +21,15 @@ import time
 
 import zenoh
 
-from messages import keys
-from messages.bus import add_zenoh_arguments
-from messages.admission import RunShape, kind_of
-from messages.codec import MessageError, decode_for_key, encode
-from messages.models import MAX_REJECTED_SAMPLE, Estimate, Rejected, ServiceState
-from messages.config import RunConfig, add_run_arguments
-from entity import model_ref
-from messages.recording import COMPRESSION, McapRecording, auto_compression
-from messages.service import ServiceShell, add_service_arguments, run_service
+from dtpf.entity import model_ref
+from dtpf.messages import keys
+from dtpf.messages.admission import RunShape, kind_of
+from dtpf.messages.codec import MessageError, decode_for_key, encode
+from dtpf.messages.config import RunConfig, add_run_arguments
+from dtpf.messages.models import MAX_REJECTED_SAMPLE, Estimate, Rejected, ServiceState
+from dtpf.recording.writer import COMPRESSION, McapRecording, auto_compression
+from dtpf.shell.bus import add_zenoh_arguments
+from dtpf.shell.service import ServiceShell, add_service_arguments, run_service
 
 #: The recorder's inbox holds this many of the run's largest payload, at least this many bytes.
 RECORDER_INBOX_PAYLOADS, RECORDER_INBOX_BYTES = 64, 512 << 20
@@ -161,7 +161,7 @@ class Admission:
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog="python -m scripts.record",
+        prog="python -m dtpf.scripts.record",
         description="dtpf recorder: writes every message of a twin into an MCAP file, one channel per key "
                     "expression, schemas embedded.")
     parser.add_argument("--output", "-o", required=True, help="MCAP file to write")

@@ -7,7 +7,7 @@ certificate or password and enforces the access control of
 ``dtpf secure init``; the services then connect with ``--secure DIR``::
 
     dtpf router --secure deploy/tls --listen tls/10.0.0.1:7447
-    python3 -m entity.service --secure deploy/tls --connect tls/10.0.0.1:7447 ...
+    python3 -m dtpf.entity.service --secure deploy/tls --connect tls/10.0.0.1:7447 ...
 """
 from __future__ import annotations
 
@@ -15,15 +15,15 @@ import argparse
 import json
 import sys
 
-from messages.bus import BusError, open_session, zenoh_config
-from scripts.console import stop_on_signals
+from dtpf.scripts.console import stop_on_signals
+from dtpf.shell.bus import BusError, open_session, zenoh_config
 
 __all__ = ["register", "cmd_router"]
 
 
 def _file_endpoints(folder) -> list[str]:
     """The listen endpoints of a secure folder's router.json5."""
-    from messages.secure import open_secure_dir, role_config
+    from dtpf.shell.secure import open_secure_dir, role_config
 
     data = json.loads(role_config(open_secure_dir(folder), "router"))
     return list(data.get("listen", {}).get("endpoints", []))

@@ -4,7 +4,7 @@ Writes (every file owner-only, every folder 0700)::
 
     DIR/ca/ca.pem, ca.key        the certificate authority (keep ca.key off the twin's machines)
     DIR/tls/                     mutual TLS: a role is the common name of its certificate
-        dtpf-secure.json         what the folder is (messages.secure)
+        dtpf-secure.json         what the folder is (dtpf.shell.secure)
         ca.pem                   the authority's certificate, to check the others
         router.json5             the router: tls/ listener, mTLS, the access-control list
         <role>.json5             one per role: client mode, its certificate and key
@@ -29,7 +29,7 @@ import secrets
 import sys
 from pathlib import Path
 
-from messages.secure import MANIFEST, PUTTING_ROLES, READING_ROLES, ROLES
+from dtpf.shell.secure import MANIFEST, PUTTING_ROLES, READING_ROLES, ROLES
 
 __all__ = ["access_control", "init", "export", "register", "main", "DEFAULT_PORT"]
 
@@ -235,7 +235,7 @@ def export(folder, roles, target) -> list[Path]:
     """Copy what ``roles`` of the secure folder need on their machine into ``target``, and nothing else:
     the manifest, the authority's certificate, each role's configuration and, for TLS, its certificate and
     key (never another role's key, never the authority's). ``roles`` may include "router"."""
-    from messages.secure import open_secure_dir, role_config
+    from dtpf.shell.secure import open_secure_dir, role_config
 
     source = open_secure_dir(folder)
     target = Path(target)

@@ -3,7 +3,7 @@
 It simulates the run's model (a built-in scenario or ``--model REF``, the
 path the twin's ``dtpf run`` would simulate for the same seed and twin), or
 reads ``--observations FILE``, and publishes one
-:class:`~messages.models.Observation` per step on
+:class:`~dtpf.messages.models.Observation` per step on
 ``dtpf/<twin>/sensor/observation`` at ``--rate`` per second, with the truth
 in the message's ``truth`` field (``--no-truth`` leaves it out), then an
 end-of-stream message. A twin launched with ``--observations live`` filters
@@ -23,14 +23,14 @@ import time
 
 import zenoh
 
-from entity import sources
-from messages.bus import BusError, Inbox, add_zenoh_arguments, zenoh_config_from_args
-from messages import keys
-from messages.codec import MessageError, decode_for_key
-from messages.config import RunConfig, add_run_arguments, config_from_args
-from messages.models import Observation, Status
-from messages.service import ServiceShell
-from scripts.console import run_command
+from dtpf.entity import sources
+from dtpf.messages import keys
+from dtpf.messages.codec import MessageError, decode_for_key
+from dtpf.messages.config import RunConfig, add_run_arguments, config_from_args
+from dtpf.messages.models import Observation, Status
+from dtpf.scripts.console import run_command
+from dtpf.shell.bus import BusError, Inbox, add_zenoh_arguments, zenoh_config_from_args
+from dtpf.shell.service import ServiceShell
 
 __all__ = ["main", "register", "resume_point"]
 
@@ -139,8 +139,8 @@ def register(subparsers) -> None:
 
 
 def command_line(argv: list[str] | None = None) -> int:
-    """``python -m scripts.sensor``: the same as ``dtpf sensor``."""
-    parser = argparse.ArgumentParser(prog="python -m scripts.sensor")
+    """``python -m dtpf.scripts.sensor``: the same as ``dtpf sensor``."""
+    parser = argparse.ArgumentParser(prog="python -m dtpf.scripts.sensor")
     commands = parser.add_subparsers(dest="command", required=True)
     register(commands)
     return run_command(parser, parser.parse_args(["sensor", *(sys.argv[1:] if argv is None else argv)]))

@@ -1,6 +1,6 @@
 """Evidence from the real observations: has preprocessing been predicting them better than not?
 
-The twin's what-if simulation (:mod:`system.predict`) scores candidates
+The twin's what-if simulation (:mod:`dtpf.system.predict`) scores candidates
 against states drawn from the filter's own posterior; an impoverished
 posterior, collapsed onto a few values, is sure of itself there and cannot
 see what diversity would gain. :class:`Evidence` asks the real observations
@@ -37,9 +37,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from entity import resampling
-from entity.models import StateSpaceModel
-from information import rules
+from dtpf.entity import resampling
+from dtpf.entity.models import StateSpaceModel
+from dtpf.information import rules
 
 __all__ = ["Evidence", "predictive_log_likelihood"]
 

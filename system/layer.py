@@ -3,10 +3,10 @@ and asks its PS policy for the PS of the next step.
 
 Each step k it receives the information layer's weight-state summary and,
 when its policy simulates, the preprocessed particle set of k (a
-:class:`~system.predict.Snapshot`: particles, weights, observation; over
+:class:`~dtpf.system.predict.Snapshot`: particles, weights, observation; over
 Zenoh, the message on ``dtpf/<twin>/information/preprocessed``). The
-:class:`~system.predict.Predictor` turns them into a
-:class:`~system.predict.Forecast`, the policy into a decision::
+:class:`~dtpf.system.predict.Predictor` turns them into a
+:class:`~dtpf.system.predict.Forecast`, the policy into a decision::
 
     layer = SystemLayer.from_config(config)
     decision = layer.observe(step, summary, Snapshot.of(particles, weights, z))
@@ -22,10 +22,10 @@ from dataclasses import replace
 
 import numpy as np
 
-from information.mirror import WeightSummary, summarise
-from messages.streams import stream
-from system.policy import PSDecision, PSPolicy
-from system.predict import Forecast, Predictor, Snapshot
+from dtpf.information.mirror import WeightSummary, summarise
+from dtpf.messages.streams import stream
+from dtpf.system.policy import PSDecision, PSPolicy
+from dtpf.system.predict import Forecast, Predictor, Snapshot
 
 __all__ = ["SystemLayer"]
 
@@ -57,16 +57,15 @@ class SystemLayer:
 
     @classmethod
     def from_config(cls, config, twin: str | None = None, model=None, keep: int | None = None) -> "SystemLayer":
-        """The system layer of a :class:`~messages.config.RunConfig` (``twin`` overrides its twin id).
+        """The system layer of a :class:`~dtpf.messages.config.RunConfig` (``twin`` overrides its twin id).
 
         A simulating policy gets a predictor over the run's model (``model``, or
         the one the configuration names), resampler and preprocessing options;
         the fixed policy one without a model.
         """
-        from entity import model_ref
-        from system import policy as ps_policy
-
-        from system.evidence import Evidence
+        from dtpf.entity import model_ref
+        from dtpf.system import policy as ps_policy
+        from dtpf.system.evidence import Evidence
 
         policy = ps_policy.get(config.policy, ps=config.ps, max_change=config.ps_rate)
         if policy.simulates and model is None:
@@ -120,7 +119,7 @@ def warm_up(config, model) -> None:
     run (a model that refuses a zero observation) is left to the real steps. No state of a real twin is
     touched: the layer, its streams and its set are its own.
     """
-    from information.rules import size_class
+    from dtpf.information.rules import size_class
 
     size = size_class(config.particles)
     key = (config.policy, config.model_ref, config.resampler, str(config.threshold), config.weight_rule,

@@ -2,9 +2,9 @@
 
 A policy is a plain object with one verb, ``decide``::
 
-    from system import policy
+    from dtpf.system import policy
     ps_policy = policy.get("rule", ps=0.81, max_change=0.25)
-    decision = ps_policy.decide(step, forecast)     # forecast: system.predict.Forecast
+    decision = ps_policy.decide(step, forecast)     # forecast: dtpf.system.predict.Forecast
     decision.ps, decision.reason, decision.predicted
 
 The decision made at step k applies from step k + 1 on (DESIGN.md, "One
@@ -39,7 +39,7 @@ Policies (:data:`POLICIES`):
   off. With no particle set to simulate it decides off. It starts off: the
   first step is never preprocessed.
 - ``guard-observed``: decides the same, from the real observations instead
-  of simulated ones (:mod:`system.evidence`): on while, over the last 20
+  of simulated ones (:mod:`dtpf.system.evidence`): on while, over the last 20
   steps, preprocessing predicted them better than not by a log Bayes factor
   above log 19 (odds of 19 to 1). It starts off; the first difference comes
   at step 3 (each takes two steps), and until 20 are in, the sum is over
@@ -56,8 +56,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from messages.arrays import check_probability
-from system.predict import Forecast
+from dtpf.messages.arrays import check_probability
+from dtpf.system.predict import Forecast
 
 __all__ = ["PSDecision", "PSPolicy", "FixedPS", "RulePS", "PredictivePS", "GuardPS", "GuardObservedPS", "POLICIES",
            "get", "limit"]
@@ -96,7 +96,7 @@ class PSDecision:
     preprocess: bool = True
 
     def command_fields(self) -> dict:
-        """The fields of the :class:`~messages.models.PSCommand` that carries this decision."""
+        """The fields of the :class:`~dtpf.messages.models.PSCommand` that carries this decision."""
         fields = dict(ps=self.ps, applies_from_step=self.applies_from_step, policy=self.policy, reason=self.reason,
                       preprocess=self.preprocess)
         for name, command_field in COMMAND_FIELDS.items():
@@ -131,7 +131,7 @@ class PSPolicy(ABC):
 
     #: True if the simulation draws observations (``sample_observation``: the what-if).
     samples_observations: bool = False
-    #: True if :meth:`decide` reads the evidence of the real observations (:mod:`system.evidence`).
+    #: True if :meth:`decide` reads the evidence of the real observations (:mod:`dtpf.system.evidence`).
     uses_evidence: bool = False
     #: Whether the preprocessing runs before the first decision.
     initial_preprocess: bool = True

@@ -5,7 +5,7 @@ detection of the weights distribution" and "the simulation of the results"
 (section 3). :class:`Predictor` does both, once per filter step k:
 
 1. **From the mirrored weight state and its history** (the information
-   layer's :class:`~information.mirror.WeightSummary` of every step): ESS/N
+   layer's :class:`~dtpf.information.mirror.WeightSummary` of every step): ESS/N
    now and its least-squares trend over the last ``window`` steps (weight
    collapse), and the distinct ancestors of the last resampling over N
    (impoverishment).
@@ -41,8 +41,8 @@ Every random number comes from the generator the caller passes (the system
 layer passes ``stream(seed, twin, k, "system")``), in a fixed order, so the
 same inputs give the same forecast in any process::
 
-    from entity import models
-    from system.predict import Predictor, Snapshot
+    from dtpf.entity import models
+    from dtpf.system.predict import Predictor, Snapshot
     predictor = Predictor(models.get("ungm"))
     forecast = predictor.forecast(step, summary, Snapshot(x, w, z), rng)
     forecast.predicted_ess_ratio, forecast.surprise
@@ -59,11 +59,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from entity import resampling
-from entity.models import StateSpaceModel
-from information import rules
-from information.mirror import WeightSummary
-from messages.arrays import check_particles, check_weights
+from dtpf.entity import resampling
+from dtpf.entity.models import StateSpaceModel
+from dtpf.information import rules
+from dtpf.information.mirror import WeightSummary
+from dtpf.messages.arrays import check_particles, check_weights
 
 __all__ = ["Snapshot", "Forecast", "Outcome", "Predictor"]
 
@@ -216,7 +216,7 @@ class _Simulation:
         is_small = np.zeros(s * m, dtype=bool)
         is_small[small] = True
         is_small = is_small.reshape(s, m)
-        if not inherit:  # as information.rules: w <- w p(z | new) / p(z | old) for the small particles
+        if not inherit:  # as dtpf.information.rules: w <- w p(z | new) / p(z | old) for the small particles
             with np.errstate(divide="ignore"):
                 log_w = np.log(self.weights)
             old = self._log_likelihoods(np.broadcast_to(x, (s, m, d)), self.z1, k + 1)
@@ -290,7 +290,7 @@ class Forecast:
         standard deviation at k + 1 (root of the summed variances). None
         without a simulation.
     evidence : float or None
-        With a predictor that gathers :mod:`system.evidence`: the sum of the
+        With a predictor that gathers :mod:`dtpf.system.evidence`: the sum of the
         last ``evidence_steps`` differences of predictive log-likelihood of
         the real observations, preprocessing on minus off (nats).
     """
@@ -350,7 +350,7 @@ class Predictor:
     scenario_simulation : bool
         Run the what-if simulation (needs ``sample_observation``); False
         for a policy that reads only the evidence.
-    evidence : system.evidence.Evidence, optional
+    evidence : dtpf.system.evidence.Evidence, optional
         Gathers the on-against-off evidence of the real observations each step.
     """
 

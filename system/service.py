@@ -8,7 +8,7 @@ set: the service then subscribes to ``dtpf/<twin>/information/preprocessed``
 and waits (up to ``--timeout``) for the set of the same step; without it the
 decision rests on the weight state alone, and the log says so.
 
-Run ``python -m system.service --help`` for the options.
+Run ``python -m dtpf.system.service --help`` for the options.
 """
 from __future__ import annotations
 
@@ -16,16 +16,16 @@ import argparse
 
 import zenoh
 
-from entity import sources
-from information.mirror import WeightSummary
-from messages.admission import RunShape
-from messages.bus import add_zenoh_arguments
-from messages.fleet import add_fleet_arguments, serve_layer
-from messages.config import RunConfig, add_run_arguments
-from messages.models import ParticleSet, PSCommand, WeightState
-from messages.service import ServiceShell, add_service_arguments, run_service
-from system.layer import SystemLayer, warm_up
-from system.predict import Snapshot
+from dtpf.entity import sources
+from dtpf.information.mirror import WeightSummary
+from dtpf.messages.admission import RunShape
+from dtpf.messages.config import RunConfig, add_run_arguments
+from dtpf.messages.models import ParticleSet, PSCommand, WeightState
+from dtpf.shell.bus import add_zenoh_arguments
+from dtpf.shell.fleet import add_fleet_arguments, serve_layer
+from dtpf.shell.service import ServiceShell, add_service_arguments, run_service
+from dtpf.system.layer import SystemLayer, warm_up
+from dtpf.system.predict import Snapshot
 
 __all__ = ["main", "summary_of", "ParticleSets", "TwinSystem"]
 
@@ -125,7 +125,7 @@ def main(config: RunConfig, zenoh_config: zenoh.Config, args: argparse.Namespace
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog="python -m system.service",
+        prog="python -m dtpf.system.service",
         description="dtpf system layer: predicts particle degradation from the mirrored weight state and "
                     "publishes the preprocessing degree PS for the next step, with its reason.")
     add_run_arguments(parser)

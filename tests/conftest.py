@@ -3,7 +3,7 @@
 Every process a test starts goes through the ``processes`` fixture, which
 stops it (SIGKILL to its whole process group) when the test ends, pass or
 fail. Every Zenoh session uses explicit 127.0.0.1 endpoints on a free port
-with multicast and gossip scouting off (messages.bus does so by default).
+with multicast and gossip scouting off (dtpf.shell.bus does so by default).
 """
 from __future__ import annotations
 
@@ -16,8 +16,8 @@ from pathlib import Path
 
 import pytest
 
-from messages.bus import Inbox, free_port, open_session, zenoh_config
-from messages.codec import MessageError, decode_for_key
+from dtpf.messages.codec import MessageError, decode_for_key
+from dtpf.shell.bus import Inbox, free_port, open_session, zenoh_config
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -106,8 +106,8 @@ def altered_log(source: Path, target: Path, topic_end: str, step: int, update) -
     ``topic_end`` has its fields changed by ``update(message) -> dict``; everything else as recorded."""
     import dataclasses
 
-    from messages.codec import encode
-    from messages.logfile import read_log, write_log
+    from dtpf.messages.codec import encode
+    from dtpf.recording.logfile import read_log, write_log
 
     log = read_log(source)
     for i, item in enumerate(log.messages):

@@ -2,7 +2,7 @@
 
 Layers, each a small named strategy:
 
-- **valid messages** of every class of :data:`messages.models.MESSAGE_CLASSES`, built
+- **valid messages** of every class of :data:`dtpf.messages.keys.MESSAGE_CLASSES`, built
   with the real models (so they are valid by construction) from random but valid
   field values; particle sets with random N (1..64) and d (1..4). Two builders: the
   strategies (:data:`MESSAGE_STRATEGIES`, every field a hypothesis draw) and, for the
@@ -36,12 +36,11 @@ from typing import Any
 import numpy as np
 from hypothesis import strategies as st
 
-from messages import keys, models
-from messages.codec import encode
-from messages.logfile import MAGIC
-from messages.models import (
+from dtpf.messages import foxglove, keys, models
+from dtpf.messages.codec import encode
+from dtpf.messages.foxglove import CompressedImage
+from dtpf.messages.models import (
     UINT32_MAX,
-    CompressedImage,
     Estimate,
     Layer,
     Message,
@@ -49,15 +48,15 @@ from messages.models import (
     ParticleSet,
     ParticleSetKind,
     PSCommand,
+    Rejected,
     ServiceState,
     Status,
     Time,
     WeightState,
 )
+from dtpf.recording.logfile import MAGIC
 
-#: Classes and fields that are newer than some checkouts: built when the models have them.
-Rejected = getattr(models, "Rejected", None)
-MAX_REJECTED_SAMPLE = getattr(models, "MAX_REJECTED_SAMPLE", 1024)
+MAX_REJECTED_SAMPLE = models.MAX_REJECTED_SAMPLE
 STATUS_TALLIES = tuple(name for name in ("rejections", "rejected_on") if name in Status.model_fields)
 
 #: The twin of every key the decoders are fuzzed on; valid messages often carry it, so they can succeed.
@@ -321,30 +320,30 @@ def rejecteds(draw):
 
 
 def _cloud_fields(names) -> list:
-    return [models.PackedElementField(name=name, offset=8 * i, type=8) for i, name in enumerate(names)]
+    return [foxglove.PackedElementField(name=name, offset=8 * i, type=8) for i, name in enumerate(names)]
 
 
 @st.composite
 def point_clouds(draw):
     points = draw(st.integers(0, 8))
-    return models.PointCloud(
+    return foxglove.PointCloud(
         **draw(headers()), layer=Layer.ENTITY, timestamp=draw(stamps), frame_id=draw(short_texts)[:64],
         point_stride=32, fields=_cloud_fields(["x", "y", "z", "weight"]),
         data=base64.b64encode(draw(st.binary(min_size=32 * points, max_size=32 * points))).decode("ascii"))
 
 
 def _annotations(stamp, xs, colour) -> list:
-    point = [models.Point2(x=x, y=-x) for x in xs]
-    return dict(circles=[models.CircleAnnotation(timestamp=stamp, position=point[0], diameter=3.0, thickness=1.0,
+    point = [foxglove.Point2(x=x, y=-x) for x in xs]
+    return dict(circles=[foxglove.CircleAnnotation(timestamp=stamp, position=point[0], diameter=3.0, thickness=1.0,
                                                  fill_color=colour, outline_color=colour)] if point else [],
-                points=[models.PointsAnnotation(timestamp=stamp, type=1, points=point, outline_color=colour,
+                points=[foxglove.PointsAnnotation(timestamp=stamp, type=1, points=point, outline_color=colour,
                                                 fill_color=colour, thickness=2.0)])
 
 
 @st.composite
 def image_annotations(draw):
-    colour = models.Color(r=draw(st.floats(0, 1)), g=0.5, b=0.0, a=1.0)
-    return models.ImageAnnotations(**draw(headers()), layer=Layer.ENTITY,
+    colour = foxglove.Color(r=draw(st.floats(0, 1)), g=0.5, b=0.0, a=1.0)
+    return foxglove.ImageAnnotations(**draw(headers()), layer=Layer.ENTITY,
                                    **_annotations(draw(stamps), draw(st.lists(finite_floats, max_size=5)), colour))
 
 
@@ -368,14 +367,9 @@ def observations(draw) -> Observation:
 #: A valid message of each class, by class.
 MESSAGE_STRATEGIES = {
     ParticleSet: particle_sets(), WeightState: weight_states(), PSCommand: ps_commands(), Estimate: estimates(),
-    Status: statuses(), CompressedImage: compressed_images(), Observation: observations(),
+    Status: statuses(), CompressedImage: compressed_images(), Observation: observations(), Rejected: rejecteds(),
+    foxglove.PointCloud: point_clouds(), foxglove.ImageAnnotations: image_annotations(),
 }
-if Rejected is not None:
-    MESSAGE_STRATEGIES[Rejected] = rejecteds()
-if hasattr(models, "PointCloud"):
-    MESSAGE_STRATEGIES[models.PointCloud] = point_clouds()
-if hasattr(models, "ImageAnnotations"):
-    MESSAGE_STRATEGIES[models.ImageAnnotations] = image_annotations()
 valid_messages = st.one_of(*MESSAGE_STRATEGIES.values())
 
 
@@ -500,15 +494,15 @@ def _seeded_rejected(v: Seeded):
 
 
 def _seeded_point_cloud(v: Seeded):
-    return models.PointCloud(**v.header(), layer=Layer.ENTITY, timestamp=Time(sec=v.count(), nsec=v.count(0, 10**9 - 1)),
+    return foxglove.PointCloud(**v.header(), layer=Layer.ENTITY, timestamp=Time(sec=v.count(), nsec=v.count(0, 10**9 - 1)),
                              frame_id=v.text(0, 20), point_stride=v.rng.randint(1, 64),
                              fields=_cloud_fields(v.rng.sample(["x", "y", "z", "weight", "w2"], v.rng.randint(0, 5))),
                              data=base64.b64encode(v.rng.randbytes(v.rng.randint(0, 256))).decode())
 
 
 def _seeded_image_annotations(v: Seeded):
-    colour = models.Color(r=v.unit(), g=v.unit(), b=v.unit(), a=v.unit())
-    return models.ImageAnnotations(**v.header(), layer=Layer.ENTITY,
+    colour = foxglove.Color(r=v.unit(), g=v.unit(), b=v.unit(), a=v.unit())
+    return foxglove.ImageAnnotations(**v.header(), layer=Layer.ENTITY,
                                    **_annotations(Time(sec=v.count(), nsec=v.count(0, 10**9 - 1)), v.floats(0, 5), colour))
 
 
@@ -527,14 +521,9 @@ def _seeded_observation(v: Seeded) -> Observation:
 SEEDED_BUILDERS = {
     ParticleSet: _seeded_particle_set, WeightState: _seeded_weight_state, PSCommand: _seeded_ps_command,
     Estimate: _seeded_estimate, Status: _seeded_status, CompressedImage: _seeded_compressed_image,
-    Observation: _seeded_observation,
+    Observation: _seeded_observation, Rejected: _seeded_rejected, foxglove.PointCloud: _seeded_point_cloud,
+    foxglove.ImageAnnotations: _seeded_image_annotations,
 }
-if Rejected is not None:
-    SEEDED_BUILDERS[Rejected] = _seeded_rejected
-if hasattr(models, "PointCloud"):
-    SEEDED_BUILDERS[models.PointCloud] = _seeded_point_cloud
-if hasattr(models, "ImageAnnotations"):
-    SEEDED_BUILDERS[models.ImageAnnotations] = _seeded_image_annotations
 
 
 def seeded_message(cls: type[Message], seed: int) -> Message:

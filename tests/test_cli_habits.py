@@ -6,13 +6,14 @@ import sys
 
 import pytest
 
+from dtpf.messages.config import RunConfig
+from dtpf.scripts.launch import launch
+
 from conftest import ROOT
-from messages.config import RunConfig
-from scripts.launch import launch
 
 
 def dtpf(*args: str, timeout: float = 120) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "scripts.cli", *args], cwd=ROOT, capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "dtpf.scripts.cli", *args], cwd=ROOT, capture_output=True, text=True,
                           timeout=timeout)
 
 

@@ -1,4 +1,4 @@
-"""``python -m scripts.paper.experiments``: the reduced run writes every output, with finite numbers.
+"""``python -m dtpf.scripts.paper.experiments``: the reduced run writes every output, with finite numbers.
 
 These tests check that the command works, not that it reproduces the paper:
 the full run and its verdicts are in docs/experiments.md.
@@ -10,8 +10,8 @@ import math
 
 import pytest
 
-from scripts.paper import experiments
-from scripts.paper.experiments import QUICK, resampling_steps, run_one
+from dtpf.scripts.paper import experiments
+from dtpf.scripts.paper.experiments import QUICK, resampling_steps, run_one
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 CSV_FILES = ["runs", "table2", "table2_dt_change", "table2_degradation", "table2_reading_a", "fig4",

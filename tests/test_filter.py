@@ -4,12 +4,11 @@ import math
 import numpy as np
 import pytest
 
-from entity import models
-from entity.filter import FilterError, ParticleFilter, Preprocessed
-from messages.config import RunConfig
-from messages.streams import stream
-from scripts import inprocess
-
+from dtpf.entity import models
+from dtpf.entity.filter import FilterError, ParticleFilter, Preprocessed
+from dtpf.messages.config import RunConfig
+from dtpf.messages.streams import stream
+from dtpf.scripts import inprocess
 
 # --- models ----------------------------------------------------------------------
 
@@ -319,7 +318,7 @@ def test_a_model_that_propagates_to_nan_fails_at_that_step():
 
 @pytest.mark.parametrize("n", [100, 5000])  # numpy draws the noise below COMPILED_DRAWS, the kernel above
 def test_growth_model_kernels_give_the_numbers_of_the_numpy_laws(n):
-    # entity._growth does Eq. 35 and 36 in compiled passes: bit for bit the numpy expressions.
+    # dtpf.entity._growth does Eq. 35 and 36 in compiled passes: bit for bit the numpy expressions.
     model = models.get("ungm")
     rng = np.random.default_rng(3)
     x = 10.0 * rng.standard_normal((n, 1))

@@ -13,11 +13,12 @@ import time
 import numpy as np
 import pytest
 
+from dtpf.messages.config import RunConfig
+from dtpf.messages.keys import twins_chunk
+from dtpf.messages.models import Estimate, ServiceState, Status
+from dtpf.scripts import inprocess
+
 from conftest import service_args
-from messages.config import RunConfig
-from messages.keys import twins_chunk
-from messages.models import Estimate, ServiceState, Status
-from scripts import inprocess
 
 STEPS = 30
 
@@ -34,7 +35,7 @@ def start_shared(processes, router, pattern: str):
 
 
 def start_entity(processes, router, config: RunConfig, *extra: str):
-    return processes.start(config.twin, service_args("entity.service", router.endpoint, *run_flags(config),
+    return processes.start(config.twin, service_args("dtpf.entity.service", router.endpoint, *run_flags(config),
                                                      "--wait-for", "information", "--wait-for", "system", *extra))
 
 
@@ -50,8 +51,8 @@ def test_one_information_and_one_system_service_serve_twenty_twins_as_their_solo
     """20 twins of two models, different N, seeds, PS, policies and resamplers, in 10 entity processes of two
     twins each (an edge box hosts the twins of one configuration), one information and one system service;
     each twin equals its own in-process run, and the fleet's log verifies twin by twin."""
-    from messages.logfile import read_log
-    from scripts.logs.verify import decoded_by_topic, filtered_twins, verify_twin
+    from dtpf.recording.logfile import read_log
+    from dtpf.scripts.logs.verify import decoded_by_topic, filtered_twins, verify_twin
 
     kinds = [("fixed", 0.81, "systematic", "ungm"), ("rule", 0.5, "stratified", "ungm-printed"),
              ("predictive", 0.9, "residual", "ungm"), ("fixed", 0.3, "multinomial", "ungm-printed"),
@@ -60,7 +61,7 @@ def test_one_information_and_one_system_service_serve_twenty_twins_as_their_solo
                         resampler=resampler, scenario=scenario)
               for i, (policy, ps, resampler, scenario) in enumerate(kinds * 2)]
     log = tmp_path / "fleet.mcap"
-    recorder = processes.start("recorder", service_args("scripts.record", router.endpoint, "--all-twins",
+    recorder = processes.start("recorder", service_args("dtpf.scripts.record", router.endpoint, "--all-twins",
                                                         "--twin", "f-recorder", "-o", str(log)))
     shared = start_shared(processes, router, "f-*")
     entities = [start_entity(processes, router, group, "--twins", f"{group.twin}-a,{group.twin}-b")
@@ -127,7 +128,7 @@ def test_a_killed_twin_leaves_the_others_whole_and_a_late_one_is_served(processe
 def test_a_fleet_drops_a_twin_whose_entity_came_and_went_between_two_looks():
     # CI (stop 27): an entity SIGKILLed while the shared service's loop was busy had never been seen alive
     # by a sweep, and its twin was kept until forget_after (30 s), past the test above's 20 s.
-    from messages.fleet import twin_gone
+    from dtpf.shell.fleet import twin_gone
     assert twin_gone(seen={"entity"}, alive=set(), quiet=0.1, forget_after=30.0) == "its entity is gone"
     assert twin_gone(seen={"entity", "system"}, alive={"entity", "system"}, quiet=99.0, forget_after=30.0) is None
     assert twin_gone(seen=set(), alive=set(), quiet=5.0, forget_after=30.0) is None  # still starting
@@ -135,7 +136,7 @@ def test_a_fleet_drops_a_twin_whose_entity_came_and_went_between_two_looks():
 
 
 def test_presence_remembers_a_peer_that_came_and_went(router):
-    from messages.bus import Presence, open_session, zenoh_config
+    from dtpf.shell.bus import Presence, open_session, zenoh_config
     watcher = open_session(zenoh_config(mode="client", connect=[router.endpoint]))
     peer = open_session(zenoh_config(mode="client", connect=[router.endpoint]))
     presence = Presence(watcher, "seen-1", "information", names=["entity", "information", "system"])
@@ -183,10 +184,10 @@ def test_a_twin_pattern_that_is_not_one_chunk_is_refused(pattern):
 
 
 def test_dtpf_launch_twins_runs_a_fleet_whose_log_verifies_twin_by_twin(tmp_path):
-    from messages.logfile import read_log
-    from scripts.fleet import launch_fleet
-    from scripts.logs.summary import format_summary, summarise
-    from scripts.logs.verify import decoded_by_topic, filtered_twins, verify_twin
+    from dtpf.recording.logfile import read_log
+    from dtpf.scripts.fleet import launch_fleet
+    from dtpf.scripts.logs.summary import format_summary, summarise
+    from dtpf.scripts.logs.verify import decoded_by_topic, filtered_twins, verify_twin
 
     config = RunConfig(particles=200, steps=20, seed=6, twin="fl")
     result = launch_fleet(config, 4, log_path=tmp_path / "fleet.mcap", timeout=10.0)
@@ -212,7 +213,7 @@ def test_dtpf_launch_twins_runs_a_fleet_whose_log_verifies_twin_by_twin(tmp_path
 
 
 def test_entity_groups_split_the_twins_evenly_in_order():
-    from scripts.fleet import entity_groups
+    from dtpf.scripts.fleet import entity_groups
 
     twins = [f"t-{i}" for i in range(1, 8)]
     assert entity_groups(twins, 3) == [["t-1", "t-2", "t-3"], ["t-4", "t-5"], ["t-6", "t-7"]]
@@ -221,7 +222,7 @@ def test_entity_groups_split_the_twins_evenly_in_order():
 
 
 def test_an_entity_hosts_k_twins_or_a_list_and_refuses_repeats():
-    from entity.service import hosted_configs
+    from dtpf.entity.service import hosted_configs
 
     base = RunConfig(twin="edge", seed=3)
     assert [c.twin for c in hosted_configs(base, "3")] == ["edge-1", "edge-2", "edge-3"]
@@ -237,8 +238,8 @@ def test_a_flooded_twin_is_counted_against_itself_and_slows_no_other(processes, 
 
     import zenoh
 
-    from messages.bus import Inbox, open_session, zenoh_config
-    from messages.codec import MessageError, decode_for_key
+    from dtpf.messages.codec import MessageError, decode_for_key
+    from dtpf.shell.bus import Inbox, open_session, zenoh_config
 
     calm = [RunConfig(particles=200, steps=STEPS, seed=7 + i, twin=f"z-calm-{i}") for i in range(2)]
     flooded = RunConfig(particles=200, steps=STEPS, seed=9, twin="z-flood")
@@ -307,7 +308,7 @@ def _fleet_with_a_kill(tmp_path, twin: str, seed: int, *marks: bytes):
     import os
     import threading
 
-    from scripts.fleet import launch_fleet
+    from dtpf.scripts.fleet import launch_fleet
 
     config = RunConfig(particles=200, steps=150, seed=seed, twin=twin)
     said: list[str] = []
@@ -337,7 +338,7 @@ def _fleet_with_a_kill(tmp_path, twin: str, seed: int, *marks: bytes):
 
 
 def test_a_fleet_launch_restarts_a_killed_shared_service_and_every_twin_finishes(tmp_path):
-    result, said = _fleet_with_a_kill(tmp_path, "fr", 8, b"information.service", b"fr-*", b"--twins")
+    result, said = _fleet_with_a_kill(tmp_path, "fr", 8, b"dtpf.information.service", b"fr-*", b"--twins")
     assert not result.failures
     assert result.twin_steps == 3 * 150  # every twin, every step
     assert said and "the shared information service died (killed by SIGKILL)" in said[0]
@@ -350,10 +351,10 @@ def test_a_fleet_launch_restarts_a_killed_recorder_and_the_segments_hold_every_t
     """SIGKILL of the fleet's recorder 60 twin-steps in: the launcher records the fleet's keys until a new
     recorder listens, which writes the next segment; the joined segments verify twin by twin, and each
     twin's estimates are missing at most for the recorder's 1 s flush interval (40 steps at 40 steps/s)."""
-    from messages.logfile import read_logs
-    from scripts.logs.verify import decoded_by_topic, verify_twin
+    from dtpf.recording.logfile import read_logs
+    from dtpf.scripts.logs.verify import decoded_by_topic, verify_twin
 
-    result, said = _fleet_with_a_kill(tmp_path, "fk", 9, b"scripts.record", b"--all-twins", b"fk")
+    result, said = _fleet_with_a_kill(tmp_path, "fk", 9, b"dtpf.scripts.record", b"--all-twins", b"fk")
     assert not result.failures
     assert result.twin_steps == 3 * 150
     assert said and "the shared recorder service died (killed by SIGKILL)" in said[0]
@@ -373,8 +374,8 @@ def test_a_live_fleet_follows_one_sensor_per_twin_as_their_solo_runs(processes, 
     stream; the estimates are those of the twin's dtpf run (the sensor simulates the same path)."""
     import threading
 
-    from messages.bus import free_port
-    from scripts.fleet import launch_fleet
+    from dtpf.scripts.fleet import launch_fleet
+    from dtpf.shell.bus import free_port
 
     port = free_port()
     config = RunConfig(particles=200, steps=None, seed=6, twin="fl", observations="live")
@@ -386,7 +387,7 @@ def test_a_live_fleet_follows_one_sensor_per_twin_as_their_solo_runs(processes, 
 
     launcher = threading.Thread(target=run, daemon=True)  # a failed test must not wait on it at exit
     launcher.start()
-    sensors = [processes.start(f"sensor-{i}", ["-m", "scripts.sensor", "--connect", f"tcp/127.0.0.1:{port}",
+    sensors = [processes.start(f"sensor-{i}", ["-m", "dtpf.scripts.sensor", "--connect", f"tcp/127.0.0.1:{port}",
                                                "--twin", f"fl-{i}", "--particles", "200", "--seed", "6",
                                                "--steps", str(20 + 10 * i), "--rate", "40"])
                for i in (1, 2)]
@@ -405,10 +406,11 @@ def test_a_live_fleet_follows_one_sensor_per_twin_as_their_solo_runs(processes, 
 
 
 def test_the_fleet_benchmark_counts_cpu_between_two_instants_by_kind():
-    # CPU per twin-step in scripts.bench.fleet: each process's samples interpolated at the fleet's first and
+    # CPU per twin-step in dtpf.scripts.bench.fleet: each process's samples interpolated at the fleet's first and
     # last estimate, summed by kind; a process that ended in the window counts to its last sample.
     import os
-    from scripts.bench.fleet import RssSampler, _descendants
+
+    from dtpf.scripts.bench.fleet import RssSampler, _descendants
     sampler = RssSampler()
     sampler.cpu = {1: ("entity", [(10.0, 1.0), (11.0, 1.5), (12.0, 2.5)]),
                    2: ("entity", [(10.0, 0.0), (10.5, 0.2)]),  # ended at 10.5
@@ -422,7 +424,7 @@ def test_the_fleet_benchmark_counts_cpu_between_two_instants_by_kind():
 
 def test_the_fleet_benchmark_counts_a_process_sampled_before_its_exec_under_its_layer():
     # subprocess forks, then execs the layer: a sample in between shows the bench's own command line.
-    from scripts.bench.fleet import RssSampler
+    from dtpf.scripts.bench.fleet import RssSampler
     sampler = RssSampler()
     sampler.record(10.0, [(7, "launcher-ish", 900, 50.0), (8, "other", 500 << 20, 0.0)], me=7)
     sampler.record(11.0, [(7, "launcher-ish", 900, 51.0), (8, "information", 200 << 20, 0.6)], me=7)
@@ -436,8 +438,8 @@ def test_the_fleet_benchmark_counts_a_process_sampled_before_its_exec_under_its_
 def test_a_fleet_twin_says_its_status_every_second_while_it_starts_and_every_five_once_it_runs():
     # A K = 100 fleet published about 0.76 statuses per twin-step at one a second; a starting twin's status
     # is how the shared services learn it, so that one keeps its pace.
-    from messages.bus import open_session, zenoh_config
-    from messages.service import FLEET_STATUS_INTERVAL, STATUS_INTERVAL, ServiceShell
+    from dtpf.shell.bus import open_session, zenoh_config
+    from dtpf.shell.service import FLEET_STATUS_INTERVAL, STATUS_INTERVAL, ServiceShell
 
     session = open_session(zenoh_config(mode="peer", listen=["tcp/127.0.0.1:0"]))
     try:

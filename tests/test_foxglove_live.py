@@ -7,7 +7,7 @@ import time
 
 from websockets.sync.client import connect
 
-from messages.bus import free_port
+from dtpf.shell.bus import free_port
 
 #: Opcode of a binary message-data frame: opcode u8, subscription id u32, log time u64, payload.
 MESSAGE_DATA = 0x01
@@ -15,7 +15,7 @@ MESSAGE_DATA = 0x01
 
 def test_a_protocol_client_is_advertised_the_channels_subscribes_and_receives_every_estimate(processes, tmp_path):
     port = free_port()
-    launcher = processes.start("launcher", ["-m", "scripts.cli", "launch", "--steps", "50", "--rate", "15", "-q",
+    launcher = processes.start("launcher", ["-m", "dtpf.scripts.cli", "launch", "--steps", "50", "--rate", "15", "-q",
                                             "--foxglove", str(port), "--twin", "t-fox", "-o",
                                             str(tmp_path / "fox.mcap")])
     deadline = time.monotonic() + 60

@@ -1,10 +1,10 @@
 """Fuzzing the decoders: every payload decodes to a valid message or raises MessageError, nothing else.
 
 Everything that arrives over Zenoh or sits in an MCAP log goes through
-``messages.codec.decode`` / ``decode_for_key`` (and ``messages.logfile.read_log``
+``dtpf.messages.codec.decode`` / ``decode_for_key`` (and ``dtpf.recording.logfile.read_log``
 for logs), so those must be total: for any bytes, a valid message of the class
-asked for, or :class:`~messages.codec.MessageError`; for any file, a
-:class:`~messages.logfile.Log` or :class:`~messages.logfile.LogError`. Another
+asked for, or :class:`~dtpf.messages.codec.MessageError`; for any file, a
+:class:`~dtpf.recording.logfile.Log` or :class:`~dtpf.recording.logfile.LogError`. Another
 exception there would kill a layer's receive loop or the log inspector on one bad
 packet or file.
 
@@ -58,6 +58,13 @@ import zstandard
 from hypothesis import HealthCheck, Phase, given, settings
 from hypothesis import strategies as st
 
+from dtpf.messages import keys
+from dtpf.messages.codec import MessageError, decode, decode_for_key, encode
+from dtpf.messages.keys import MESSAGE_CLASSES
+from dtpf.messages.models import Message, ParticleSet
+from dtpf.recording.logfile import Log, LogError, read_log, write_log
+from dtpf.recording.writer import McapRecording
+
 from fuzz_payloads import (
     MESSAGE_STRATEGIES,
     TWIN,
@@ -75,11 +82,6 @@ from fuzz_payloads import (
     topic_keys,
     valid_cases,
 )
-from messages import keys
-from messages.codec import MessageError, decode, decode_for_key, encode
-from messages.logfile import Log, LogError, read_log, write_log
-from messages.models import MESSAGE_CLASSES, Message, ParticleSet
-from messages.recording import McapRecording
 
 #: Distinct payloads each family must throw at every decoder (together at least 10,000), and how many
 #: examples to draw per payload needed: a derandomized run draws some payloads again (short cuts, mostly).

@@ -6,17 +6,17 @@ import math
 import numpy as np
 import pytest
 
-from entity import jitter, models
-from entity.filter import ParticleFilter
-from information import rules
-from information.layer import InformationLayer
-from information.mirror import summarise
-from messages.codec import decode_for_key, encode
-from messages.config import RunConfig
-from messages.models import PSCommand
-from scripts.inprocess import run
-from system import policy as ps_policy
-from system.predict import Forecast, Predictor, Snapshot
+from dtpf.entity import jitter, models
+from dtpf.entity.filter import ParticleFilter
+from dtpf.information import rules
+from dtpf.information.layer import InformationLayer
+from dtpf.information.mirror import summarise
+from dtpf.messages.codec import decode_for_key, encode
+from dtpf.messages.config import RunConfig
+from dtpf.messages.models import PSCommand
+from dtpf.scripts.inprocess import run
+from dtpf.system import policy as ps_policy
+from dtpf.system.predict import Forecast, Predictor, Snapshot
 
 Z = 5.0
 
@@ -185,7 +185,7 @@ class Scripted:
         self.errors = {None: np.asarray(off, dtype=float), 0.81: np.asarray(on, dtype=float)}
 
     def outcomes(self, ps_values):
-        from system.predict import Outcome
+        from dtpf.system.predict import Outcome
         return [Outcome(ps, float(self.errors[ps].mean()), self.errors[ps], 0.5) for ps in ps_values]
 
 
@@ -278,7 +278,7 @@ def test_drift_model_kalman_is_the_exact_posterior_mean():
 
 def evidence_run(centre: float, move_rule: str = "paper", steps: int = 6, seed: int = 0):
     """Feed Evidence a set collapsed near ``centre`` while the truth stays at 0 (drift model, z ~ N(0, 0.01^2))."""
-    from system.evidence import Evidence
+    from dtpf.system.evidence import Evidence
     model = models.DriftModel()
     evidence = Evidence(model, 0.0, move_rule=move_rule, weight_rule="likelihood", window=20)
     rng = np.random.default_rng(seed)
@@ -311,7 +311,7 @@ def test_evidence_favours_preprocessing_when_the_set_sits_away_from_the_observat
 
 
 def test_evidence_is_zero_when_the_preprocessing_moves_nothing():
-    from system.evidence import Evidence
+    from dtpf.system.evidence import Evidence
     model = models.DriftModel(observation_var=1e12)  # flat likelihood: equal weights, W = 0, nothing small
     evidence = Evidence(model, 0.81)
     rng = np.random.default_rng(3)
@@ -341,7 +341,7 @@ def test_guard_observed_turns_on_with_evidence_above_log_19_and_runs_where_nothi
 def guarded_log(tmp_path_factory):
     """A launched guard-observed run on the drift scenario that turns the preprocessing on for
     steps 23-26 only (decisions of steps 22-25; found in process, seed 2) and off everywhere else."""
-    from scripts.launch import launch
+    from dtpf.scripts.launch import launch
     config = RunConfig(scenario="drift", policy="guard-observed", particles=100, steps=40, seed=2, twin="t-guard")
     path = tmp_path_factory.mktemp("guard") / "guard.mcap"
     result = launch(config, log_path=path, timeout=5.0)
@@ -350,8 +350,8 @@ def guarded_log(tmp_path_factory):
 
 
 def test_the_off_decision_travels_over_zenoh_is_recorded_and_verifies(guarded_log):
-    from messages.logfile import read_log
-    from scripts.logs.verify import verify
+    from dtpf.recording.logfile import read_log
+    from dtpf.scripts.logs.verify import verify
 
     config, result, path = guarded_log
     log = read_log(path)
@@ -378,14 +378,15 @@ def test_the_off_decision_travels_over_zenoh_is_recorded_and_verifies(guarded_lo
     verification = verify(log)
     assert verification.ok, str(verification.mismatch)
     assert verification.checked == list(range(1, 41))
-    from scripts.logs.summary import format_summary, summarise
+    from dtpf.scripts.logs.summary import format_summary, summarise
     assert "preprocessing off in 36 of 40 commands" in format_summary(summarise(log))
 
 
 def test_verify_notices_a_flipped_off_decision(guarded_log, tmp_path):
+    from dtpf.recording.logfile import read_log
+    from dtpf.scripts.logs.verify import verify
+
     from conftest import altered_log
-    from messages.logfile import read_log
-    from scripts.logs.verify import verify
 
     _, _, path = guarded_log
     flipped = altered_log(path, tmp_path / "flipped.mcap", "system/ps", 30, lambda m: {"preprocess": True})
@@ -394,9 +395,9 @@ def test_verify_notices_a_flipped_off_decision(guarded_log, tmp_path):
 
 
 def test_the_evaluation_quick_form_prints_every_variant_of_every_scenario(capsys):
-    """``python -m scripts.paper.evaluate_guard --quick``, in one process: a table per scenario with every
+    """``python -m dtpf.scripts.paper.evaluate_guard --quick``, in one process: a table per scenario with every
     variant that can run there, finite errors, and a verdict per scenario."""
-    from scripts.paper import evaluate_guard
+    from dtpf.scripts.paper import evaluate_guard
 
     assert evaluate_guard.main(["--quick", "--workers", "1"]) == 0
     out = capsys.readouterr().out
@@ -424,16 +425,16 @@ def test_the_evaluation_quick_form_prints_every_variant_of_every_scenario(capsys
 
 _SYSTEM_FIRST_STEPS = """
 import numba, numpy as np
-import entity._growth, entity._merge, information.mirror, information.rules, information.select, messages._seedseq
-from entity import models
-from information.mirror import summarise
-from messages.config import RunConfig
-from system.layer import SystemLayer, warm_up
-from system.predict import Snapshot
+import dtpf.entity._growth, dtpf.entity._merge, dtpf.information.mirror, dtpf.information.rules, dtpf.information.select, dtpf.messages._seedseq
+from dtpf.entity import models
+from dtpf.information.mirror import summarise
+from dtpf.messages.config import RunConfig
+from dtpf.system.layer import SystemLayer, warm_up
+from dtpf.system.predict import Snapshot
 
 def compiled():
-    return sum(len(f.signatures) for module in (entity._growth, entity._merge, information.rules, information.select,
-                                                information.mirror, messages._seedseq)
+    return sum(len(f.signatures) for module in (dtpf.entity._growth, dtpf.entity._merge, dtpf.information.rules, dtpf.information.select,
+                                                dtpf.information.mirror, dtpf.messages._seedseq)
                for f in vars(module).values() if isinstance(f, numba.core.registry.CPUDispatcher))
 
 config = RunConfig(policy="guard-observed", move_rule="relative", weight_rule="likelihood", ps=0.0, particles=300)
@@ -456,6 +457,7 @@ def test_the_system_layers_warm_up_compiles_what_its_first_real_steps_need():
     # degraded. In a fresh process, so that nothing else compiled those kernels first.
     import subprocess
     import sys
+
     from conftest import ROOT
     done = subprocess.run([sys.executable, "-c", _SYSTEM_FIRST_STEPS], cwd=ROOT, capture_output=True, text=True,
                           timeout=300)

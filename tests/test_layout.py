@@ -1,10 +1,13 @@
-"""The house's rules of import (issue 13), checked over the source, not by convention.
+"""The house's rules of import, checked over the source, not by convention.
 
-Floors, bottom up as the paper's Fig. 3 reads: messages < entity < information
-< system < scripts. A module may import its own floor and the floors below,
-never above; no module imports another package's service module; no two
-modules import each other, directly or around a longer cycle. Imports inside
-functions count as much as those at the top of a module.
+Floors, bottom up: the wire contract (dtpf.messages), the log files
+(dtpf.recording), the service shell (dtpf.shell), then the paper's layers as
+its Fig. 3 reads them (dtpf.entity < dtpf.information < dtpf.system), the
+commands (dtpf.scripts) and the package's one page of API (dtpf). A module may
+import its own floor and the floors below, never above; no module imports
+another package's service module; no two modules import each other, directly
+or around a longer cycle. Imports inside functions count as much as those at
+the top of a module.
 """
 from __future__ import annotations
 
@@ -13,18 +16,22 @@ from pathlib import Path
 
 from conftest import ROOT
 
-FLOORS = ("messages", "entity", "information", "system", "scripts")
+#: Each floor: its installed name and the repository folder that holds it, bottom up.
+FLOORS = (("dtpf.messages", "messages"), ("dtpf.recording", "dtpf/recording"), ("dtpf.shell", "dtpf/shell"),
+          ("dtpf.entity", "entity"), ("dtpf.information", "information"), ("dtpf.system", "system"),
+          ("dtpf.scripts", "scripts"), ("dtpf", "dtpf"))
 #: The layer processes: only a launcher starts them, by module name, never by import.
-SERVICE_MODULES = {"entity.service", "information.service", "system.service", "scripts.record"}
+SERVICE_MODULES = {"dtpf.entity.service", "dtpf.information.service", "dtpf.system.service", "dtpf.scripts.record"}
 
 
 def _modules() -> dict[str, Path]:
     found = {}
-    for floor in FLOORS:
-        for path in sorted((ROOT / floor).rglob("*.py")):
-            parts = path.relative_to(ROOT).with_suffix("").parts
-            name = ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
-            found[name] = path
+    for name, folder in FLOORS:
+        for path in sorted((ROOT / folder).rglob("*.py")):
+            parts = path.relative_to(ROOT / folder).with_suffix("").parts
+            if parts[-1] == "__init__":
+                parts = parts[:-1]
+            found.setdefault(".".join((name, *parts)), path)
     return found
 
 
@@ -54,8 +61,8 @@ def imports_of(module: str) -> set[str]:
             if node.level:
                 anchor = package.split(".")[: len(package.split(".")) - node.level + 1]
                 base = ".".join([*anchor, base] if base else anchor)
-            # "from entity import models" imports the module entity.models; "from entity.models
-            # import get" imports entity.models, the module that holds get.
+            # "from dtpf.entity import models" imports the module dtpf.entity.models; "from dtpf.entity.models
+            # import get" imports dtpf.entity.models, the module that holds get.
             names = [f"{base}.{alias.name}" if f"{base}.{alias.name}" in MODULES else base for alias in node.names]
         else:
             continue
@@ -70,7 +77,9 @@ GRAPH = {module: imports_of(module) for module in MODULES}
 
 
 def floor_of(module: str) -> int:
-    return FLOORS.index(module.split(".")[0])
+    """The index of the floor ``module`` stands on: the longest floor name it starts with."""
+    matches = [(len(name), i) for i, (name, _) in enumerate(FLOORS) if module == name or module.startswith(name + ".")]
+    return max(matches)[1]
 
 
 def test_every_floor_imports_only_its_own_and_the_floors_below():
@@ -104,14 +113,16 @@ def test_no_two_modules_import_each_other_directly_or_around_a_cycle():
 
 
 def test_the_checker_sees_an_import_against_the_rules(tmp_path):
-    # The check itself can fail: a made-up module of the wire contract importing a layer.
-    source = "from entity import models\n\ndef late():\n    import system.policy\n"
-    MODULES["messages._probe"] = tmp_path / "probe.py"
+    # The check itself can fail: a made-up module of the wire contract importing a layer and the shell.
+    source = "from dtpf.entity import models\n\ndef late():\n    import dtpf.system.policy\n    from dtpf.shell import bus\n"
+    MODULES["dtpf.messages._probe"] = tmp_path / "probe.py"
     (tmp_path / "probe.py").write_text(source)
     try:
-        assert imports_of("messages._probe") == {"entity.models", "system.policy"}
+        found = imports_of("dtpf.messages._probe")
+        assert found == {"dtpf.entity.models", "dtpf.system.policy", "dtpf.shell.bus"}
+        assert all(floor_of(target) > floor_of("dtpf.messages._probe") for target in found)
     finally:
-        del MODULES["messages._probe"]
+        del MODULES["dtpf.messages._probe"]
 
 
 def test_every_package_says_what_it_holds_and_what_it_may_import():
@@ -121,7 +132,7 @@ def test_every_package_says_what_it_holds_and_what_it_may_import():
             assert "import" in doc, f"{module}/__init__.py does not say what it may import"
 
 
-ROOMS = ("scripts.logs", "scripts.paper", "scripts.bench")
+ROOMS = ("dtpf.scripts.logs", "dtpf.scripts.paper", "dtpf.scripts.bench")
 
 
 def room_of(module: str) -> str | None:
@@ -133,16 +144,16 @@ def test_the_rooms_of_scripts_import_the_commands_never_each_other_and_the_produ
     for module, targets in GRAPH.items():
         for target in targets:
             mine, theirs = room_of(module), room_of(target)
-            if theirs is not None and mine != theirs and not (mine is None and theirs == "scripts.logs"):
+            if theirs is not None and mine != theirs and not (mine is None and theirs == "dtpf.scripts.logs"):
                 found.append(f"{module} imports {target}")
     assert found == [], "\n".join(found)
 
 
 def test_the_contract_names_what_the_layers_implement():
-    from entity import models, resampling
-    from information import rules
-    from messages import names
-    from system import policy
+    from dtpf.entity import models, resampling
+    from dtpf.information import rules
+    from dtpf.messages import names
+    from dtpf.system import policy
 
     assert set(names.SCENARIOS) == set(models.MODELS)
     assert names.CANNOT_SAMPLE == {name for name in models.MODELS if not models.get(name).samples_observations}
@@ -154,5 +165,5 @@ def test_the_contract_names_what_the_layers_implement():
     assert names.POLICIES_STARTING_OFF == {name for name, cls in policy.POLICIES.items()
                                            if not cls.initial_preprocess}
     assert set(names.MOVE_RULES) == set(rules.MOVE_RULES)
-    from entity import jitter
+    from dtpf.entity import jitter
     assert set(names.JITTERS) == set(jitter.JITTERS)

@@ -1,4 +1,4 @@
-"""Reading, summarising and recovering MCAP logs, complete and damaged (messages.logfile, scripts.logs.summary).
+"""Reading, summarising and recovering MCAP logs, complete and damaged (dtpf.recording.logfile, dtpf.scripts.logs.summary).
 
 One real launch (four processes over Zenoh on loopback) makes the log the
 module's tests read; damaged logs are prefixes and corruptions of it, and
@@ -16,15 +16,16 @@ from collections import Counter
 import pytest
 from mcap.opcode import Opcode
 from mcap.reader import make_reader
-from mcap.records import Chunk, Message as McapMessage
+from mcap.records import Chunk
+from mcap.records import Message as McapMessage
 from mcap.stream_reader import StreamReader, breakup_chunk
 
-from messages.config import RunConfig
-from messages.logfile import MAGIC, LogError, LogMessage, read_log, write_log
-from messages.recording import AUTO_LIMIT, McapRecording, auto_compression
-from scripts.logs import summary as inspect_log
-from scripts.inprocess import run
-from scripts.launch import launch
+from dtpf.messages.config import RunConfig
+from dtpf.recording.logfile import MAGIC, LogError, LogMessage, read_log, write_log
+from dtpf.recording.writer import AUTO_LIMIT, McapRecording, auto_compression
+from dtpf.scripts.inprocess import run
+from dtpf.scripts.launch import launch
+from dtpf.scripts.logs import summary as inspect_log
 
 CONFIG = RunConfig(particles=200, steps=40, seed=5, twin="t-log", run_id="logtest")
 PER_STEP_TOPICS = [f"dtpf/t-log/{topic}" for topic in
@@ -420,8 +421,8 @@ def test_fast_crc_is_zlibs_crc32_and_mcap_files_check_with_plain_zlib(tmp_path):
 
     from mcap.reader import make_reader
 
-    from messages import crc
-    from messages.recording import McapRecording
+    from dtpf.recording import crc
+    from dtpf.recording.writer import McapRecording
 
     data = os.urandom(300_001)
     assert crc.crc32(data) == zlib.crc32(data)

@@ -18,7 +18,7 @@ from mcap.reader import make_reader
 from mcap.writer import Writer
 from pydantic import BaseModel, ValidationError
 
-from messages import (
+from dtpf.messages import (
     Estimate,
     Layer,
     McapDecoderFactory,
@@ -36,11 +36,12 @@ from messages import (
     message_encoding,
     schema_for,
 )
-from messages.arrays import check_particles, check_weights
-from messages.codec import ENVELOPE_ENCODING, EnvelopeHeader
-from messages.models import (MESSAGE_CLASSES, CompressedImage, ImageAnnotations, Observation, ParticleSetHeader,
-                             PointCloud, Rejected)
-from messages.schema import foxglove_problems
+from dtpf.messages.arrays import check_particles, check_weights
+from dtpf.messages.codec import ENVELOPE_ENCODING, EnvelopeHeader
+from dtpf.messages.foxglove import CompressedImage, ImageAnnotations, PointCloud
+from dtpf.messages.keys import MESSAGE_CLASSES
+from dtpf.messages.models import Observation, ParticleSetHeader, Rejected
+from dtpf.messages.schema import foxglove_problems
 
 HEADER = dict(run_id="run-1", twin_id="ungm-1", step=7, stamp=Time(sec=1_700_000_000, nsec=123_456_789))
 
@@ -694,8 +695,8 @@ def test_schema_for_mcap(cls):
 def test_a_recording_of_many_twins_makes_each_schema_once(tmp_path, monkeypatch):
     # A fleet's recorder opens a channel per twin and topic; pydantic's JSON Schema took 10 ms each time,
     # 8.3 s of a 100-twin recorder's 38.7 s of CPU.
-    import messages.codec as codec
-    from messages.recording import McapRecording
+    import dtpf.messages.codec as codec
+    from dtpf.recording.writer import McapRecording
     made = []
     real = codec.json_schema
     monkeypatch.setattr(codec, "json_schema", lambda cls: made.append(cls) or real(cls))
@@ -771,7 +772,7 @@ def test_mcap_file_decodes_with_only_mcap_json_and_numpy():
 
 
 def test_arrays_checked_context_skips_only_the_value_scan():
-    from messages.models import ARRAYS_CHECKED
+    from dtpf.messages.models import ARRAYS_CHECKED
 
     fields = dict(run_id="r", twin_id="t", step=1, kind="propagated")
     bad = np.array([0.5, np.nan, 0.5])
@@ -797,7 +798,7 @@ def test_arrays_checked_context_skips_only_the_value_scan():
 
 
 def test_check_set_trusts_only_float64_arrays_of_the_right_shapes():
-    from messages.arrays import check_set
+    from dtpf.messages.arrays import check_set
 
     x, w = np.zeros((3, 2)), np.array([0.5, np.nan, 0.5])
     px, pw = check_set(x, w, checked=True)
@@ -812,7 +813,7 @@ def test_check_set_trusts_only_float64_arrays_of_the_right_shapes():
 
 def test_streams_are_the_seed_sequences_generators():
     # stream() computes SeedSequence's state in a compiled pass: the generator must be numpy's own.
-    from messages import streams
+    from dtpf.messages import streams
 
     for seed in (0, 7, 2 ** 32 - 1, 2 ** 32, 2 ** 70 + 3):
         for twin in ("ungm-1", "", "a-twin-with-a-long-name-" * 3):
@@ -830,11 +831,12 @@ def test_streams_are_the_seed_sequences_generators():
 ])
 def test_hostile_arrays_are_named_without_a_numpy_warning(check):
     # A service would print numpy's "invalid value encountered in reduce" to its log for every first bad
-    # set; with warnings as errors (a fresh process, the filter of messages.arrays in force) none comes.
+    # set; with warnings as errors (a fresh process, the filter of dtpf.messages.arrays in force) none comes.
     import subprocess
     import sys
+
     from conftest import ROOT
-    code = ("import numpy as np\nfrom messages.arrays import check_particles, check_weights\n"
+    code = ("import numpy as np\nfrom dtpf.messages.arrays import check_particles, check_weights\n"
             f"try:\n    {check}\nexcept ValueError as error:\n    print('ValueError:', error)\nelse:\n    print('ok')\n")
     done = subprocess.run([sys.executable, "-W", "error::RuntimeWarning", "-c", code], cwd=ROOT,
                           capture_output=True, text=True, timeout=60)

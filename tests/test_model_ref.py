@@ -1,4 +1,4 @@
-"""Model references (entity.model_ref) and the startup probe (entity.model_check)."""
+"""Model references (dtpf.entity.model_ref) and the startup probe (dtpf.entity.model_check)."""
 from __future__ import annotations
 
 import pickle
@@ -9,10 +9,11 @@ import time
 import numpy as np
 import pytest
 
-from entity import model_check, model_ref, models
-from entity.filter import ParticleFilter
-from entity.model_check import check_model, load_checked
-from entity.model_ref import ModelError, is_reference, registered_names, resolve
+from dtpf.entity import model_check, model_ref, models
+from dtpf.entity.filter import ParticleFilter
+from dtpf.entity.model_check import check_model, load_checked
+from dtpf.entity.model_ref import ModelError, is_reference, registered_names, resolve
+
 from conftest import ROOT
 
 EXAMPLE = ROOT / "docs" / "examples" / "range_bearing.py"
@@ -21,7 +22,7 @@ EXAMPLE = ROOT / "docs" / "examples" / "range_bearing.py"
 WALK = """
 from dataclasses import dataclass
 import numpy as np
-from entity.models import StateSpaceModel
+from dtpf.entity.models import StateSpaceModel
 
 @dataclass(frozen=True)
 class Walk(StateSpaceModel):

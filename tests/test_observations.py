@@ -1,4 +1,4 @@
-"""entity.observations: a user's observations from .csv, .npy and .npz files.
+"""dtpf.entity.observations: a user's observations from .csv, .npy and .npz files.
 
 Numbers are written with repr() and must come back exactly; every bad file
 raises ObservationError with a one-line message that starts with the file
@@ -13,8 +13,8 @@ import re
 import numpy as np
 import pytest
 
-from entity import observations as obs_module
-from entity.observations import ObservationError, ObservationTable, read_observations
+from dtpf.entity import observations as obs_module
+from dtpf.entity.observations import ObservationError, ObservationTable, read_observations
 
 HEADER = "time,range,bearing,truth_x,truth_y,truth_vx,truth_vy"
 

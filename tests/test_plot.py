@@ -9,14 +9,14 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
-from messages.codec import encode
-from messages.config import RunConfig
-from messages.keys import key_for
-from messages.models import Estimate, ParticleSet, PSCommand
-from messages.recording import McapRecording
-from scripts.logs import plot as plot_log
-from scripts.launch import launch
-from scripts.logs.plot import FIGSIZE, PlotError, RunLog, plot_run, read_log
+from dtpf.messages.codec import encode
+from dtpf.messages.config import RunConfig
+from dtpf.messages.keys import key_for
+from dtpf.messages.models import Estimate, ParticleSet, PSCommand
+from dtpf.recording.writer import McapRecording
+from dtpf.scripts.launch import launch
+from dtpf.scripts.logs import plot as plot_log
+from dtpf.scripts.logs.plot import FIGSIZE, PlotError, RunLog, plot_run, read_log
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 TWIN = "t-plot"
@@ -210,7 +210,7 @@ def test_bad_options_exit_2(logs, tmp_path, capsys):
 
 def test_errors_print_no_traceback(tmp_path):
     missing = tmp_path / "missing.mcap"
-    result = subprocess.run([sys.executable, "-m", "scripts.logs.plot", str(missing)], capture_output=True,
+    result = subprocess.run([sys.executable, "-m", "dtpf.scripts.logs.plot", str(missing)], capture_output=True,
                             text=True, timeout=60)
     assert result.returncode == 1
     assert result.stderr.strip() == f"dtpf plot: error: no such file: {missing}"

@@ -7,18 +7,18 @@ import math
 import numpy as np
 import pytest
 
-from entity.models import StateSpaceModel
-from information.mirror import summarise
-from messages.codec import decode_for_key
-from messages.config import RunConfig
-from messages.logfile import read_log
-from messages.models import Estimate, PSCommand
-from scripts.inprocess import build, run, simulate
-from scripts.launch import launch
-from scripts.logs.verify import verify
-from system import policy as ps_policy
-from system.layer import SystemLayer
-from system.predict import Forecast, Predictor, Snapshot
+from dtpf.entity.models import StateSpaceModel
+from dtpf.information.mirror import summarise
+from dtpf.messages.codec import decode_for_key
+from dtpf.messages.config import RunConfig
+from dtpf.messages.models import Estimate, PSCommand
+from dtpf.recording.logfile import read_log
+from dtpf.scripts.inprocess import build, run, simulate
+from dtpf.scripts.launch import launch
+from dtpf.scripts.logs.verify import verify
+from dtpf.system import policy as ps_policy
+from dtpf.system.layer import SystemLayer
+from dtpf.system.predict import Forecast, Predictor, Snapshot
 
 
 @dataclasses.dataclass(frozen=True)
@@ -255,8 +255,8 @@ def test_verify_notices_an_altered_predicted_figure(adaptive_log, tmp_path):
 
 
 def test_the_evaluation_command_prints_every_variant_with_finite_figures(tmp_path, capsys):
-    """A reduced ``python -m scripts.paper.evaluate_policies``: the table and the plot, not the verdict."""
-    from scripts.paper import evaluate_policies
+    """A reduced ``python -m dtpf.scripts.paper.evaluate_policies``: the table and the plot, not the verdict."""
+    from dtpf.scripts.paper import evaluate_policies
 
     plot = tmp_path / "ps.png"
     assert evaluate_policies.main(["--seeds", "3", "--particles", "50", "--steps", "20", "--workers", "1",

@@ -14,15 +14,16 @@ import time
 import numpy as np
 import pytest
 import zenoh
+from test_services import read_with_mcap_only
+
+from dtpf.entity import sources
+from dtpf.messages.codec import encode
+from dtpf.messages.config import RunConfig
+from dtpf.messages.models import Estimate, Observation, ServiceState, Status
+from dtpf.scripts import inprocess
+from dtpf.scripts.launch import launch
 
 from conftest import ROOT, service_args
-from entity import sources
-from messages.codec import encode
-from messages.config import RunConfig
-from messages.models import Estimate, Observation, ServiceState, Status
-from scripts import inprocess
-from scripts.launch import launch
-from test_services import read_with_mcap_only
 
 EXAMPLE = "docs/examples/range_bearing.py:RangeBearingTarget"
 EXAMPLE_CSV = "docs/examples/range_bearing.csv"
@@ -30,7 +31,7 @@ EXAMPLE_NO_TRUTH = "docs/examples/range_bearing_no_truth.csv"
 
 
 def dtpf(*args: str, timeout: float = 120) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "scripts.cli", *args], cwd=ROOT, capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "dtpf.scripts.cli", *args], cwd=ROOT, capture_output=True, text=True,
                           timeout=timeout)
 
 
@@ -96,7 +97,7 @@ def test_dtpf_run_on_a_file_with_truth_prints_rmse():
 
 BAD_MODELS = {
     "missing method": ("""
-from entity.models import StateSpaceModel
+from dtpf.entity.models import StateSpaceModel
 class M(StateSpaceModel):
     name, dim, obs_dim = "m", 1, 1
     def initial_particles(self, n, rng): return rng.normal(size=(n, 1))
@@ -104,7 +105,7 @@ class M(StateSpaceModel):
 """, "does not implement the abstract method log_likelihood"),
     "wrong shape": ("""
 import numpy as np
-from entity.models import StateSpaceModel
+from dtpf.entity.models import StateSpaceModel
 class M(StateSpaceModel):
     name, dim, obs_dim = "m", 2, 1
     def initial_particles(self, n, rng): return rng.normal(size=(n, 2))
@@ -113,7 +114,7 @@ class M(StateSpaceModel):
 """, r"propagate returned shape \(5, 1\), expected \(5, 2\)"),
     "NaN likelihood": ("""
 import numpy as np
-from entity.models import StateSpaceModel
+from dtpf.entity.models import StateSpaceModel
 class M(StateSpaceModel):
     name, dim, obs_dim = "m", 1, 1
     def initial_particles(self, n, rng): return rng.normal(size=(n, 1))
@@ -125,15 +126,15 @@ class M(StateSpaceModel):
 
 
 @pytest.mark.parametrize("case", sorted(BAD_MODELS))
-@pytest.mark.parametrize("command", ["run", "launch", "entity.service"])
+@pytest.mark.parametrize("command", ["run", "launch", "dtpf.entity.service"])
 def test_a_bad_model_is_one_line_and_exit_2(case, command, tmp_path):
     source, expected = BAD_MODELS[case]
     (tmp_path / "bad.py").write_text(source)
     observations = tmp_path / "z.csv"
     observations.write_text("z\n1.0\n2.0\n")
     options = ["--model", f"{tmp_path / 'bad.py'}:M", "--observations", str(observations)]
-    if command == "entity.service":
-        done = subprocess.run([sys.executable, "-m", "entity.service", *options, "--listen", "tcp/127.0.0.1:0"],
+    if command == "dtpf.entity.service":
+        done = subprocess.run([sys.executable, "-m", "dtpf.entity.service", *options, "--listen", "tcp/127.0.0.1:0"],
                               cwd=ROOT, capture_output=True, text=True, timeout=60)
     else:
         done = dtpf(command, *options, "-o" if command == "launch" else "-q", *(
@@ -178,11 +179,11 @@ def test_a_live_run_is_refused_by_dtpf_run_and_a_bad_live_key_at_startup():
 def _start_layers(processes, router, run, log, *entity_extra):
     # Every layer runs the same configuration (a live run has no last step), as dtpf launch starts them.
     run = [*run, "--observations", "live"]
-    processes.start("recorder", service_args("scripts.record", router.endpoint, *run, "--output", str(log)))
-    processes.start("system", service_args("system.service", router.endpoint, *run))
-    processes.start("information", service_args("information.service", router.endpoint, *run))
+    processes.start("recorder", service_args("dtpf.scripts.record", router.endpoint, *run, "--output", str(log)))
+    processes.start("system", service_args("dtpf.system.service", router.endpoint, *run))
+    processes.start("information", service_args("dtpf.information.service", router.endpoint, *run))
     return processes.start("entity", service_args(
-        "entity.service", router.endpoint, *run, "--wait-for", "recorder",
+        "dtpf.entity.service", router.endpoint, *run, "--wait-for", "recorder",
         "--wait-for", "information", "--wait-for", "system", *entity_extra))
 
 
@@ -195,7 +196,7 @@ def test_a_live_twin_follows_its_sensor_waits_when_it_dies_and_continues_when_it
     run = ["--particles", "300", "--twin", "t-live", "--seed", "5"]
     log = tmp_path / "live.mcap"
     entity = _start_layers(processes, router, run, log, "--observation-timeout", "1")
-    sensor_args = ["-m", "scripts.sensor", "--connect", router.endpoint, *run, "--steps", "60", "--rate", "25"]
+    sensor_args = ["-m", "dtpf.scripts.sensor", "--connect", router.endpoint, *run, "--steps", "60", "--rate", "25"]
     sensor = processes.start("sensor", sensor_args)
 
     def estimates():
@@ -299,7 +300,7 @@ def test_a_recorded_sensor_stream_re_drives_a_twin_with_dtpf_play(processes, rou
     run = ["--particles", "200", "--twin", "t-replay", "--seed", "9"]
     log = tmp_path / "first.mcap"
     entity = _start_layers(processes, router, run, log)
-    sensor = processes.start("sensor", ["-m", "scripts.sensor", "--connect", router.endpoint, *run,
+    sensor = processes.start("sensor", ["-m", "dtpf.scripts.sensor", "--connect", router.endpoint, *run,
                                         "--steps", "25", "--rate", "50", "--no-truth"])
     assert entity.wait(timeout=120) == 0, processes.output(entity)
     assert sensor.wait(timeout=30) == 0, processes.output(sensor)

@@ -9,12 +9,13 @@ import time
 import numpy as np
 import pytest
 
-from messages.codec import decode_for_key, encode
-from messages.config import RunConfig
-from messages.logfile import read_log, write_log
-from scripts.launch import launch
-from scripts.logs.play import select
-from scripts.logs.verify import verify
+from dtpf.messages.codec import decode_for_key, encode
+from dtpf.messages.config import RunConfig
+from dtpf.recording.logfile import read_log, write_log
+from dtpf.scripts.launch import launch
+from dtpf.scripts.logs.play import select
+from dtpf.scripts.logs.verify import verify
+
 from conftest import ROOT
 
 
@@ -46,7 +47,7 @@ def test_verify_reproduces_every_step_of_a_clean_log(clean_log):
     assert result.ok, str(result.mismatch)
     assert result.checked == list(range(1, 31))
     assert result.unanswered == []
-    completed = subprocess.run([sys.executable, "-m", "scripts.cli", "verify", str(clean_log)], cwd=ROOT,
+    completed = subprocess.run([sys.executable, "-m", "dtpf.scripts.cli", "verify", str(clean_log)], cwd=ROOT,
                                capture_output=True, text=True, timeout=120)
     assert completed.returncode == 0, completed.stdout + completed.stderr
     assert "OK: 30 steps reproduced exactly" in completed.stdout
@@ -63,7 +64,7 @@ def test_verify_names_the_step_and_field_of_an_altered_particle(clean_log, tmp_p
     assert result.mismatch is not None
     assert (result.mismatch.step, result.mismatch.field) == (7, "particles[17, 0]")
     assert result.checked == list(range(1, 7))
-    completed = subprocess.run([sys.executable, "-m", "scripts.cli", "verify", str(log)], cwd=ROOT,
+    completed = subprocess.run([sys.executable, "-m", "dtpf.scripts.cli", "verify", str(log)], cwd=ROOT,
                                capture_output=True, text=True, timeout=120)
     assert completed.returncode == 1
     assert "MISMATCH step 7: dtpf/t-replay/information/preprocessed particles[17, 0] differs" in completed.stdout
@@ -90,7 +91,7 @@ def test_play_republishes_every_message_in_order_with_scaled_spacing(clean_log, 
     assert len(chosen) == 60
     span = (chosen[-1].log_time - chosen[0].log_time) / 1e9
     start = time.monotonic()
-    completed = subprocess.run([sys.executable, "-m", "scripts.cli", "play", str(clean_log), "--rate", "2",
+    completed = subprocess.run([sys.executable, "-m", "dtpf.scripts.cli", "play", str(clean_log), "--rate", "2",
                                 "--topics", "entity/particles", "entity/estimate", "--connect", router.endpoint,
                                 "--quiet"], cwd=ROOT, capture_output=True, text=True, timeout=120)
     elapsed = time.monotonic() - start
@@ -105,7 +106,7 @@ def test_play_republishes_every_message_in_order_with_scaled_spacing(clean_log, 
 
 def test_play_and_verify_refuse_a_missing_file(tmp_path):
     for command in ("play", "verify"):
-        completed = subprocess.run([sys.executable, "-m", "scripts.cli", command, str(tmp_path / "nope.mcap")],
+        completed = subprocess.run([sys.executable, "-m", "dtpf.scripts.cli", command, str(tmp_path / "nope.mcap")],
                                    cwd=ROOT, capture_output=True, text=True, timeout=60)
         assert completed.returncode == 2
         assert "nope.mcap" in completed.stdout + completed.stderr

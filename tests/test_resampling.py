@@ -9,7 +9,7 @@ with probability below 1e-5 per particle.
 import numpy as np
 import pytest
 
-from entity import resampling as rs
+from dtpf.entity import resampling as rs
 
 SCHEMES = sorted(rs.RESAMPLERS)
 Z = 5.0
@@ -239,7 +239,7 @@ def test_ancestors_are_those_of_the_plain_merge(scheme):
 def test_stratified_points_that_round_up_to_the_running_sum():
     # Point k is float(k) + v_k: with v_k = 1 - 2**-53 it rounds to k + 1, which is not below a running
     # sum of exactly k + 1; with v = 0 it sits on N C_j exactly, not below either.
-    from entity import _merge
+    from dtpf.entity import _merge
 
     n = 8
     w = np.full(n, 1.0 / n)
@@ -275,7 +275,7 @@ def test_distinct_counts_the_parents():
 
 
 # --- the inline PCG64 path against numba's Generator methods --------------------
-# For a PCG64 the schemes draw from an inline copy of its state (entity._merge.pcg_*), merge
+# For a PCG64 the schemes draw from an inline copy of its state (dtpf.entity._merge.pcg_*), merge
 # several points at a time and keep their uniforms in a ring or their points in the output
 # itself; for any other bit generator they take the Generator's own methods. Both must give the
 # same ancestors and leave the generator in the same state, on sets large enough to reach the
@@ -301,7 +301,7 @@ def large_cases():
 
 def _generator_path(scheme, w, rng):
     """The scheme through numba's Generator methods (the path of non-PCG64 bit generators)."""
-    from entity import _merge
+    from dtpf.entity import _merge
 
     out = np.empty(w.size, dtype=np.int64)
     if scheme == "stratified":
@@ -321,7 +321,7 @@ def test_the_inline_pcg64_path_gives_the_generator_paths_numbers(scheme):
 
 
 def test_inline_pcg64_draws_are_the_generators():
-    from entity import _merge
+    from dtpf.entity import _merge
 
     for seed in range(3):
         rng = np.random.default_rng(seed)

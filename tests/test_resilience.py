@@ -6,7 +6,6 @@ which watches the run (estimates, statuses) and injects what the issue lists.
 """
 from __future__ import annotations
 
-import json
 import re
 import signal
 import subprocess
@@ -18,13 +17,14 @@ import numpy as np
 import pytest
 import zenoh
 
+from dtpf.messages.codec import MessageError, decode_for_key, encode
+from dtpf.messages.models import Estimate, ParticleSet, Status
+from dtpf.recording.logfile import read_logs
+from dtpf.recording.writer import McapRecording
+from dtpf.scripts.logs import summary as inspect_log
+from dtpf.shell.bus import Inbox, free_port, open_session, zenoh_config
+
 from conftest import ROOT
-from messages.bus import Inbox, free_port, open_session, zenoh_config
-from messages.codec import MessageError, decode_for_key, encode
-from messages.logfile import read_logs
-from messages.models import Estimate, ParticleSet, Status
-from messages.recording import McapRecording
-from scripts.logs import summary as inspect_log
 
 
 class Outsider:
@@ -84,7 +84,7 @@ class Outsider:
 def start_launch(processes, tmp_path, twin: str, steps: int, rate: float, *extra: str):
     port = free_port()
     log = tmp_path / "run.mcap"
-    launcher = processes.start("launcher", ["-m", "scripts.cli", "launch", "--steps", str(steps), "--rate",
+    launcher = processes.start("launcher", ["-m", "dtpf.scripts.cli", "launch", "--steps", str(steps), "--rate",
                                             str(rate), "--particles", "300", "--twin", twin, "--port", str(port),
                                             "-o", str(log), "--quiet", "--timeout", "0.5", *extra])
     return launcher, port, log
@@ -211,7 +211,7 @@ def test_what_used_to_stop_or_corrupt_a_run_is_counted_and_the_run_completes(pro
                     if " entity " in line and "rejected a message (particle set of another shape" in line]
     assert len(entity_lines) == 1, output
     for command in ("info", "summary"):
-        done = subprocess.run([sys.executable, "-m", "scripts.cli", command, str(log)], cwd=ROOT,
+        done = subprocess.run([sys.executable, "-m", "dtpf.scripts.cli", command, str(log)], cwd=ROOT,
                               capture_output=True, text=True, timeout=120)
         assert done.returncode == 0 and "Traceback" not in done.stderr, done.stderr
 
@@ -234,14 +234,14 @@ def test_log_readers_bound_a_forged_step_and_survive_deep_nesting(tmp_path):
     text = inspect_log.format_summary(summary)
     assert f"({4294967295 - 3} in all)" in text
     for command in ("info", "summary", "verify"):
-        done = subprocess.run([sys.executable, "-m", "scripts.cli", command, str(path)], cwd=ROOT,
+        done = subprocess.run([sys.executable, "-m", "dtpf.scripts.cli", command, str(path)], cwd=ROOT,
                               capture_output=True, text=True, timeout=120)
         assert "Traceback" not in done.stderr + done.stdout, done.stderr
 
 
 STUCK_SERVICE = """
 import logging, os, signal, sys, threading
-from messages.service import ExitWatchdog
+from dtpf.shell.service import ExitWatchdog
 logging.basicConfig(level="INFO")
 stop = threading.Event()
 signal.signal(signal.SIGTERM, lambda *a: stop.set())
@@ -286,10 +286,11 @@ def _fuzz_payloads(count: int) -> list[bytes]:
 
 
 def test_ten_thousand_fuzzed_payloads_on_a_live_run_leave_its_estimates_as_a_clean_run_has_them(tmp_path):
+    from dtpf.messages.config import RunConfig
+    from dtpf.scripts import inprocess
+    from dtpf.scripts.launch import launch
+
     from fuzz_payloads import TWIN, topic_keys
-    from messages.config import RunConfig
-    from scripts import inprocess
-    from scripts.launch import launch
 
     # 2,600 distinct payloads, each on four different keys of the twin: 10,400 injections.
     payloads = _fuzz_payloads(2_600)
@@ -333,9 +334,9 @@ def test_ten_thousand_fuzzed_payloads_on_a_live_run_leave_its_estimates_as_a_cle
 
 
 def test_the_launcher_counts_a_forged_layer_status_but_not_a_sensors():
-    from messages.bus import Received
-    from messages.config import RunConfig
-    from scripts.launch import LaunchResult, _take
+    from dtpf.messages.config import RunConfig
+    from dtpf.scripts.launch import LaunchResult, _take
+    from dtpf.shell.bus import Received
 
     result = LaunchResult(RunConfig(twin="t-take"), log_path="x.mcap")
     children = {4242: "entity"}
@@ -404,7 +405,7 @@ class _EntityShell:
 
 
 def _answer(step, particles, weights):
-    from messages.models import ParticleSetKind
+    from dtpf.messages.models import ParticleSetKind
     return ParticleSet.model_validate(dict(
         run_id="run", twin_id="t", step=step, kind=ParticleSetKind.PREPROCESSED, particles=particles + 1.0,
         weights=weights, observation=[0.5], ps=0.81, threshold=0.02, n_large=20, n_processed=30, n_mixed=25,
@@ -412,7 +413,7 @@ def _answer(step, particles, weights):
 
 
 def _pending(step, particles, weights):
-    from entity.filter import PendingStep
+    from dtpf.entity.filter import PendingStep
     return PendingStep(step, particles, weights, np.array([0.5]), None, 50.0, True, True,
                        np.random.default_rng(0), 0.0, None)
 
@@ -421,7 +422,7 @@ def test_an_answer_that_came_while_the_entity_worked_past_its_deadline_is_taken(
     # The entity works while it waits (work_ahead); on a cold start numba compiled that work for seconds,
     # past the lockstep timeout, and the answer already in the inbox was dropped: every twin of a fleet's
     # first run degraded its first step.
-    from entity.service import ZenohTwin
+    from dtpf.entity.service import ZenohTwin
     particles, weights = np.random.default_rng(0).standard_normal((50, 1)), np.full(50, 1 / 50)
     answers = _Answers()
     twin = ZenohTwin(_EntityShell(answers), timeout=0.2)
@@ -437,7 +438,7 @@ def test_an_answer_that_came_while_the_entity_worked_past_its_deadline_is_taken(
 
 
 def test_a_flood_of_stale_answers_past_the_deadline_does_not_hold_the_step():
-    from entity.service import ZenohTwin
+    from dtpf.entity.service import ZenohTwin
     particles, weights = np.random.default_rng(1).standard_normal((50, 1)), np.full(50, 1 / 50)
     answers = _Answers(flood=_answer(1, particles, weights))
     twin = ZenohTwin(_EntityShell(answers), timeout=0.1)

@@ -2,8 +2,8 @@
 import numpy as np
 import pytest
 
-from information import rules
-from information.mirror import summarise
+from dtpf.information import rules
+from dtpf.information.mirror import summarise
 
 Z = 5.0
 
@@ -154,7 +154,7 @@ def test_kth_largest_matches_sorting(n, k):
 @pytest.mark.parametrize("spread", [0.0, 1e-3, 3.0], ids=["ties", "near-uniform", "spread"])
 def test_order_statistics_match_sorting_when_the_values_bunch(spread):
     # Near-uniform weights put most values in one bucket of the radix select (its worst case).
-    from information import select
+    from dtpf.information import select
 
     rng = np.random.default_rng(21)
     values = np.exp(spread * rng.standard_normal(200_000)) / 200_000
@@ -240,8 +240,8 @@ def test_mirror_rejects_bad_weights():
 
 
 def test_a_stream_prepared_ahead_changes_no_number_and_only_serves_its_step():
-    from entity import models
-    from information.layer import InformationLayer
+    from dtpf.entity import models
+    from dtpf.information.layer import InformationLayer
 
     particles, weights = weighted_set(3000, seed=4)
 
@@ -302,12 +302,12 @@ def test_blocked_moves_are_the_particle_by_particle_moves(n_small, d):
 
 _FIRST_STEP = """
 import numba, numpy as np
-import information.mirror, information.rules, information.select
-from entity import models
-from information.layer import InformationLayer
+import dtpf.information.mirror, dtpf.information.rules, dtpf.information.select
+from dtpf.entity import models
+from dtpf.information.layer import InformationLayer
 
 def compiled():
-    return sum(len(f.signatures) for module in (information.rules, information.select, information.mirror)
+    return sum(len(f.signatures) for module in (dtpf.information.rules, dtpf.information.select, dtpf.information.mirror)
                for f in vars(module).values() if isinstance(f, numba.core.registry.CPUDispatcher))
 
 layer = InformationLayer(models.get("ungm"), ps=0.81, seed=0, twin="t")
@@ -323,7 +323,7 @@ for n in (1000, 5000, 70000):  # the three size classes: one compiled call, thre
     layer.mirror(x, w, n // 2, result.report.threshold, checked=True)
     counts.append(compiled() - before)
     if n == 1000:  # a small run's warm-up leaves the radix select alone (compiling every class took 21 s cold)
-        counts.append(len(information.select._order_statistics.signatures))
+        counts.append(len(dtpf.information.select._order_statistics.signatures))
 print(compiled(), *counts)
 """
 
@@ -335,6 +335,7 @@ def test_the_information_layers_warm_up_compiles_what_its_first_real_step_needs(
     # process, so that nothing else compiled those kinds first.
     import subprocess
     import sys
+
     from conftest import ROOT
     done = subprocess.run([sys.executable, "-c", _FIRST_STEP], cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr[-2000:]

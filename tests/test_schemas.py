@@ -11,9 +11,9 @@ import json
 import jsonschema
 import pytest
 
-from messages.config import RunConfig
-from messages.logfile import read_log
-from scripts.launch import launch
+from dtpf.messages.config import RunConfig
+from dtpf.recording.logfile import read_log
+from dtpf.scripts.launch import launch
 
 MODES = {
     "default": dict(),
@@ -58,12 +58,12 @@ def test_a_video_launch_without_steps_runs_the_videos_frames_and_too_many_steps_
 
     from conftest import ROOT
 
-    done = subprocess.run([sys.executable, "-m", "scripts.cli", "run", "--scenario", "video", "-q", "--particles",
+    done = subprocess.run([sys.executable, "-m", "dtpf.scripts.cli", "run", "--scenario", "video", "-q", "--particles",
                            "100", "--steps", "51"], cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert done.returncode == 2
     assert "--steps: the video scenario can simulate at most 50 steps, got 51" in done.stderr
     assert "Traceback" not in done.stderr
-    done = subprocess.run([sys.executable, "-m", "scripts.cli", "run", "--scenario", "video", "-q", "--particles",
+    done = subprocess.run([sys.executable, "-m", "dtpf.scripts.cli", "run", "--scenario", "video", "-q", "--particles",
                            "100"], cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr
     assert "T = 50" in done.stdout
@@ -104,8 +104,9 @@ def unknown_keywords(schema, path="#") -> list[str]:
 def test_every_embedded_schema_uses_only_json_schema_keywords():
     # ajv in strict mode refuses a schema with a keyword it does not know (it refused "x-dtpf-envelope");
     # checked here keyword by keyword, so the test needs no JavaScript.
-    from messages.codec import envelope_layout, schema_for
-    from messages.models import MESSAGE_CLASSES, ParticleSet
+    from dtpf.messages.codec import envelope_layout, schema_for
+    from dtpf.messages.keys import MESSAGE_CLASSES
+    from dtpf.messages.models import ParticleSet
 
     for cls in MESSAGE_CLASSES.values():
         schema = json.loads(schema_for(cls).data)
@@ -121,8 +122,8 @@ def test_each_step_has_a_point_cloud_of_its_particle_set(launched_log):
 
     import numpy as np
 
-    from messages.codec import decode_for_key
-    from messages.models import ParticleSet, PointCloud
+    from dtpf.messages.codec import decode_for_key
+    from dtpf.messages.foxglove import PointCloud
 
     mode, log = launched_log
     clouds, sets = {}, {}
@@ -149,7 +150,7 @@ def test_each_step_has_a_point_cloud_of_its_particle_set(launched_log):
 def test_a_cloud_of_a_large_set_is_every_stride_th_particle():
     import numpy as np
 
-    from entity.cloud import cloud_points
+    from dtpf.entity.cloud import cloud_points
 
     rng = np.random.default_rng(0)
     particles = rng.standard_normal((10_001, 2))
@@ -163,7 +164,7 @@ def test_a_cloud_of_a_large_set_is_every_stride_th_particle():
 
 
 def test_a_video_log_draws_each_steps_particles_and_estimate_over_its_frame(launched_log):
-    from messages.codec import decode_for_key
+    from dtpf.messages.codec import decode_for_key
 
     mode, log = launched_log
     frames, annotations, estimates = {}, {}, {}

@@ -11,21 +11,21 @@ from __future__ import annotations
 
 import json
 import stat
-from collections import Counter
 import threading
 import time
+from collections import Counter
 
 import numpy as np
 import pytest
 import zenoh
 
-from messages.bus import BusError, Inbox, free_port, open_session, publisher, zenoh_config
-from messages.codec import MessageError, decode_for_key, encode
-from messages.config import RunConfig
-from messages.models import Estimate, ParticleSet, ParticleSetKind, PSCommand
-from messages.secure import ROLES, SecureError, open_secure_dir, role_config
-from scripts import inprocess, secure
-from scripts.launch import LaunchError, launch
+from dtpf.messages.codec import MessageError, decode_for_key, encode
+from dtpf.messages.config import RunConfig
+from dtpf.messages.models import Estimate, ParticleSet, ParticleSetKind, PSCommand
+from dtpf.scripts import inprocess, secure
+from dtpf.scripts.launch import LaunchError, launch
+from dtpf.shell.bus import BusError, Inbox, free_port, open_session, publisher, zenoh_config
+from dtpf.shell.secure import ROLES, SecureError, open_secure_dir, role_config
 
 pytest.importorskip("cryptography")
 
@@ -213,8 +213,8 @@ def test_each_role_puts_only_on_its_own_layers_keys(folder, kind):
 
 
 def test_a_secured_launch_gives_the_plain_numbers_and_a_log_that_verifies(tmp_path, folder):
-    from messages.logfile import read_log
-    from scripts.logs.verify import verify
+    from dtpf.recording.logfile import read_log
+    from dtpf.scripts.logs.verify import verify
 
     config = RunConfig(particles=N, steps=STEPS, seed=9, twin="t-secured")
     result = launch(config, log_path=tmp_path / "secured.mcap", timeout=5.0, notify=lambda text: None,
@@ -297,7 +297,7 @@ def test_dtpf_router_enforces_the_folder_and_stops_on_sigint(processes, folder):
     deployment = open_secure_dir(folder / "tls")
     port = free_port()
     endpoint = deployment.endpoint("127.0.0.1", port)
-    router = processes.start("router", ["-m", "scripts.cli", "router", "--secure", str(folder), "--listen", endpoint])
+    router = processes.start("router", ["-m", "dtpf.scripts.cli", "router", "--secure", str(folder), "--listen", endpoint])
     viewer = None
     deadline = time.monotonic() + 20
     while viewer is None:
@@ -319,7 +319,7 @@ def test_dtpf_router_enforces_the_folder_and_stops_on_sigint(processes, folder):
 def test_a_message_on_a_layers_key_must_name_that_layer_and_twin():
     """What the access control cannot see: the entity may put on its own keys, but not pass a message
     off there as another layer's or another twin's (services count it as a rejection)."""
-    from messages.models import Status
+    from dtpf.messages.models import Status
 
     def status(layer: str, twin: str = "t-own") -> bytes:
         return encode(Status(run_id="run", twin_id=twin, step=0, layer=layer, state="running", pid=1,

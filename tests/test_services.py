@@ -14,10 +14,11 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
-from messages.config import RunConfig
-from messages.models import Estimate, ParticleSet, Status
-from scripts import inprocess
-from scripts.launch import LaunchError, launch
+from dtpf.messages.config import RunConfig
+from dtpf.messages.models import Estimate, ParticleSet, Status
+from dtpf.scripts import inprocess
+from dtpf.scripts.launch import LaunchError, launch
+
 from conftest import ROOT, service_args
 
 PER_STEP_TOPICS = ("entity/particles", "information/preprocessed", "information/weight_state",
@@ -88,17 +89,17 @@ def test_launch_without_the_recorder_runs_the_split_alone(tmp_path):
 def test_entity_survives_the_information_layer_being_killed_and_restarted(processes, router, tmp_path):
     run = ["--particles", "500", "--steps", "150", "--twin", "t-kill", "--seed", "3"]
     log = tmp_path / "kill.mcap"
-    processes.start("recorder", service_args("scripts.record", router.endpoint, *run, "--output", str(log)))
-    processes.start("system", service_args("system.service", router.endpoint, *run))
-    information = processes.start("information", service_args("information.service", router.endpoint, *run))
-    entity = processes.start("entity", service_args("entity.service", router.endpoint, *run, "--rate", "40",
+    processes.start("recorder", service_args("dtpf.scripts.record", router.endpoint, *run, "--output", str(log)))
+    processes.start("system", service_args("dtpf.system.service", router.endpoint, *run))
+    information = processes.start("information", service_args("dtpf.information.service", router.endpoint, *run))
+    entity = processes.start("entity", service_args("dtpf.entity.service", router.endpoint, *run, "--rate", "40",
                                                     "--timeout", "0.5", "--wait-for", "recorder",
                                                     "--wait-for", "information", "--wait-for", "system"))
     assert wait_for_step(router, 20, timeout=60), processes.output(entity)
     information.kill()
     information.wait()
     assert wait_for_step(router, 1, timeout=30, degraded=True), "no degraded step after the kill"
-    processes.start("information", service_args("information.service", router.endpoint, *run))
+    processes.start("information", service_args("dtpf.information.service", router.endpoint, *run))
     entity.wait(timeout=120)
     assert entity.returncode == 0, processes.output(entity)
     router.collect(lambda m: False, timeout=1.0)
@@ -133,9 +134,9 @@ def test_every_service_survives_garbage_and_counts_it(processes, router):
     import zenoh
 
     run = ["--particles", "200", "--steps", "60", "--twin", "t-bad"]
-    processes.start("system", service_args("system.service", router.endpoint, *run))
-    processes.start("information", service_args("information.service", router.endpoint, *run))
-    entity = processes.start("entity", service_args("entity.service", router.endpoint, *run, "--rate", "30",
+    processes.start("system", service_args("dtpf.system.service", router.endpoint, *run))
+    processes.start("information", service_args("dtpf.information.service", router.endpoint, *run))
+    entity = processes.start("entity", service_args("dtpf.entity.service", router.endpoint, *run, "--rate", "30",
                                                     "--wait-for", "information", "--wait-for", "system"))
     assert wait_for_step(router, 5, timeout=60), processes.output(entity)
     # A valid envelope cut in half: rejected, never half-decoded.
@@ -168,7 +169,7 @@ def test_every_service_survives_garbage_and_counts_it(processes, router):
 
 
 def _valid_particle_set_payload() -> bytes:
-    from messages.codec import encode
+    from dtpf.messages.codec import encode
 
     return encode(ParticleSet(run_id="run", twin_id="t-bad", step=7, layer="entity", kind="propagated",
                               particles=np.zeros((10, 1)), weights=np.full(10, 0.1)))
@@ -176,7 +177,7 @@ def _valid_particle_set_payload() -> bytes:
 
 def test_sigint_to_the_launcher_stops_every_child_and_leaves_a_readable_log(processes, tmp_path):
     log = tmp_path / "interrupted.mcap"
-    launcher = processes.start("launcher", ["-m", "scripts.cli", "launch", "--steps", "1000", "--rate", "20",
+    launcher = processes.start("launcher", ["-m", "dtpf.scripts.cli", "launch", "--steps", "1000", "--rate", "20",
                                             "--twin", "t-int", "-o", str(log), "--quiet"])
     deadline = time.monotonic() + 60
     while time.monotonic() < deadline and (not log.exists() or log.stat().st_size < 20_000):
@@ -204,7 +205,7 @@ def test_sigint_to_the_launcher_stops_every_child_and_leaves_a_readable_log(proc
 def test_sigint_stops_a_launch_started_with_sigint_ignored(tmp_path):
     """A script that starts ``dtpf launch &`` hands it SIGINT ignored (a non-interactive shell does so for
     background jobs, and Python then installs no handler); the launcher still stops on SIGINT."""
-    launcher = subprocess.Popen([sys.executable, "-m", "scripts.cli", "launch", "--steps", "1000", "--rate", "20",
+    launcher = subprocess.Popen([sys.executable, "-m", "dtpf.scripts.cli", "launch", "--steps", "1000", "--rate", "20",
                                  "--twin", "t-ign", "-o", str(tmp_path / "ignored.mcap"), "--quiet"],
                                 cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, start_new_session=True,
                                 preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
@@ -230,7 +231,7 @@ def test_launch_says_when_its_port_is_in_use(tmp_path):
         port = busy.getsockname()[1]
         with pytest.raises(LaunchError, match="cannot start on tcp/127.0.0.1:%d.*already in use" % port):
             launch(RunConfig(steps=2), log_path=tmp_path / "x.mcap", port=port)
-        completed = subprocess.run([sys.executable, "-m", "scripts.cli", "launch", "--port", str(port),
+        completed = subprocess.run([sys.executable, "-m", "dtpf.scripts.cli", "launch", "--port", str(port),
                                     "-o", str(tmp_path / "y.mcap")], cwd=ROOT, capture_output=True,
                                    text=True, timeout=60)
     assert completed.returncode == 1
@@ -238,11 +239,11 @@ def test_launch_says_when_its_port_is_in_use(tmp_path):
 
 
 def test_services_reject_bad_configuration_at_startup():
-    completed = subprocess.run([sys.executable, "-m", "information.service", "--resampler", "best"],
+    completed = subprocess.run([sys.executable, "-m", "dtpf.information.service", "--resampler", "best"],
                                cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert completed.returncode == 2
     assert "invalid choice: 'best'" in completed.stderr
-    completed = subprocess.run([sys.executable, "-m", "system.service", "--ps", "1.5"],
+    completed = subprocess.run([sys.executable, "-m", "dtpf.system.service", "--ps", "1.5"],
                                cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert completed.returncode == 2
     assert "--ps: Input should be less than or equal to 1" in completed.stderr
@@ -252,7 +253,7 @@ def test_recorder_that_cannot_write_its_log_says_so_and_exits_2(tmp_path):
     blocker = tmp_path / "not-a-folder"
     blocker.write_text("a file where the log's folder should be")
     output = blocker / "run.mcap"
-    done = subprocess.run([sys.executable, "-m", "scripts.record", "--output", str(output),
+    done = subprocess.run([sys.executable, "-m", "dtpf.scripts.record", "--output", str(output),
                            "--listen", "tcp/127.0.0.1:0"],
                           cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert done.returncode == 2, done.stderr

@@ -13,15 +13,16 @@ import pytest
 from mcap.reader import make_reader
 from PIL import Image
 
-from entity import models
-from entity.tracking import VideoTrackingModel, disc_offsets, encode_jpeg, hsv_bins
-from entity.video import VideoScene, _render, render
-from messages.codec import MessageError, decode, decode_for_key, encode, schema_for
-from messages.config import RunConfig
-from messages.models import CompressedImage, Time
-from messages.schema import foxglove_problems
-from scripts import inprocess
-from scripts.paper import tracking as report
+from dtpf.entity import models
+from dtpf.entity.tracking import VideoTrackingModel, disc_offsets, encode_jpeg, hsv_bins
+from dtpf.entity.video import VideoScene, _render, render
+from dtpf.messages.codec import MessageError, decode, decode_for_key, encode, schema_for
+from dtpf.messages.config import RunConfig
+from dtpf.messages.foxglove import CompressedImage
+from dtpf.messages.models import Time
+from dtpf.messages.schema import foxglove_problems
+from dtpf.scripts import inprocess
+from dtpf.scripts.paper import tracking as report
 
 MODEL = models.get("video")
 TRUTH = MODEL.true_states()
@@ -207,7 +208,7 @@ def test_frame_message_round_trips_and_its_schema_is_foxglove_shaped():
 
 def test_base64_checked_is_for_the_maker_only_a_receiver_still_decodes():
     """BASE64_CHECKED skips the check where the maker just ran b64encode; the bytes on the bus are checked."""
-    from messages.models import BASE64_CHECKED
+    from dtpf.messages.foxglove import BASE64_CHECKED
 
     fields = dict(run_id="r", twin_id="t", step=1, timestamp=Time(sec=0, nsec=0), frame_id="camera",
                   format="jpeg", data="not base64!")
@@ -243,7 +244,7 @@ def test_quick_report_writes_files_holding_numbers(tmp_path):
 
 def test_launch_video_scenario_records_decodable_frames(processes, tmp_path):
     log = tmp_path / "video.mcap"
-    launcher = processes.start("launcher", ["-m", "scripts.cli", "launch", "--scenario", "video", "--steps", "10",
+    launcher = processes.start("launcher", ["-m", "dtpf.scripts.cli", "launch", "--scenario", "video", "--steps", "10",
                                             "--twin", "t-video", "-o", str(log), "--quiet"])
     launcher.wait(timeout=120)
     assert launcher.returncode == 0, processes.output(launcher)
@@ -266,7 +267,7 @@ def test_launch_video_scenario_records_decodable_frames(processes, tmp_path):
 
 
 def test_launch_refuses_a_simulating_policy_on_the_video_before_starting(processes, tmp_path):
-    launcher = processes.start("launcher", ["-m", "scripts.cli", "launch", "--scenario", "video", "--policy", "rule",
+    launcher = processes.start("launcher", ["-m", "dtpf.scripts.cli", "launch", "--scenario", "video", "--policy", "rule",
                                             "-o", str(tmp_path / "no.mcap")])
     launcher.wait(timeout=60)
     assert launcher.returncode == 2

@@ -9,7 +9,7 @@ reference, without editing dtpf::
 
 or in Python::
 
-    from entity import model_ref
+    from dtpf.entity import model_ref
     model = model_ref.resolve("docs/examples/range_bearing.py:RangeBearingTarget")
 
 ``range_bearing.csv`` next to this file holds 100 simulated steps
@@ -36,7 +36,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from entity.models import StateSpaceModel
+from dtpf import StateSpaceModel
 
 __all__ = ["RangeBearingTarget", "wrap_angle"]
 

@@ -1,13 +1,13 @@
 """Encode/decode time and size of one ParticleSet, three ways.
 
 (a) envelope  dtpf's binary envelope: JSON header + raw little-endian float64
-              (``messages.codec.encode`` / ``decode``; decode includes full
+              (``dtpf.messages.codec.encode`` / ``decode``; decode includes full
               validation of the arrays and fields).
 (b) base64    pydantic JSON, the arrays as ``bytes`` fields in base64
               (``ser_json_bytes='base64'``, pydantic's URL-safe alphabet).
 (c) lists     pydantic JSON, the arrays as ``list[float]``.
 
-All three decode into the same validated :class:`~messages.models.ParticleSet`,
+All three decode into the same validated :class:`~dtpf.messages.models.ParticleSet`,
 so the comparison is about the encoding; the row "validation" is that common
 step alone (constructing a ParticleSet from fields and arrays already in
 memory, which checks every field and array). Methods are interleaved within every
@@ -16,8 +16,8 @@ table shows medians.
 
 Run from the repository root::
 
-    python -m scripts.bench.encoding                 # N = 1e3 .. 1e6
-    python -m scripts.bench.encoding --sizes 1000 10000 --scale 0.2
+    python -m dtpf.scripts.bench.encoding                 # N = 1e3 .. 1e6
+    python -m dtpf.scripts.bench.encoding --sizes 1000 10000 --scale 0.2
 """
 from __future__ import annotations
 
@@ -32,8 +32,8 @@ import numpy as np
 import pydantic
 from pydantic import BaseModel, ConfigDict
 
-from messages.codec import decode, encode
-from messages.models import ParticleSet, Time
+from dtpf.messages.codec import decode, encode
+from dtpf.messages.models import ParticleSet, Time
 
 #: Repetitions per N at --scale 1 (fewer for the large sizes).
 REPEATS = {1_000: 201, 10_000: 101, 100_000: 21, 1_000_000: 7}

@@ -1,8 +1,8 @@
 """A fleet's throughput, step latency and memory: K twins on shared layers against K solo launches.
 
-For each (N, K): (f) ``scripts.fleet.launch_fleet`` (K twins in one entity
+For each (N, K): (f) ``dtpf.scripts.fleet.launch_fleet`` (K twins in one entity
 process per CPU, one information, one system service, one recorder), and,
-where it fits (``--solo-max``), (k) K solo ``scripts.launch.launch`` at once
+where it fits (``--solo-max``), (k) K solo ``dtpf.scripts.launch.launch`` at once
 (4 processes per twin). Figures:
 
 - twin-steps/s: every estimate of every twin, divided by the time from the
@@ -23,8 +23,8 @@ where it fits (``--solo-max``), (k) K solo ``scripts.launch.launch`` at once
 
 Run from the repository root::
 
-    python -m scripts.bench.fleet                              # K = 1, 10, 100 at 1e3; 1, 10 at 1e5
-    python -m scripts.bench.fleet --cases 1e3:1,10 --steps 100
+    python -m dtpf.scripts.bench.fleet                              # K = 1, 10, 100 at 1e3; 1, 10 at 1e5
+    python -m dtpf.scripts.bench.fleet --cases 1e3:1,10 --steps 100
 """
 from __future__ import annotations
 
@@ -40,9 +40,9 @@ from pathlib import Path
 
 import numpy as np
 
-from messages.config import RunConfig
-from scripts.fleet import launch_fleet
-from scripts.launch import launch
+from dtpf.messages.config import RunConfig
+from dtpf.scripts.fleet import launch_fleet
+from dtpf.scripts.launch import launch
 
 #: (N, K) measured by default, and the steps of each run.
 DEFAULT_CASES = {1_000: (1, 10, 100), 100_000: (1, 10)}
@@ -156,8 +156,8 @@ _TICKS = os.sysconf("SC_CLK_TCK")
 
 def _kind(command: list[bytes]) -> str:
     text = b" ".join(command).decode(errors="replace")
-    for module, kind in (("entity.service", "entity"), ("information.service", "information"),
-                         ("system.service", "system"), ("scripts.record", "recorder")):
+    for module, kind in (("dtpf.entity.service", "entity"), ("dtpf.information.service", "information"),
+                         ("dtpf.system.service", "system"), ("dtpf.scripts.record", "recorder")):
         if module in text:
             return kind
     return "other"
@@ -226,7 +226,7 @@ def _mb(values) -> str:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m scripts.bench.fleet", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m dtpf.scripts.bench.fleet", description=__doc__.split("\n\n")[0])
     parser.add_argument("--cases", nargs="+", default=None, metavar="N:K,K",
                         help="the (N, K) to measure, e.g. 1e3:1,10,100 1e5:1,10 (the default)")
     parser.add_argument("--steps", type=int, default=None, help="steps per twin (default: 200 at 1e3, 60 at 1e5)")
@@ -253,7 +253,7 @@ def main(argv=None) -> int:
                     rows.append((n, k, mode, run(n, k, steps, Path(folder))))
                     for path in Path(folder).glob("*.mcap"):
                         path.unlink()
-    print(f"`python -m scripts.bench.fleet{' ' + ' '.join(sys.argv[1:]) if sys.argv[1:] else ''}`: Python "
+    print(f"`python -m dtpf.scripts.bench.fleet{' ' + ' '.join(sys.argv[1:]) if sys.argv[1:] else ''}`: Python "
           f"{platform.python_version()}, {os.cpu_count()} CPUs, {time.perf_counter() - start:.0f} s in all, "
           f"1-min load {load_before:.2f} before.\n")
     print("| N | K | mode | twin-steps/s | step p50 ms | step p99 ms | RSS MB: entity | information | system | "

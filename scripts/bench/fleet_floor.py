@@ -9,7 +9,7 @@ launcher's progress), besides about 0.76 statuses per twin-step at K = 100.
 This benchmark sends the same messages, of the sizes a real fleet's log holds
 at N = 1e3 (``--scale`` for others), between stand-in processes that do
 nothing else: no filter, no rules, no pydantic, no MCAP writing. Each stand-in
-receives as the product does (``messages.bus.Inbox``: a Zenoh subscriber whose
+receives as the product does (``dtpf.shell.bus.Inbox``: a Zenoh subscriber whose
 Python callback copies the payload into a queue that rings a doorbell) and
 publishes with the product's publishers (congestion control BLOCK); the
 recorder stand-in takes every message of the fleet and copies it out. The
@@ -29,8 +29,8 @@ that time) and each kind of process's CPU time per twin-step in that window
 fleet cannot go faster than this on the same machine. Run from the
 repository root::
 
-    python -m scripts.bench.fleet_floor                      # K = 100, both receivers, 3 repetitions
-    python -m scripts.bench.fleet_floor --twins 10 100 --repeats 1
+    python -m dtpf.scripts.bench.fleet_floor                      # K = 100, both receivers, 3 repetitions
+    python -m dtpf.scripts.bench.fleet_floor --twins 10 100 --repeats 1
 """
 from __future__ import annotations
 
@@ -44,8 +44,8 @@ import subprocess
 import sys
 import time
 
-from messages.bus import Doorbell, Inbox, free_port, open_session, publisher, zenoh_config
-from scripts.bench.fleet import RssSampler
+from dtpf.scripts.bench.fleet import RssSampler
+from dtpf.shell.bus import Doorbell, Inbox, free_port, open_session, publisher, zenoh_config
 
 RECEIVERS = ("inbox", "demux")
 ROLES = ("recorder", "system", "information", "entity")
@@ -167,7 +167,7 @@ def one_run(k: int, how: str, steps: int, processes: int, scale: float) -> dict:
             for role in ROLES:
                 for process in range(processes if role == "entity" else 1):
                     children.append(subprocess.Popen(
-                        [sys.executable, "-m", "scripts.bench.fleet_floor", "--serve", role, endpoint, how, str(k),
+                        [sys.executable, "-P", "-m", "dtpf.scripts.bench.fleet_floor", "--serve", role, endpoint, how, str(k),
                          str(processes), str(process), str(steps), str(scale)]))
             first = last = None
             count = 0
@@ -190,7 +190,7 @@ def one_run(k: int, how: str, steps: int, processes: int, scale: float) -> dict:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m scripts.bench.fleet_floor", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m dtpf.scripts.bench.fleet_floor", description=__doc__.split("\n\n")[0])
     parser.add_argument("--twins", nargs="+", type=int, default=[100], metavar="K",
                         help="fleet sizes (default: 100)")
     parser.add_argument("--steps", type=int, default=200, help="steps per twin (default: %(default)s)")
@@ -224,7 +224,7 @@ def main(argv=None) -> int:
         runs[k, how].append(result)
         print(f"  run {i}/{len(order)}: K = {k} {how}: {result['rate']:.0f} twin-steps/s, "
               f"{sum(result['cpu_ms'].values()):.3f} ms CPU per twin-step", file=sys.stderr, flush=True)
-    print(f"`python -m scripts.bench.fleet_floor{' ' + ' '.join(sys.argv[1:]) if sys.argv[1:] else ''}`: Python "
+    print(f"`python -m dtpf.scripts.bench.fleet_floor{' ' + ' '.join(sys.argv[1:]) if sys.argv[1:] else ''}`: Python "
           f"{platform.python_version()}, {os.cpu_count()} CPUs, 1-min load {load:.2f} before, "
           f"{time.perf_counter() - start:.0f} s in all; {args.steps} steps per twin, {args.entities} entity "
           f"processes, particle sets of {int(SIZES['entity/particles'] * args.scale)} bytes.\n")

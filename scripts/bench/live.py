@@ -3,7 +3,7 @@
 For each N, ``dtpf launch --observations live`` runs as its own process (the
 embedded router, the recorder, system, information and entity services, lockstep,
 DT preprocessing), and this process plays the sensor: it publishes one
-:class:`~messages.models.Observation` (the scenario's simulated z_k) and waits
+:class:`~dtpf.messages.models.Observation` (the scenario's simulated z_k) and waits
 for the estimate of that step before it sends the next, so no observation
 queues behind another. The latency of step k is the estimate's ``stamp`` minus
 the observation's ``stamp`` (both wall-clock times of the same machine, taken
@@ -13,8 +13,8 @@ order; the table gives the median over repetitions of each run's p50 and p99.
 
 Run from the repository root::
 
-    python -m scripts.bench.live                        # N = 1e3, 1e4, 1e5; about 2 minutes
-    python -m scripts.bench.live --sizes 1e3 --steps 500 --repeats 3
+    python -m dtpf.scripts.bench.live                        # N = 1e3, 1e4, 1e5; about 2 minutes
+    python -m dtpf.scripts.bench.live --sizes 1e3 --steps 500 --repeats 3
 """
 from __future__ import annotations
 
@@ -31,13 +31,13 @@ from pathlib import Path
 
 import numpy as np
 
-from entity import sources
-from messages import keys
-from messages.bus import BusError, Inbox, free_port, open_session, publisher, zenoh_config
-from messages.codec import MessageError, decode_for_key, encode
-from messages.config import RunConfig
-from messages.models import Estimate, Observation, ServiceState, Status, Time
-from scripts.bench.pipeline import fmt_n
+from dtpf.entity import sources
+from dtpf.messages import keys
+from dtpf.messages.codec import MessageError, decode_for_key, encode
+from dtpf.messages.config import RunConfig
+from dtpf.messages.models import Estimate, Observation, ServiceState, Status, Time
+from dtpf.scripts.bench.pipeline import fmt_n
+from dtpf.shell.bus import BusError, Inbox, free_port, open_session, publisher, zenoh_config
 
 #: Targets at N = 1e3 on 2 cores (issue 11): p50 and p99 latency in ms.
 TARGET_N, TARGET_P50_MS, TARGET_P99_MS = 1_000, 1.0, 3.0
@@ -51,7 +51,7 @@ def one_run(n: int, steps: int, warm_up: int, gap: float, seed: int, log_dir: Pa
     data = sources.observations_of(config, sources.load_model(config))
     port = free_port()
     launcher = subprocess.Popen(
-        [sys.executable, "-m", "scripts.cli", "launch", "--observations", "live", "--particles", str(n),
+        [sys.executable, "-P", "-m", "dtpf.scripts.cli", "launch", "--observations", "live", "--particles", str(n),
          "--seed", str(seed), "--twin", twin, "--port", str(port), "--quiet", "-o", str(log_dir / f"{twin}.mcap")],
         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     session = None
@@ -108,7 +108,7 @@ def one_run(n: int, steps: int, warm_up: int, gap: float, seed: int, log_dir: Pa
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m scripts.bench.live", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m dtpf.scripts.bench.live", description=__doc__.split("\n\n")[0])
     parser.add_argument("--sizes", nargs="+", default=["1e3", "1e4", "1e5"], help="particle counts N")
     parser.add_argument("--steps", type=int, default=300, help="observations per run (default: %(default)s)")
     parser.add_argument("--warm-up", type=int, default=20, help="first steps left out (default: %(default)s)")

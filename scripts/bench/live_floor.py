@@ -10,7 +10,7 @@ stamps a small estimate with ``time.time_ns()`` as soon as the answer is in.
 A recorder stand-in subscribes to everything, as ``dtpf launch``'s recorder
 does, and copies each payload out. The bench process hosts the router (as
 the launcher does) and plays the sensor, with the same pause between an
-estimate and the next observation as ``scripts.bench.live``.
+estimate and the next observation as ``dtpf.scripts.bench.live``.
 
 Topologies:
 
@@ -18,15 +18,15 @@ Topologies:
 - ``peer``: the entity and the information stand-ins are peers linked to each
   other directly and to the router (the sensor and the recorder stay clients).
 
-Receivers: ``callback`` (dtpf's :class:`messages.bus.Inbox`: a Python callback
+Receivers: ``callback`` (dtpf's :class:`dtpf.shell.bus.Inbox`: a Python callback
 copies the payload into a queue the main thread waits on) or ``channel``
 (Zenoh's own FIFO channel, ``subscriber.recv()`` in the main thread).
 
 Whatever the filter adds comes on top of these figures: the latency of a
 live twin cannot go below them. Run from the repository root::
 
-    python -m scripts.bench.live_floor                  # N = 1e3, 4 repetitions of each variant
-    python -m scripts.bench.live_floor --sizes 1e3 1e5 --repeats 2
+    python -m dtpf.scripts.bench.live_floor                  # N = 1e3, 4 repetitions of each variant
+    python -m dtpf.scripts.bench.live_floor --sizes 1e3 1e5 --repeats 2
 """
 from __future__ import annotations
 
@@ -42,7 +42,7 @@ import time
 import numpy as np
 import zenoh
 
-from messages.bus import Inbox, free_port, open_session, publisher, zenoh_config
+from dtpf.shell.bus import Inbox, free_port, open_session, publisher, zenoh_config
 
 TOPOLOGIES = ("router", "peer")
 RECEIVERS = ("callback", "channel")
@@ -116,7 +116,7 @@ def one_run(n: int, topology: str, how: str, steps: int, warm_up: int, gap: floa
     try:
         for role in ("recorder", "information", "entity")[0 if recorder else 1:]:
             children.append(subprocess.Popen(
-                [sys.executable, "-m", "scripts.bench.live_floor", "--serve", role, topology, how,
+                [sys.executable, "-P", "-m", "dtpf.scripts.bench.live_floor", "--serve", role, topology, how,
                  router_endpoint, entity_endpoint, str(16 * n)]))
         session = open_session(zenoh_config(mode="client", connect=[router_endpoint]))
         estimates = Inbox(session, "floor/entity/estimate")
@@ -146,7 +146,7 @@ def one_run(n: int, topology: str, how: str, steps: int, warm_up: int, gap: floa
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m scripts.bench.live_floor",
+    parser = argparse.ArgumentParser(prog="python -m dtpf.scripts.bench.live_floor",
                                      description=__doc__.split("\n\n")[0])
     parser.add_argument("--sizes", nargs="+", default=["1e3"], help="particle counts N (default: 1e3)")
     parser.add_argument("--steps", type=int, default=400, help="observations per run (default: %(default)s)")

@@ -1,9 +1,9 @@
 """Steady-state time per filter step: in-process pipeline against three processes over Zenoh.
 
-(a) in-process  the three layers in one process (``scripts.inprocess.build``:
+(a) in-process  the three layers in one process (``dtpf.scripts.inprocess.build``:
                 the filter calls the information and system layers directly),
                 RunConfig with preprocess=True.
-(b) three-process  ``scripts.launch.launch``: an embedded Zenoh router in this
+(b) three-process  ``dtpf.scripts.launch.launch``: an embedded Zenoh router in this
                 process, the recorder, system, information and entity services
                 as child processes, lockstep over Zenoh (the product's real
                 configuration).
@@ -29,10 +29,10 @@ the per-repetition ratios of time per step.
 
 Run from the repository root::
 
-    python -m scripts.bench.pipeline                          # N = 1e3 .. 1e6, about 5 minutes
-    python -m scripts.bench.pipeline --sizes 1e5 --steps 200 --repeats 5
-    python -m scripts.bench.pipeline --recorder with         # (a) and (b) only
-    python -m scripts.bench.pipeline --sizes 1e3 1e5 --recorder with --secure tls   # issue 15's figures
+    python -m dtpf.scripts.bench.pipeline                          # N = 1e3 .. 1e6, about 5 minutes
+    python -m dtpf.scripts.bench.pipeline --sizes 1e5 --steps 200 --repeats 5
+    python -m dtpf.scripts.bench.pipeline --recorder with         # (a) and (b) only
+    python -m dtpf.scripts.bench.pipeline --sizes 1e3 1e5 --recorder with --secure tls   # issue 15's figures
 """
 from __future__ import annotations
 
@@ -50,10 +50,10 @@ from pathlib import Path
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from messages.config import RunConfig
-from messages.service import keep_large_blocks
-from scripts import launch as launch_module
-from scripts.inprocess import build, simulate
+from dtpf.messages.config import RunConfig
+from dtpf.scripts import launch as launch_module
+from dtpf.scripts.inprocess import build, simulate
+from dtpf.shell.service import keep_large_blocks
 
 #: Steps per run at the default sizes (the timed window is steps FIRST_TIMED .. T).
 DEFAULT_STEPS = {1_000: 400, 10_000: 300, 100_000: 150, 1_000_000: 40}
@@ -103,7 +103,7 @@ def window_time(times: list[float]) -> float:
 def run_inprocess(config: RunConfig) -> float:
     """Seconds per step of the in-process pipeline over the timed window.
 
-    The same code as ``scripts.inprocess.run`` (``simulate`` + ``build``), but
+    The same code as ``dtpf.scripts.inprocess.run`` (``simulate`` + ``build``), but
     the steps are not kept: the entity service does not keep them either.
     """
     _, observations = simulate(config)
@@ -155,7 +155,7 @@ def fmt_rate(seconds: float) -> str:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(
-        prog="python -m scripts.bench.pipeline",
+        prog="python -m dtpf.scripts.bench.pipeline",
         description="Steady-state steps per second of the in-process pipeline (a) and of the three-process "
                     "lockstep pipeline over Zenoh started by dtpf launch (b), and their ratio; prints a "
                     "Markdown table and PASS/FAIL against the targets.",
@@ -196,7 +196,7 @@ def main(argv=None) -> int:
     if args.repeats < 1:
         parser.error("--repeats must be at least 1")
     # (a) runs in this process: give it the allocator and BLAS settings every layer process of (b)
-    # gets (messages.service.run_service), so the ratio compares the split, not the settings.
+    # gets (dtpf.shell.service.run_service), so the ratio compares the split, not the settings.
     # Without it, (a) at N = 1e5 took 7.3-8.2 ms alone and 6.05 ms after larger N had grown the heap.
     keep_large_blocks()
     threadpool_limits(limits=1, user_api="blas")
@@ -220,7 +220,7 @@ def main(argv=None) -> int:
         run_inprocess(config.model_copy(update={"steps": FIRST_TIMED + 2}))
     with tempfile.TemporaryDirectory(prefix="dtpf-bench-") as folder:
         if set("su") & set(launched):
-            from scripts.secure import init
+            from dtpf.scripts.secure import init
             init(Path(folder) / "secure")
         secure_of = {"s": Path(folder) / "secure" / "tls", "u": Path(folder) / "secure" / "usrpwd"}
         for repeat in range(args.repeats):
@@ -241,9 +241,9 @@ def main(argv=None) -> int:
     total = time.perf_counter() - start
 
     tuning = {k: v for k, v in sorted(os.environ.items()) if k.startswith(TUNING_PREFIXES)}
-    command = "python -m scripts.bench.pipeline" + (" " + " ".join(sys.argv[1:]) if sys.argv[1:] else "")
+    command = "python -m dtpf.scripts.bench.pipeline" + (" " + " ".join(sys.argv[1:]) if sys.argv[1:] else "")
     print(f"`{command}`: Python {platform.python_version()}, numpy {np.__version__}, {os.cpu_count()} CPUs, "
-          f"all with one BLAS thread and large blocks kept (messages.service), environment "
+          f"all with one BLAS thread and large blocks kept (dtpf.shell.service), environment "
           f"{' '.join(f'{k}={v}' for k, v in tuning.items()) if tuning else 'untuned'} "
           f"(inherited by the services); {total:.0f} s in all; 1-min load average {load_before:.2f} before the run.\n")
     if load_before > BUSY_LOAD:

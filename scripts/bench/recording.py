@@ -4,9 +4,9 @@ Per step the recorder writes the propagated and the preprocessed particle
 set, each an envelope of N x (d + 1) float64 (d = 1 here). Rows:
 
 - crc32 zlib     CPython's ``zlib.crc32`` of one payload (what the mcap package uses)
-- crc32 zlib-ng  ``messages.crc.crc32`` (zlib-ng, the same function)
+- crc32 zlib-ng  ``dtpf.recording.crc.crc32`` (zlib-ng, the same function)
 - write, mcap as shipped   ``McapRecording.write`` of both sets with mcap's own zlib CRCs
-- write, dtpf              the same with :func:`messages.crc.use_fast_crc` (the recorder's setting)
+- write, dtpf              the same with :func:`dtpf.recording.crc.use_fast_crc` (the recorder's setting)
 
 Chunks are uncompressed, as the recorder's ``auto`` picks above 64 KiB.
 Methods alternate within every repetition; the file is rewritten from empty
@@ -14,8 +14,8 @@ for each and deleted after. Medians.
 
 Run from the repository root::
 
-    python -m scripts.bench.recording                    # N = 1e3 .. 1e6
-    python -m scripts.bench.recording --sizes 1e5 --steps 50
+    python -m dtpf.scripts.bench.recording                    # N = 1e3 .. 1e6
+    python -m dtpf.scripts.bench.recording --sizes 1e5 --steps 50
 """
 from __future__ import annotations
 
@@ -30,9 +30,9 @@ from pathlib import Path
 
 import mcap
 
-from messages import crc
-from messages.recording import McapRecording
-from scripts.bench.pipeline import fmt_n, parse_size
+from dtpf.recording import crc
+from dtpf.recording.writer import McapRecording
+from dtpf.scripts.bench.pipeline import fmt_n, parse_size
 
 KEYS = ("dtpf/bench/entity/particles", "dtpf/bench/information/preprocessed")
 
@@ -67,7 +67,7 @@ def time_writes(payload: bytes, steps: int, fast: bool, folder: Path) -> float:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m scripts.bench.recording", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m dtpf.scripts.bench.recording", description=__doc__.split("\n\n")[0])
     parser.add_argument("--sizes", nargs="+", type=parse_size, default=[1_000, 10_000, 100_000, 1_000_000],
                         help="particle counts N (default: 1e3 1e4 1e5 1e6)")
     parser.add_argument("--steps", type=int, default=100, help="steps recorded per method and repetition "

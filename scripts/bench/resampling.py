@@ -6,16 +6,16 @@ Part 1, kernels: normalised weights -> N ancestor indices, at each N.
   (``np.cumsum(W, out=)``), one gather of the particles by sorted ancestors
   (``np.take(X, A, axis=0, out=)``), N uniforms from the run's generator
   (``rng.random(N, out=)``);
-- dtpf: ``entity.resampling.RESAMPLERS[scheme](W, rng, out=, checked=True)``, as
+- dtpf: ``dtpf.entity.resampling.RESAMPLERS[scheme](W, rng, out=, checked=True)``, as
   the filter calls it (numba, into a buffer, weights checked where they were
   made), and the public call that checks W and allocates;
 - particles: ``particles.resampling.<scheme>(W)`` (numba; global ``np.random``,
   seeded before it is timed);
 - filterpy: ``filterpy.monte_carlo.<scheme>_resample(W)`` (Python loops; at
   N >= 1e6 timed in one repetition only);
-- systematic + gather: dtpf's systematic, then ``entity.resampling.gather`` on
+- systematic + gather: dtpf's systematic, then ``dtpf.entity.resampling.gather`` on
   1 thread and on every core (numba's parallel loop), against the two floors;
-- DT preprocessing: ``information.rules.preprocess(X, W, 0.81, rng, checked=True)``
+- DT preprocessing: ``dtpf.information.rules.preprocess(X, W, 0.81, rng, checked=True)``
   with X of shape (N, 1) (Eq. 28-30), against dtpf's systematic.
 
 Each dtpf kernel gets its ratio to the floor that bounds it (``BOUNDS``), to
@@ -31,7 +31,7 @@ process variance 10, observation variance 1), systematic resampling at every
 step, one data set of 100 steps for every implementation:
 
 (a) dtpf ``ParticleFilter`` without preprocessing (reference),
-(b) dtpf with the in-process digital twin (``scripts.inprocess.build``,
+(b) dtpf with the in-process digital twin (``dtpf.scripts.inprocess.build``,
     ``RunConfig(preprocess=True)``: fixed PS 0.81),
 (c) ``particles.SMC`` of a ``Bootstrap`` Feynman-Kac model of the same
     state-space model (:func:`particles_growth_model`), ESSrmin=1,
@@ -49,9 +49,9 @@ medians of per-repetition ratios against the reference of the same repetition.
 
 Run from the repository root::
 
-    python -m scripts.bench.resampling                       # N = 1e3 .. 1e6, 2-4 minutes
-    python -m scripts.bench.resampling --quick               # smoke run, a few seconds
-    python -m scripts.bench.resampling --sizes 1e5 --repeats 5
+    python -m dtpf.scripts.bench.resampling                       # N = 1e3 .. 1e6, 2-4 minutes
+    python -m dtpf.scripts.bench.resampling --quick               # smoke run, a few seconds
+    python -m dtpf.scripts.bench.resampling --sizes 1e5 --repeats 5
 
 particles and filterpy are optional (``pip install -e '.[bench]'``); their
 rows read "not installed" without them.
@@ -76,11 +76,11 @@ from typing import Callable
 import numba
 import numpy as np
 
-from entity import models, resampling
-from information import rules
-from information.select import kth_largest
-from messages.config import RunConfig
-from scripts.inprocess import build, simulate
+from dtpf.entity import models, resampling
+from dtpf.information import rules
+from dtpf.information.select import kth_largest
+from dtpf.messages.config import RunConfig
+from dtpf.scripts.inprocess import build, simulate
 
 SCHEMES = ("multinomial", "stratified", "systematic", "residual")
 #: PS of the DT preprocessing, in part 1 and in (b).
@@ -154,7 +154,7 @@ def particles_growth_model(model: models.GrowthModel):
 #: The floors, timed with the kernels: one pass over the weights, one gather of the particles by
 #: sorted ancestors, N uniforms from the run's generator; all into preallocated arrays. DT
 #: preprocessing's two: selecting W of Eq. 28 (the (k+1)-th largest weight, k = round(ESS), as
-#: preprocess selects it: information.select's radix select, below rules.SMALL_SET numba's
+#: preprocess selects it: dtpf.information.select's radix select, below rules.SMALL_SET numba's
 #: np.partition in compiled code) and reading each small particle's
 #: partner (Eq. 29), N - k rows at random among the k large ones, in a compiled loop.
 FLOORS = ("weight pass", "gather", "uniforms", "select", "partners")
@@ -547,7 +547,7 @@ def repeats_for(n: int, table: dict[int, int], override: int | None) -> int:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(
-        prog="python -m scripts.bench.resampling",
+        prog="python -m dtpf.scripts.bench.resampling",
         description="Resampling kernels (dtpf, particles, filterpy, DT preprocessing) and one full filter "
                     "step on the growth model (dtpf with and without the in-process twin, particles.SMC, a "
                     "numpy loop with filterpy), interleaved in shuffled order; prints Markdown tables of "
@@ -603,7 +603,7 @@ def main(argv=None) -> int:
                                   args.seed, order, truth, observations)
     total = time.perf_counter() - start
 
-    command = "python -m scripts.bench.resampling" + (" " + " ".join(sys.argv[1:]) if sys.argv[1:] else "")
+    command = "python -m dtpf.scripts.bench.resampling" + (" " + " ".join(sys.argv[1:]) if sys.argv[1:] else "")
     malloc = " ".join(f"{k}={v}" for k, v in os.environ.items() if k.startswith("MALLOC_")) or "default malloc"
     print(f"`{command}`\n\n{os.cpu_count()} CPUs ({cpu_name()}), Python {platform.python_version()}, "
           f"numpy {np.__version__}, numba {numba.__version__}, particles {version('particles')}, "

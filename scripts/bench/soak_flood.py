@@ -13,8 +13,8 @@ behind; the target is that the floods after it add nothing: the RSS after the
 last flood within 10 % (or 16 MB) of the RSS after the first. The run must
 still complete with every step.
 
-    python -m scripts.bench.soak_flood                  # 20,000 payloads of 64 KiB
-    python -m scripts.bench.soak_flood --payloads 2000 --size 1000000
+    python -m dtpf.scripts.bench.soak_flood                  # 20,000 payloads of 64 KiB
+    python -m dtpf.scripts.bench.soak_flood --payloads 2000 --size 1000000
 """
 from __future__ import annotations
 
@@ -27,10 +27,10 @@ from pathlib import Path
 
 import zenoh
 
-from messages.bus import Inbox, free_port
-from messages.codec import MessageError, decode_for_key
-from messages.models import Estimate
-from scripts.bench.soak_memory import children_of, connect, stop, vm_rss_kb
+from dtpf.messages.codec import MessageError, decode_for_key
+from dtpf.messages.models import Estimate
+from dtpf.scripts.bench.soak_memory import children_of, connect, stop, vm_rss_kb
+from dtpf.shell.bus import Inbox, free_port
 
 TWIN = "soak-flood"
 #: The keys the layers subscribe to (the recorder takes them all).
@@ -43,7 +43,7 @@ def sample(processes: dict[str, int]) -> dict[str, float]:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m scripts.bench.soak_flood", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m dtpf.scripts.bench.soak_flood", description=__doc__.split("\n\n")[0])
     parser.add_argument("--steps", type=int, default=1500, help="steps of the launch (default: %(default)s)")
     parser.add_argument("--rate", type=float, default=50.0, help="steps per second (default: %(default)s)")
     parser.add_argument("--particles", type=int, default=1000, help="N (default: %(default)s)")
@@ -58,7 +58,7 @@ def main(argv=None) -> int:
         parser.error("--steps must leave the run going well past the flood and the settling time")
     port = free_port()
     with tempfile.TemporaryDirectory(prefix="dtpf-soak-flood-") as folder:
-        launcher = subprocess.Popen([sys.executable, "-m", "scripts.cli", "launch", "--steps", str(args.steps),
+        launcher = subprocess.Popen([sys.executable, "-P", "-m", "dtpf.scripts.cli", "launch", "--steps", str(args.steps),
                                      "--rate", str(args.rate), "--particles", str(args.particles), "--twin", TWIN,
                                      "--port", str(port), "-o", str(Path(folder) / "flood.mcap"), "--quiet"],
                                     stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)

@@ -1,6 +1,6 @@
 """Many short launches in a row: does every ``dtpf launch`` start, finish and stop cleanly?
 
-Each launch is one call of :func:`scripts.launch.launch` (the embedded Zenoh
+Each launch is one call of :func:`dtpf.scripts.launch.launch` (the embedded Zenoh
 router in this process; the recorder, system, information and entity services
 as child processes) on a short simulated run, with its MCAP log in a temporary
 directory. After each launch the script checks:
@@ -9,7 +9,7 @@ directory. After each launch the script checks:
   -9 being the launcher's SIGKILL of a child that did not exit within 10 s of
   its SIGINT; any code other than 0 is a failed launch;
 - the number of estimates the launcher received, which should be ``--steps``;
-- the log: :func:`messages.logfile.read_log` must read it as complete, with no
+- the log: :func:`dtpf.recording.logfile.read_log` must read it as complete, with no
   problem and ``--steps`` estimates; the log is deleted afterwards;
 - the wall time of the launch, and its shutdown time: from the arrival of the
   last estimate at the launcher to the return of ``launch()``, i.e. until every
@@ -26,8 +26,8 @@ the target is missed, 130 after Ctrl-C otherwise.
 
 Run from the repository root::
 
-    python -m scripts.bench.soak_launches                       # 200 launches, about 12 minutes on 2 cores
-    python -m scripts.bench.soak_launches --launches 5
+    python -m dtpf.scripts.bench.soak_launches                       # 200 launches, about 12 minutes on 2 cores
+    python -m dtpf.scripts.bench.soak_launches --launches 5
 """
 from __future__ import annotations
 
@@ -42,10 +42,10 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from messages import keys
-from messages.config import RunConfig
-from messages.logfile import LogError, read_log
-from scripts.launch import LAYERS, LaunchError, launch
+from dtpf.messages import keys
+from dtpf.messages.config import RunConfig
+from dtpf.recording.logfile import LogError, read_log
+from dtpf.scripts.launch import LAYERS, LaunchError, launch
 
 #: Twin id of every soak launch (the run id carries the launch number).
 TWIN = "soak"
@@ -214,12 +214,12 @@ def report(outcomes: list[LaunchOutcome], args: argparse.Namespace, elapsed: flo
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(
-        prog="python -m scripts.bench.soak_launches",
-        description="Run many short dtpf launches (scripts.launch.launch) one after another and count those "
+        prog="python -m dtpf.scripts.bench.soak_launches",
+        description="Run many short dtpf launches (dtpf.scripts.launch.launch) one after another and count those "
                     "where a child had to be SIGKILLed, a child's exit code was not 0, the estimates received "
                     "were not --steps or the log was not readable; prints a table and the wall and shutdown "
                     "times per launch.",
-        epilog="Each log is written to a temporary directory, read with messages.logfile.read_log and deleted. "
+        epilog="Each log is written to a temporary directory, read with dtpf.recording.logfile.read_log and deleted. "
                "Shutdown time = from the last estimate the launcher received to the return of launch() (every "
                "child exited, router closed). Ctrl-C prints the table of the launches done so far. Exit code 1 "
                "when a launch needed SIGKILL or failed.")

@@ -1,6 +1,6 @@
 """Memory of a long ``dtpf launch``: does any process grow while the run goes on?
 
-One ``dtpf launch`` (``python -m scripts.cli launch --steps S --particles N
+One ``dtpf launch`` (``python -m dtpf.scripts.cli launch --steps S --particles N
 --quiet``, its log in a temporary directory) runs as a subprocess on a port
 chosen here. This process connects to the launcher's embedded router as a
 Zenoh client and follows ``dtpf/<twin>/entity/estimate`` to know the step (the
@@ -8,8 +8,8 @@ launcher's progress bar is redrawn only every 2 % of T, too coarse for fixed
 steps). At step 1,000, at every ``--sample-every`` steps and at the last step
 it reads VmRSS from ``/proc/<pid>/status`` of the launcher and of each of its
 children, found in ``/proc`` as the processes whose parent is the launcher
-and told apart by the module in their command line (scripts.record,
-system.service, information.service, entity.service).
+and told apart by the module in their command line (dtpf.scripts.record,
+dtpf.system.service, dtpf.information.service, dtpf.entity.service).
 
 The step of a sample is the step of the estimate just taken from the queue;
 if this process falls behind, the services are already further on (the
@@ -22,8 +22,8 @@ complete.
 
 Run from the repository root::
 
-    python -m scripts.bench.soak_memory                          # T = 20,000 at N = 1,000
-    python -m scripts.bench.soak_memory --steps 3000 --sample-every 250
+    python -m dtpf.scripts.bench.soak_memory                          # T = 20,000 at N = 1,000
+    python -m dtpf.scripts.bench.soak_memory --steps 3000 --sample-every 250
 """
 from __future__ import annotations
 
@@ -40,10 +40,10 @@ from pathlib import Path
 import numpy as np
 import zenoh
 
-from messages import keys
-from messages.bus import BusError, Inbox, free_port, open_session, zenoh_config
-from messages.codec import MessageError, decode_for_key
-from messages.models import Estimate
+from dtpf.messages import keys
+from dtpf.messages.codec import MessageError, decode_for_key
+from dtpf.messages.models import Estimate
+from dtpf.shell.bus import BusError, Inbox, free_port, open_session, zenoh_config
 
 #: The step whose RSS is the reference, and the largest change of RSS allowed after it.
 REFERENCE_STEP = 1_000
@@ -53,8 +53,8 @@ MIN_STEPS = 2 * REFERENCE_STEP
 #: Twin id of the soak run.
 TWIN = "soak-memory"
 #: Child processes of the launcher by the module in their command line, in start order.
-CHILD_MODULES = {"recorder": "scripts.record", "system": "system.service",
-                 "information": "information.service", "entity": "entity.service"}
+CHILD_MODULES = {"recorder": "dtpf.scripts.record", "system": "dtpf.system.service",
+                 "information": "dtpf.information.service", "entity": "dtpf.entity.service"}
 PROCESSES = ("launcher", *CHILD_MODULES)
 #: Give up when no estimate arrives for this long.
 STALL_SECONDS = 120.0
@@ -228,7 +228,7 @@ def report(series: dict[str, RssSeries], args: argparse.Namespace, last_step: in
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(
-        prog="python -m scripts.bench.soak_memory",
+        prog="python -m dtpf.scripts.bench.soak_memory",
         description="Run one long dtpf launch and sample the resident memory (VmRSS) of the launcher and of its "
                     "recorder, system, information and entity processes as the run goes on; prints a table and "
                     f"PASS/FAIL against 'RSS at the end within {TOLERANCE:.0%} of RSS at step {REFERENCE_STEP:,}'.",
@@ -255,7 +255,7 @@ def main(argv=None) -> int:
     last_step, backlog, failure = 0, 0, None
     with tempfile.TemporaryDirectory(prefix="dtpf-soak-memory-") as folder:
         folder = Path(folder)
-        command = [sys.executable, "-m", "scripts.cli", "launch", "--steps", str(args.steps),
+        command = [sys.executable, "-P", "-m", "dtpf.scripts.cli", "launch", "--steps", str(args.steps),
                    "--particles", str(args.particles), "--seed", str(args.seed), "--twin", TWIN,
                    "--port", str(port), "-o", str(folder / "soak-memory.mcap"), "--quiet"]
         print(f"soak-memory: {' '.join(command[1:])}", file=sys.stderr)

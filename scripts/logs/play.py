@@ -13,8 +13,8 @@ import fnmatch
 import sys
 import time
 
-from messages.bus import BusError, add_zenoh_arguments, open_session, publisher, zenoh_config_from_args
-from messages.logfile import Log, LogError, read_log
+from dtpf.recording.logfile import Log, LogError, read_log
+from dtpf.shell.bus import BusError, add_zenoh_arguments, open_session, publisher, zenoh_config_from_args
 
 __all__ = ["play", "select", "register"]
 
@@ -76,7 +76,7 @@ def play(session, messages: list, *, rate: float = 1.0, loop: bool = False, prog
 
 def _first_of_step(messages: list, step: int) -> int:
     """Index of the first message whose step is at least ``step`` (len(messages) if none is)."""
-    from messages.codec import MessageError, decode_for_key
+    from dtpf.messages.codec import MessageError, decode_for_key
 
     for i, item in enumerate(messages):
         try:
@@ -88,7 +88,7 @@ def _first_of_step(messages: list, step: int) -> int:
 
 
 def cmd_play(args: argparse.Namespace) -> int:
-    from scripts.console import ProgressBar
+    from dtpf.scripts.console import ProgressBar
 
     try:
         log = read_log(args.log)

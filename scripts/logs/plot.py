@@ -22,7 +22,7 @@ Reading and drawing are separate: :func:`read_log` turns an MCAP file into a
 :class:`RunLog`, :func:`plot_run` turns a RunLog into a matplotlib Figure, so
 the figure can be built from data made in memory::
 
-    from scripts.logs.plot import read_log, plot_run, save
+    from dtpf.scripts.logs.plot import read_log, plot_run, save
     run = read_log("runs/demo.mcap", steps_at=[10, 50])
     figure = plot_run(run, steps_at=[10, 50])
     save(figure, "demo.png", dpi=100)
@@ -38,6 +38,8 @@ from pathlib import Path
 from typing import Iterable, Sequence
 
 import numpy as np
+
+from dtpf.messages.errors import DtpfError
 
 __all__ = ["RunLog", "PlotError", "read_log", "default_steps", "plot_run", "save", "register", "cmd_plot",
            "main", "FIGSIZE"]
@@ -65,7 +67,7 @@ COLOURS = {
 }
 
 
-class PlotError(Exception):
+class PlotError(DtpfError, ValueError):
     """A log or an option the plot cannot use; ``code`` is the exit code (1: the file, 2: an option)."""
 
     def __init__(self, message: str, code: int = 1):
@@ -83,7 +85,7 @@ class RunLog:
     ``preprocessed_count`` say how many sets of each kind the log holds.
     ``set_steps`` are the steps that have a particle set in the log.
     ``config`` is the run configuration the services reported (the fields of
-    :class:`messages.config.RunConfig`), empty when the log does not say.
+    :class:`dtpf.messages.config.RunConfig`), empty when the log does not say.
     """
 
     twin: str
@@ -164,7 +166,7 @@ def _twins(topics: Iterable[str]) -> dict[str, set[str]]:
 
 def _messages(reader, topics: list[str], on_error):
     """Decoded (topic, message) pairs of ``topics``; undecodable messages go to ``on_error``."""
-    from messages.codec import MessageError, decode_for_key
+    from dtpf.messages.codec import MessageError, decode_for_key
 
     for _, channel, message in reader.iter_messages(topics=topics):
         try:
@@ -248,7 +250,8 @@ def read_log(path, *, twin: str | None = None, steps_at: Sequence[int] | None = 
     except OSError as error:
         raise PlotError(f"cannot read {path}: {error}") from None
     except Exception as error:  # mcap, struct, lz4, zstd: whatever a damaged file makes them raise
-        from messages.logfile import LogError, read_log as read_damaged
+        from dtpf.recording.logfile import LogError
+        from dtpf.recording.logfile import read_log as read_damaged
 
         try:
             problem = read_damaged(path).problem
@@ -333,7 +336,7 @@ def _growth_model(config: dict):
     scenario = config.get("scenario")
     if not scenario or config.get("model"):  # a user model of its own, whatever the scenario field says
         return None
-    from entity import models
+    from dtpf.entity import models
 
     try:
         model = models.get(scenario)
@@ -750,7 +753,7 @@ def cmd_plot(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m scripts.logs.plot LOG -o FILE.png`` (the same as ``dtpf plot``)."""
+    """``python -m dtpf.scripts.logs.plot LOG -o FILE.png`` (the same as ``dtpf plot``)."""
     parser = argparse.ArgumentParser(prog="dtpf plot", description=DESCRIPTION)
     _add_arguments(parser)
     args = parser.parse_args(argv)

@@ -20,11 +20,11 @@ from pathlib import Path
 
 import numpy as np
 
-from messages.codec import MessageError
-from messages.logfile import Log, write_log
-from scripts.logs.play import topic_matcher
-from scripts.logs.summary import read_for_command
-from messages.models import Message, ParticleSet
+from dtpf.messages.codec import MessageError
+from dtpf.messages.models import Message, ParticleSet
+from dtpf.recording.logfile import Log, write_log
+from dtpf.scripts.logs.play import topic_matcher
+from dtpf.scripts.logs.summary import read_for_command
 
 __all__ = ["StepRange", "choose", "as_json", "register"]
 

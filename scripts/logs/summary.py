@@ -11,11 +11,11 @@
 
 The numbers come from :func:`log_info` and :func:`summarise` (dataclasses);
 :func:`format_info` and :func:`format_summary` only print them. A damaged
-file is read as far as it goes (:mod:`messages.logfile`); the commands say
+file is read as far as it goes (:mod:`dtpf.recording.logfile`); the commands say
 what is missing first, then report what is there.
 
 ``register(subparsers)`` adds the three commands to an argparse parser; the
-module also runs on its own: ``python -m scripts.logs.summary info run.mcap``.
+module also runs on its own: ``python -m dtpf.scripts.logs.summary info run.mcap``.
 """
 from __future__ import annotations
 
@@ -28,9 +28,9 @@ from pathlib import Path
 
 import numpy as np
 
-from messages.codec import MessageError, class_for_schema, schema_for
-from messages.logfile import Log, LogError, read_log, read_logs, write_log
-from messages.models import Estimate, PSCommand, Status
+from dtpf.messages.codec import MessageError, class_for_schema, schema_for
+from dtpf.messages.models import Estimate, PSCommand, Status
+from dtpf.recording.logfile import Log, LogError, read_log, read_logs, write_log
 
 __all__ = ["LogInfo", "TopicInfo", "SchemaInfo", "LogSummary", "TwinSummary", "Trajectory", "LayerStatus",
            "log_info", "summarise", "format_info", "format_summary", "format_ranges",
@@ -73,7 +73,7 @@ class LogInfo:
     path: Path
     size: int
     complete: bool
-    problems: list[str]  #: what is missing or damaged (messages.logfile.Log.problems)
+    problems: list[str]  #: what is missing or damaged (dtpf.recording.logfile.Log.problems)
     library: str | None
     profile: str | None
     messages: int
@@ -266,7 +266,7 @@ class LogSummary:
     path: Path
     size: int
     complete: bool
-    problems: list[str]                #: what is missing or damaged (messages.logfile.Log.problems)
+    problems: list[str]                #: what is missing or damaged (dtpf.recording.logfile.Log.problems)
     messages: int
     undecodable: int
     errors: list[str]                  #: the first few decode errors
@@ -524,7 +524,7 @@ def cmd_summary(args: argparse.Namespace) -> int:
     summary = summarise(log)
     print(format_summary(summary))
     if getattr(args, "config_out", None) is not None:
-        from messages.config import write_config_file
+        from dtpf.messages.config import write_config_file
 
         configs = [t for t in summary.twins if t.config is not None]
         if len(configs) != 1:
@@ -646,7 +646,7 @@ def register(subparsers) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m scripts.logs.summary",
+    parser = argparse.ArgumentParser(prog="python -m dtpf.scripts.logs.summary",
                                      description="Inspect and recover dtpf MCAP logs.")
     register(parser.add_subparsers(dest="command", metavar="COMMAND", required=True))
     args = parser.parse_args(argv)

@@ -16,12 +16,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from information.layer import InformationLayer
-from messages.config import RunConfig
-from messages.logfile import Log, LogError, read_logs
-from messages.models import ParticleSet, Status
-from system.layer import SystemLayer
-from system.predict import Snapshot
+from dtpf.information.layer import InformationLayer
+from dtpf.messages.config import RunConfig
+from dtpf.messages.models import ParticleSet, Status
+from dtpf.recording.logfile import Log, LogError, read_logs
+from dtpf.system.layer import SystemLayer
+from dtpf.system.predict import Snapshot
 
 __all__ = ["verify", "Verification", "Mismatch", "register"]
 
@@ -84,7 +84,7 @@ def _config_of(statuses: list[Status], twin: str) -> RunConfig:
 def load_model_of(config: RunConfig, override: str | None = None):
     """The model the log's run used (``override``: a reference to load instead); LogError says what
     to install or pass when it cannot be loaded."""
-    from entity import model_ref
+    from dtpf.entity import model_ref
 
     if override is not None:
         config = config.model_copy(update={"model": override})

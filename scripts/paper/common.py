@@ -1,6 +1,6 @@
 """What the paper's reports share: the methods compared, their colours, statistics, CSV and figures.
 
-Used by :mod:`scripts.paper.experiments` (section 4) and :mod:`scripts.paper.tracking`
+Used by :mod:`dtpf.scripts.paper.experiments` (section 4) and :mod:`dtpf.scripts.paper.tracking`
 (section 5), so that neither imports the other.
 """
 from __future__ import annotations

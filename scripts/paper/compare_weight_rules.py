@@ -6,7 +6,7 @@ MSE with a 95% confidence interval for: no preprocessing, DT with
 ``inherit`` weights, DT with ``likelihood`` weights; plus the paired
 difference against no preprocessing.
 
-    python -m scripts.paper.compare_weight_rules --seeds 200
+    python -m dtpf.scripts.paper.compare_weight_rules --seeds 200
 """
 from __future__ import annotations
 
@@ -17,8 +17,8 @@ import time
 
 import numpy as np
 
-from messages.config import RunConfig
-from scripts.inprocess import run
+from dtpf.messages.config import RunConfig
+from dtpf.scripts.inprocess import run
 
 VARIANTS = {
     "no preprocessing": dict(preprocess=False),
@@ -40,7 +40,7 @@ def main(argv=None) -> int:
     parser.add_argument("--resampler", default="systematic")
     args = parser.parse_args(argv)
     start = time.perf_counter()
-    print(f"`python -m scripts.paper.compare_weight_rules --seeds {args.seeds}`: MSE over T = 100, "
+    print(f"`python -m dtpf.scripts.paper.compare_weight_rules --seeds {args.seeds}`: MSE over T = 100, "
           f"{args.resampler} resampling, PS = 0.81, mean and 95% CI over {args.seeds} seeds; "
           "difference = variant - no preprocessing, paired by seed.\n")
     print("| scenario | N | variant | MSE | difference |")

@@ -27,8 +27,8 @@ its 95% CI; mean ESS; distinct ancestors per resampling / N; the share of steps 
 step (wall time of one in-process step with its layers, measured inside the workers). Then a verdict
 per scenario::
 
-    python -m scripts.paper.evaluate_guard                 # 1000 seeds, N = 100, every scenario
-    python -m scripts.paper.evaluate_guard --quick         # 8 seeds, T = 25: a smoke run
+    python -m dtpf.scripts.paper.evaluate_guard                 # 1000 seeds, N = 100, every scenario
+    python -m dtpf.scripts.paper.evaluate_guard --quick         # 8 seeds, T = 25: a smoke run
 
 Progress goes to stderr, the tables to stdout; ``--csv`` keeps every run's figures.
 """
@@ -45,11 +45,11 @@ from pathlib import Path
 
 import numpy as np
 
-from entity import models, model_ref
-from messages.config import RunConfig
-from scripts.console import TaskProgress
-from scripts.inprocess import build, simulate
-from scripts.paper.common import mean_ci, significance
+from dtpf.entity import model_ref, models
+from dtpf.messages.config import RunConfig
+from dtpf.scripts.console import TaskProgress
+from dtpf.scripts.inprocess import build, simulate
+from dtpf.scripts.paper.common import mean_ci, significance
 
 TRADITIONAL = ("systematic", "multinomial", "stratified", "residual")
 #: The relative rule's options (PS and weights chosen on pilot seeds, see the module docstring).
@@ -219,7 +219,7 @@ def verdict(scenario: str, n: int, best: str, rows: list[dict]) -> str:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m scripts.paper.evaluate_guard",
+    parser = argparse.ArgumentParser(prog="python -m dtpf.scripts.paper.evaluate_guard",
                                      description=__doc__.split("\n\n")[0])
     parser.add_argument("--seeds", type=int, default=1000, help="data sets per cell (default: %(default)s)")
     parser.add_argument("--particles", type=int, nargs="+", default=[100], help="N values (default: 100)")
@@ -264,7 +264,7 @@ def main(argv=None) -> int:
                 progress(i)
     elapsed = time.perf_counter() - start
     given = list(argv if argv is not None else sys.argv[1:])
-    command = " ".join(["python -m scripts.paper.evaluate_guard", *given])
+    command = " ".join(["python -m dtpf.scripts.paper.evaluate_guard", *given])
     print(f"`{command}`: T = {args.steps} (video: its {frames} frames), {args.seeds} seeds per cell "
           f"(from seed {first_seed}), {len(PILOT_VARIANTS if args.pilot else VARIANTS)} variants, {args.workers} worker processes; error mean ± 95% CI over seeds; difference "
           f"= variant - best traditional resampler of the cell, paired by seed, ± its 95% CI, marked where the "

@@ -19,8 +19,8 @@ every step, as the paper) and the wall time per filter step. It also checks
 the predictor (correlation of its forecast ESS/N and distinct/N with what
 the filter then saw) and draws PS over time for a typical run::
 
-    python -m scripts.paper.evaluate_policies              # 200 seeds, N in {100, 500, 1000}
-    python -m scripts.paper.evaluate_policies --quick      # 10 seeds, N = 100: a smoke run
+    python -m dtpf.scripts.paper.evaluate_policies              # 200 seeds, N in {100, 500, 1000}
+    python -m dtpf.scripts.paper.evaluate_policies --quick      # 10 seeds, N = 100: a smoke run
 
 Progress goes to stderr, the tables to stdout.
 """
@@ -36,8 +36,8 @@ from pathlib import Path
 
 import numpy as np
 
-from messages.config import RunConfig
-from scripts.inprocess import build, simulate
+from dtpf.messages.config import RunConfig
+from dtpf.scripts.inprocess import build, simulate
 
 #: Variants by label: RunConfig options.
 VARIANTS: dict[str, dict] = {
@@ -195,7 +195,7 @@ def plot_typical(cells, path: Path, steps: int) -> str:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m scripts.paper.evaluate_policies",
+    parser = argparse.ArgumentParser(prog="python -m dtpf.scripts.paper.evaluate_policies",
                                      description=__doc__.split("\n\n")[0])
     parser.add_argument("--seeds", type=int, default=200, help="data sets per cell (default: %(default)s)")
     parser.add_argument("--particles", type=int, nargs="+", default=[100, 500, 1000], help="N values")
@@ -222,7 +222,7 @@ def main(argv=None) -> int:
                   f"about {elapsed / done * (len(tasks) - done):.0f} s left ", end="", file=sys.stderr)
     print(file=sys.stderr)
     elapsed = time.perf_counter() - start
-    command = "python -m scripts.paper.evaluate_policies" + (" --quick" if args.quick else f" --seeds {args.seeds}")
+    command = "python -m dtpf.scripts.paper.evaluate_policies" + (" --quick" if args.quick else f" --seeds {args.seeds}")
     print(f"`{command}`: T = {args.steps}, {args.seeds} seeds per cell, {len(VARIANTS)} variants, "
           f"{args.workers} worker processes; MSE mean ± 95% CI over seeds; differences = variant - plain "
           f"systematic and variant - DT with PS = 0.81, paired by seed; ms / step is the wall time of one filter step with its layers "

@@ -2,16 +2,16 @@
 
 ::
 
-    python -m scripts.paper.experiments                  # everything: CSV, PNG, docs/experiments.md
-    python -m scripts.paper.experiments --quick          # a reduced run (minutes -> seconds), same outputs
-    python -m scripts.paper.experiments --only table3    # one experiment again; the report is rebuilt
+    python -m dtpf.scripts.paper.experiments                  # everything: CSV, PNG, docs/experiments.md
+    python -m dtpf.scripts.paper.experiments --quick          # a reduced run (minutes -> seconds), same outputs
+    python -m dtpf.scripts.paper.experiments --only table3    # one experiment again; the report is rebuilt
 
 Experiments (``--only`` names): ``table2`` (MSE of the five resampling
 methods, N in {10, 100, 500}, S in {1, 20, 100}), ``fig4`` (error over the
 first 50 time points, N = 5000), ``fig5`` (mean RMSE against the number of
 resamplings, N = 600), ``figs6-8`` (one DT run at N = 5000: state,
 observation, estimate, 95% interval, errors; plus coverage over many runs),
-``tracking`` (section 5, the video tracking application: ``scripts.paper.tracking``,
+``tracking`` (section 5, the video tracking application: ``dtpf.scripts.paper.tracking``,
 whose report goes beside this one), ``table3`` (run time per resampler at
 N = 5000, 7500, 10000).
 
@@ -42,11 +42,25 @@ from pathlib import Path
 
 import numpy as np
 
-from messages.config import RunConfig
-from scripts import inprocess
-from scripts.console import TaskProgress
-from scripts.paper.common import (COLOURS, DPI, DT_METHODS, METHOD_CONFIG, METHODS, PAPER_PS, STYLES,
-                                 TRADITIONAL, Z95, _figure, _fmt, _save, mean_ci, pm, significance, write_csv)
+from dtpf.messages.config import RunConfig
+from dtpf.scripts import inprocess
+from dtpf.scripts.console import TaskProgress
+from dtpf.scripts.paper.common import (
+    COLOURS,
+    DT_METHODS,
+    METHOD_CONFIG,
+    METHODS,
+    PAPER_PS,
+    STYLES,
+    TRADITIONAL,
+    Z95,
+    _figure,
+    _save,
+    mean_ci,
+    pm,
+    significance,
+    write_csv,
+)
 
 __all__ = ["Plan", "FULL", "QUICK", "EXPERIMENTS", "run_one", "main"]
 
@@ -516,11 +530,11 @@ RULES_ONLY = "DT rules only"
 
 
 def run_rules_only(scenario: str, particles: int, steps: int, seed: int) -> float:
-    """Seconds in the filter loop with :func:`information.rules.preprocess` (inherit, PS 0.81) as preprocessor."""
-    from entity import models
-    from entity.filter import ParticleFilter, Preprocessed
-    from information import rules
-    from messages.streams import stream
+    """Seconds in the filter loop with :func:`dtpf.information.rules.preprocess` (inherit, PS 0.81) as preprocessor."""
+    from dtpf.entity import models
+    from dtpf.entity.filter import ParticleFilter, Preprocessed
+    from dtpf.information import rules
+    from dtpf.messages.streams import stream
 
     config = config_for(scenario, particles, steps, "DT inherit", seed)
     _, observations = inprocess.simulate(config)
@@ -605,8 +619,8 @@ def tracking_folder(out: Path) -> Path:
 
 
 def tracking(plan: Plan, out: Path, workers: int) -> tuple[int, int]:
-    """Section 5: the video tracking application (``scripts.paper.tracking``, its own report beside this one)."""
-    from scripts.paper import tracking as section5
+    """Section 5: the video tracking application (``dtpf.scripts.paper.tracking``, its own report beside this one)."""
+    from dtpf.scripts.paper import tracking as section5
 
     seeds = 4 if plan is QUICK else 500
     args = ["--out", str(tracking_folder(out)), "--seeds", str(seeds), "--workers", str(workers)]
@@ -976,7 +990,7 @@ def _table3_section(out: Path, lines: list[str], closing: list[str]) -> None:
         "",
         f"**Ours.** The whole filter loop (propagate, weight, preprocess where DT, estimate, resample; the "
         f"in-process pipeline, so DT includes the information layer's mirror and the system layer; "
-        f"\"{RULES_ONLY}\" calls Eq. 28-30 (`information.rules.preprocess`, inherit, PS = 0.81) directly "
+        f"\"{RULES_ONLY}\" calls Eq. 28-30 (`dtpf.information.rules.preprocess`, inherit, PS = 0.81) directly "
         "before systematic resampling, without mirror and system layer: the cost of the paper's algorithm "
         "alone), "
         f"{rows[0]['rounds']} rounds; each round runs every (model, N) in random order and, within it, every "
@@ -1030,7 +1044,7 @@ def _tracking_section(out: Path, lines: list[str], closing: list[str]) -> None:
         "",
         f"**Ours.** A deterministic synthetic video with ground truth and a colour-histogram particle filter "
         f"(scenario `video`); the figures, the method and the verdict are in [its own report]({report}), "
-        f"written by the same command (`--only tracking`, or `python -m scripts.paper.tracking`). Tracking error "
+        f"written by the same command (`--only tracking`, or `python -m dtpf.scripts.paper.tracking`). Tracking error "
         f"over {rows[0]['runs']:.0f} seeds, N = 100, mean ± 95% CI; \"lost\": frames whose centre error "
         "exceeds the target's radius; differences paired by seed against the best traditional method "
         f"({rows[0]['best_traditional']}).",
@@ -1067,7 +1081,7 @@ def write_report(out: Path) -> Path:
         lines += ["**This is a QUICK run (`--quick`): a handful of Monte Carlo runs and small N. Its numbers are "
                   "a smoke test, not results.**", ""]
     lines += [
-        "Generated by `python -m scripts.paper.experiments` (options: `--help`); every number below comes from the "
+        "Generated by `python -m dtpf.scripts.paper.experiments` (options: `--help`); every number below comes from the "
         f"CSV files in `{_rel(out, out)}/`, written by that command. Re-run one experiment with "
         "`--only NAME` (table2, fig4, fig5, figs6-8, tracking, table3); the report is rebuilt from the files "
         "each time.",
@@ -1115,7 +1129,7 @@ def write_report(out: Path) -> Path:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
-        prog="python -m scripts.paper.experiments",
+        prog="python -m dtpf.scripts.paper.experiments",
         description="Reproduce the experiments of the paper's sections 4 and 5 (Table 2, Fig. 4, Fig. 5, "
                     "Figs. 6-8, Table 3; the tracking application, Figs. 9-11, with its own report beside "
                     "this one) and write CSV, PNG and a Markdown report.")

@@ -2,7 +2,7 @@
 
 ::
 
-    from messages.logfile import read_log, write_log, LogError
+    from dtpf.recording.logfile import read_log, write_log, LogError
     log = read_log("runs/ungm-1.mcap")      # LogError if it is not an MCAP file at all
     log.complete, log.problem               # True, None for a finished recording
     for item, message in log.decoded():     # message is a Message or a MessageError
@@ -54,20 +54,23 @@ from mcap.records import (
     DataEnd,
     Footer,
     Header,
-    Message as McapMessage,
     Metadata,
     Schema,
     Statistics,
 )
+from mcap.records import (
+    Message as McapMessage,
+)
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
-from messages import keys
-from messages.codec import MessageError, class_for_schema, decode_for_key, message_encoding, schema_name
-from messages.crc import crc32, use_fast_crc
-from messages.models import Message
+from dtpf.messages import keys
+from dtpf.messages.codec import MessageError, class_for_schema, decode_for_key, message_encoding, schema_name
+from dtpf.messages.errors import DtpfError
+from dtpf.messages.models import Message
+from dtpf.recording.crc import crc32, use_fast_crc
 
-# mcap's readers and writer check and compute CRCs with it too (messages/crc.py).
+# mcap's readers and writer check and compute CRCs with it too (dtpf/recording/crc.py).
 use_fast_crc()
 
 __all__ = ["Log", "LogMessage", "LogError", "CutRecord", "read_log", "read_logs", "join_logs", "write_log", "MAGIC"]
@@ -84,7 +87,7 @@ _MESSAGE_HEAD = struct.Struct("<HIQQ")     # channel id, sequence, log time, pub
 _CHUNK_HEAD = struct.Struct("<QQQII")      # start time, end time, uncompressed size, crc, compression length
 
 
-class LogError(ValueError):
+class LogError(DtpfError, ValueError):
     """A file that cannot be read as an MCAP log at all; the text names the file and why."""
 
 
@@ -160,9 +163,9 @@ class Log:
 
         ``topics`` is a collection of topics or a predicate on the topic. The
         schema of the channel in the file decides the message class; it must
-        agree with the topic table (:func:`messages.codec.decode_for_key`
+        agree with the topic table (:func:`dtpf.messages.codec.decode_for_key`
         checks the rest). A message that cannot be decoded comes with the
-        :class:`~messages.codec.MessageError` saying why; nothing is raised.
+        :class:`~dtpf.messages.codec.MessageError` saying why; nothing is raised.
         """
         if topics is None:
             wanted = None

@@ -1,7 +1,7 @@
 """Recording dtpf messages to MCAP.
 
 One channel per key expression (the MCAP topic is the key expression), every
-schema written into the file (:func:`messages.codec.schema_for`), so a reader
+schema written into the file (:func:`dtpf.messages.codec.schema_for`), so a reader
 with only the ``mcap`` library and the file can decode it::
 
     with McapRecording("run.mcap") as recording:
@@ -18,11 +18,11 @@ from pathlib import Path
 
 from mcap.writer import CompressionType, Writer
 
-from messages import keys
-from messages.codec import schema_for, message_encoding
-from messages.crc import use_fast_crc
+from dtpf.messages import keys
+from dtpf.messages.codec import message_encoding, schema_for
+from dtpf.recording.crc import use_fast_crc
 
-# Chunk CRCs with zlib-ng (messages/crc.py): the same numbers, 13x faster than CPython's zlib.
+# Chunk CRCs with zlib-ng (dtpf/recording/crc.py): the same numbers, 13x faster than CPython's zlib.
 use_fast_crc()
 
 __all__ = ["McapRecording", "UNKNOWN_ENCODING"]

@@ -29,12 +29,13 @@ import time
 import zenoh
 from threadpoolctl import threadpool_limits
 
-from messages import keys
-from messages.admission import RunShape, kind_of
-from messages.bus import DEFAULT_MAX_ITEMS, BusError, Inbox, Presence, Received, open_session, publisher
-from messages.codec import MessageError, decode_for_key, encode
-from messages.config import RunConfig, RunInputError
-from messages.models import Layer, Message, NamedCount, ServiceState, Status
+from dtpf.messages import keys
+from dtpf.messages.admission import RunShape, kind_of
+from dtpf.messages.codec import MessageError, decode_for_key, encode
+from dtpf.messages.config import RunConfig
+from dtpf.messages.errors import DtpfError
+from dtpf.messages.models import Layer, Message, NamedCount, ServiceState, Status
+from dtpf.shell.bus import DEFAULT_MAX_ITEMS, BusError, Inbox, Presence, Received, open_session, publisher
 
 __all__ = ["ServiceShell", "add_service_arguments", "run_service"]
 
@@ -43,7 +44,7 @@ STATUS_INTERVAL = 1.0
 #: Seconds between two statuses of a fleet's twin once it runs (a shared service's twin, a hosted entity twin).
 #: A K = 100 fleet published about 0.76 statuses per twin-step at 1 s, each decoded by the recorder, the
 #: launcher and (an entity's) by both shared services: 5 s ran 474, 547, 555 twin-steps/s against 444, 507,
-#: 456 at 1 s (python -m scripts.bench.fleet --cases 1e3:100 --solo-max 0, interleaved). A starting twin
+#: 456 at 1 s (python -m dtpf.scripts.bench.fleet --cases 1e3:100 --solo-max 0, interleaved). A starting twin
 #: still says so every STATUS_INTERVAL (its status is how the shared services learn it), and every twin
 #: publishes its last status when it ends.
 FLEET_STATUS_INTERVAL = 5.0
@@ -187,7 +188,7 @@ class ExitWatchdog:
 class ServiceShell:
     """Session, presence, publishers, counters and status of one layer process.
 
-    A layer that serves many twins (:mod:`messages.fleet`) has one shell per
+    A layer that serves many twins (:mod:`dtpf.shell.fleet`) has one shell per
     twin on the process's ``session``: such a shell neither opens nor closes
     the session, installs no signal handler and runs no status thread (the
     fleet calls :meth:`tick`); its inboxes ring the fleet's ``doorbell`` with
@@ -494,8 +495,8 @@ def _watch_parent(interval: float = 0.5) -> None:
 def run_service(layer: str, main, parser: argparse.ArgumentParser, argv=None) -> int:
     """Parse arguments, set up logging, call ``main(config, zenoh_config, args)``; exit codes:
     0 done, 2 bad arguments or configuration, 1 failure, 130 interrupted."""
-    from messages.bus import zenoh_config_from_args
-    from messages.config import config_from_args
+    from dtpf.messages.config import config_from_args
+    from dtpf.shell.bus import zenoh_config_from_args
 
     args = parser.parse_args(argv)
     # One BLAS thread per layer process. OpenBLAS's idle worker threads spin, and with the layers
@@ -514,11 +515,11 @@ def run_service(layer: str, main, parser: argparse.ArgumentParser, argv=None) ->
         _watch_parent()
     try:
         code = main(config, zconf, args)
-    except RunInputError as error:  # the user's model or file: one line, no traceback
-        parser.exit(2, f"{parser.prog}: error: {error}\n")
     except BusError as error:
         logging.getLogger(f"dtpf.{layer}").error("%s", error)
         code = 2
+    except DtpfError as error:  # the user's model, file or options: one line, no traceback
+        parser.exit(2, f"{parser.prog}: error: {error}\n")
     except KeyboardInterrupt:
         code = 130
     except Exception:  # a bug of ours: its traceback, exit 1

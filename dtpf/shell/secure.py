@@ -1,6 +1,6 @@
 """A secured deployment's folder: the roles, what each may put, and the Zenoh configuration of a role.
 
-``dtpf secure init DIR`` (:mod:`scripts.secure`) writes two such folders,
+``dtpf secure init DIR`` (:mod:`dtpf.scripts.secure`) writes two such folders,
 ``DIR/tls`` (mutual TLS, the roles named by their certificates' common names)
 and ``DIR/usrpwd`` (Zenoh's user/password authentication over plain TCP).
 Each holds ``dtpf-secure.json`` (what the folder is), ``router.json5`` (the
@@ -11,13 +11,15 @@ folder; :func:`role_config` resolves them, so the folder can move.
 Every role may put only on its own keys (``dtpf/<twin>/<role>/**``); the
 viewer puts nothing. This is the access control the router enforces; the
 services check the rest (a message on a layer's key must name that layer,
-:func:`messages.codec.decode_for_key`).
+:func:`dtpf.messages.codec.decode_for_key`).
 """
 from __future__ import annotations
 
 import json
 from dataclasses import dataclass
 from pathlib import Path
+
+from dtpf.messages.errors import DtpfError
 
 __all__ = ["ROLES", "PUTTING_ROLES", "READING_ROLES", "MANIFEST", "KINDS", "SecureError", "SecureDir",
            "open_secure_dir", "role_config"]
@@ -43,7 +45,7 @@ _PATH_KEYS = (
 )
 
 
-class SecureError(ValueError):
+class SecureError(DtpfError, ValueError):
     """A secure folder is missing, incomplete or does not fit the endpoint; the message says what."""
 
 
@@ -99,7 +101,7 @@ def open_secure_dir(path) -> SecureDir:
 def role_config(secure: SecureDir, role: str) -> str:
     """The JSON5 text of ``role``'s Zenoh configuration with its paths made absolute.
 
-    The files are written by :mod:`scripts.secure` as plain JSON (valid JSON5);
+    The files are written by :mod:`dtpf.scripts.secure` as plain JSON (valid JSON5);
     a file edited into JSON5 proper is refused with the reason.
     """
     path = secure.file_of(role)

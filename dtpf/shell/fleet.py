@@ -2,7 +2,7 @@
 
 A layer's work for one twin is an object with ``poll(now) -> deadline | None``
 (handle what has arrived for that twin without blocking; say when it next
-needs to look even if nothing arrives) on a :class:`~messages.service.ServiceShell`
+needs to look even if nothing arrives) on a :class:`~dtpf.shell.service.ServiceShell`
 of its own. :func:`serve_one` runs one such twin (a service started with the
 twin's flags); :func:`serve_fleet` learns the twins under a key pattern from
 their entities and runs each of them on the process's one Zenoh session:
@@ -29,13 +29,13 @@ import threading
 import time
 from dataclasses import dataclass
 
-from messages import keys
-from messages.admission import kind_of
-from messages.bus import Doorbell, Inbox, open_session
-from messages.codec import MessageError, decode_for_key
-from messages.config import RunConfig, RunInputError
-from messages.models import ServiceState, Status
-from messages.service import EXIT_GRACE, ExitWatchdog, ServiceShell, Tally, release_memory
+from dtpf.messages import keys
+from dtpf.messages.admission import kind_of
+from dtpf.messages.codec import MessageError, decode_for_key
+from dtpf.messages.config import RunConfig, RunInputError
+from dtpf.messages.models import ServiceState, Status
+from dtpf.shell.bus import Doorbell, Inbox, open_session
+from dtpf.shell.service import EXIT_GRACE, ExitWatchdog, ServiceShell, Tally, release_memory
 
 __all__ = ["serve_layer", "serve_one", "serve_run", "serve_fleet", "host_twins", "add_fleet_arguments", "ConfigWatch",
            "Learned", "twin_gone"]
@@ -172,7 +172,7 @@ def twin_gone(seen: set[str], alive: set[str], quiet: float, forget_after: float
     """Why a fleet's twin is to be dropped, or None to go on serving it.
 
     ``seen`` and ``alive``: the layers of the twin whose liveliness token was ever seen, and is now
-    (:class:`~messages.bus.Presence`); ``quiet``: seconds since its entity's last status. The entity is
+    (:class:`~dtpf.shell.bus.Presence`); ``quiet``: seconds since its entity's last status. The entity is
     gone once its token has been seen and is no more, whenever that was: a token that came and went while
     the service's loop was busy (a new twin's warm-up) had been missed by the loop's looks at ``alive``,
     and the twin waited ``forget_after`` to be freed. An entity whose token never came is forgotten after

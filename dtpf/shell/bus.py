@@ -26,6 +26,8 @@ from dataclasses import dataclass
 
 import zenoh
 
+from dtpf.messages.errors import DtpfError
+
 __all__ = [
     "BusError",
     "add_zenoh_arguments",
@@ -42,7 +44,7 @@ __all__ = [
 MODES = ("peer", "client", "router")
 
 
-class BusError(RuntimeError):
+class BusError(DtpfError, RuntimeError):
     """Zenoh could not be configured or opened; the message says which endpoint or key."""
 
 
@@ -84,7 +86,7 @@ def zenoh_config(*, mode: str | None = None, connect: list[str] = (), listen: li
                  role: str | None = None) -> zenoh.Config:
     """A Zenoh configuration from dtpf's flags; BusError names a bad file, key or value.
 
-    ``secure`` (a :class:`messages.secure.SecureDir` or its path) starts from
+    ``secure`` (a :class:`dtpf.shell.secure.SecureDir` or its path) starts from
     the configuration of ``role`` in that folder ("router" for the router's):
     its certificates or password and, for the router, its access control; the
     endpoints given here replace the file's and must use the folder's protocol.
@@ -133,7 +135,7 @@ def zenoh_config(*, mode: str | None = None, connect: list[str] = (), listen: li
 
 def _secure_config(secure, role: str | None, mode: str | None, endpoints: list[str]) -> tuple[zenoh.Config, str]:
     """The Zenoh configuration of ``role`` in a secure folder, and the mode it runs in."""
-    from messages.secure import SecureError, open_secure_dir, role_config
+    from dtpf.shell.secure import SecureError, open_secure_dir, role_config
 
     try:
         folder = secure if hasattr(secure, "kind") else open_secure_dir(secure)

@@ -1,0 +1,143 @@
+"""dtpf installs one import name, and no process it starts imports from the user's folder."""
+from __future__ import annotations
+
+import ast
+import re
+import shutil
+import subprocess
+import sys
+import tomllib
+from pathlib import Path
+
+import pytest
+
+from conftest import ROOT
+
+#: The repository's package folders and the names they install as.
+FOLDERS = {"entity": "dtpf.entity", "information": "dtpf.information", "system": "dtpf.system",
+           "messages": "dtpf.messages", "scripts": "dtpf.scripts", "dtpf": "dtpf"}
+
+
+def _package_names() -> set[str]:
+    """Every package of the repository by its installed name (a folder with an ``__init__.py``)."""
+    names = set()
+    for folder, name in FOLDERS.items():
+        for init in (ROOT / folder).rglob("__init__.py"):
+            parts = init.parent.relative_to(ROOT / folder).parts
+            names.add(".".join((name, *parts)))
+    return names
+
+
+def test_pyproject_lists_every_package_and_maps_every_folder():
+    setuptools = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]
+    assert set(setuptools["packages"]) == _package_names()
+    assert setuptools["package-dir"] == {name: folder for folder, name in FOLDERS.items() if folder != name}
+
+
+@pytest.fixture(scope="module")
+def installed(tmp_path_factory) -> Path:
+    """dtpf installed from this checkout, not editable, into a folder of its own (no dependencies)."""
+    target = tmp_path_factory.mktemp("site")
+    done = subprocess.run([sys.executable, "-m", "pip", "install", "--quiet", "--no-deps", "--no-build-isolation",
+                           "--target", str(target), str(ROOT)], capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-3000:]
+    return target
+
+
+def test_an_install_adds_one_import_name(installed):
+    tops = {path.name for path in installed.iterdir() if not path.name.endswith((".dist-info", ".egg-info"))}
+    tops.discard("bin")  # the dtpf script
+    assert tops == {"dtpf"}
+
+
+def test_the_installed_package_imports_from_its_own_folder(installed, tmp_path):
+    code = ("import dtpf, dtpf.entity.filter, dtpf.scripts.cli, dtpf.shell.bus\n"
+            "print(dtpf.entity.filter.__file__)\n"
+            "print(dtpf.systematic.__module__, dtpf.run.__module__, dtpf.read_log.__module__)\n")
+    done = subprocess.run([sys.executable, "-P", "-c", code], cwd=tmp_path, capture_output=True, text=True,
+                          timeout=120, env={"PYTHONPATH": str(installed), "PATH": ""})
+    assert done.returncode == 0, done.stderr[-3000:]
+    where, modules = done.stdout.splitlines()
+    assert Path(where).is_relative_to(installed)
+    assert modules == "dtpf.entity.resampling dtpf.scripts.inprocess dtpf.recording.logfile"
+
+
+def test_the_public_api_names_what_it_exports():
+    import dtpf
+
+    for name in dtpf.__all__:
+        assert getattr(dtpf, name) is not None, name
+    assert set(dtpf.__all__) <= set(dir(dtpf))
+    with pytest.raises(AttributeError, match="no attribute 'nothing_here'"):
+        dtpf.nothing_here  # noqa: B018
+
+
+def test_every_error_a_user_can_meet_falls_under_one_root():
+    """Every exception class of the product derives from DtpfError (private helpers excepted)."""
+    from dtpf.messages.errors import DtpfError
+
+    found = []
+    for folder in FOLDERS:
+        for path in (ROOT / folder).rglob("*.py"):
+            for node in ast.walk(ast.parse(path.read_text())):
+                if isinstance(node, ast.ClassDef) and not node.name.startswith("_") and re.search(
+                        r"(Error|Exception)$", node.name):
+                    found.append((path, node.name))
+    assert len(found) >= 10
+    import importlib
+    for path, name in found:
+        folder = path.relative_to(ROOT).parts[0]
+        parts = path.relative_to(ROOT / folder).with_suffix("").parts
+        module = importlib.import_module(".".join((FOLDERS[folder], *parts)))
+        assert issubclass(getattr(module, name), DtpfError), f"{module.__name__}.{name}"
+
+
+# --- a user's folder holding files named like dtpf's own packages --------------------------------------------
+
+_SHADOWS = {
+    "messages.py": "raise ImportError('the user messages.py was imported')\n",
+    "entity.py": "raise ImportError('the user entity.py was imported')\n",
+    "dtpf_marker.txt": "",
+}
+
+
+def _user_folder(path: Path) -> Path:
+    path.mkdir()
+    shutil.copy(ROOT / "docs" / "examples" / "range_bearing.py", path / "mymodel.py")
+    shutil.copy(ROOT / "docs" / "examples" / "range_bearing_no_truth.csv", path / "obs.csv")
+    return path
+
+
+def _dtpf(folder: Path, *args: str) -> subprocess.CompletedProcess:
+    script = Path(sys.executable).with_name("dtpf")
+    command = [str(script)] if script.exists() else [sys.executable, "-P", "-m", "dtpf"]
+    done = subprocess.run([*command, *args], cwd=folder, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, f"{args}: {done.stderr[-3000:]}"
+    return done
+
+
+def _figures(output: str) -> list[str]:
+    """The lines of a run's summary that hold its numbers (not its time or its log's path)."""
+    keep = ("log predictive", "innovation", "mean ESS", "resamplings", "degraded")
+    return [line for line in output.splitlines() if line.strip().startswith(keep)]
+
+
+def test_a_user_folder_with_messages_entity_and_scripts_gives_the_same_numbers(tmp_path):
+    plain = _user_folder(tmp_path / "plain")
+    hostile = _user_folder(tmp_path / "hostile")
+    for name, text in _SHADOWS.items():
+        (hostile / name).write_text(text)
+    (hostile / "scripts").mkdir()
+    (hostile / "scripts" / "__init__.py").write_text(
+        "import pathlib\npathlib.Path(__file__).parent.parent.joinpath('scripts-ran').write_text('yes')\n"
+        "raise ImportError('the user scripts package was imported')\n")
+    args = ("-q", "--model", "mymodel.py:RangeBearingTarget", "--observations", "obs.csv", "-n", "300",
+            "--steps", "30", "--seed", "4")
+    runs = {}
+    for folder in (plain, hostile):
+        runs[folder.name, "run"] = _figures(_dtpf(folder, "run", *args).stdout)
+        runs[folder.name, "launch"] = _figures(_dtpf(folder, "launch", *args, "-o", "run.mcap").stdout)
+    assert runs["hostile", "run"] == runs["plain", "run"] and len(runs["plain", "run"]) >= 4
+    assert runs["hostile", "launch"] == runs["plain", "launch"] and len(runs["plain", "launch"]) >= 4
+    assert not (hostile / "scripts-ran").exists()
+    assert (hostile / "run.mcap").stat().st_size > 0

@@ -9,7 +9,10 @@ counted, and a bounded sample of them (where, why, the first bytes) goes to
 ``dtpf/<twin>/recorder/rejected``. SIGINT or SIGTERM: the messages already
 received are written and the file is finished (summary and footer), so the
 log stays readable; a SIGKILL loses at most the last ``--flush-interval``
-seconds.
+seconds. A log that cannot be written (a full disk, a file-size limit, a
+read-only file system, the file deleted) ends the recording: the recorder
+says in one line what happened and up to which step the file holds the run,
+and exits with code 3 (:data:`EXIT_LOG_WRITE`).
 
 Run ``python -m dtpf.scripts.record --help`` for the options.
 """
@@ -27,7 +30,8 @@ from dtpf.messages.admission import RunShape, kind_of
 from dtpf.messages.codec import MessageError, decode_for_key, encode
 from dtpf.messages.config import RunConfig, add_run_arguments
 from dtpf.messages.models import MAX_REJECTED_SAMPLE, Estimate, Rejected, ServiceState
-from dtpf.recording.writer import COMPRESSION, McapRecording, auto_compression
+from dtpf.recording.logfile import LogError, last_estimate_steps, read_log
+from dtpf.recording.writer import COMPRESSION, LogWriteError, McapRecording, auto_compression
 from dtpf.shell.bus import add_zenoh_arguments
 from dtpf.shell.service import ServiceShell, add_service_arguments, run_service
 
@@ -36,7 +40,10 @@ RECORDER_INBOX_PAYLOADS, RECORDER_INBOX_BYTES = 64, 512 << 20
 #: ... and at most this many messages (a fleet of 40 twins filled 4,096 with small ones in a burst).
 RECORDER_INBOX_ITEMS = 1 << 16
 
-__all__ = ["main"]
+#: Exit code of a recorder whose log could not be written (the file holds what came before).
+EXIT_LOG_WRITE = 3
+
+__all__ = ["EXIT_LOG_WRITE", "main", "what_the_log_holds"]
 
 
 def main(config: RunConfig, zenoh_config: zenoh.Config, args: argparse.Namespace) -> int:
@@ -57,8 +64,30 @@ def main(config: RunConfig, zenoh_config: zenoh.Config, args: argparse.Namespace
             shell.state, shell.last_error = ServiceState.FAILED, f"cannot write the log {args.output}: {error}"
             shell.log.error("%s", shell.last_error)
             return 2
-        with recording:
-            return _record(shell, recording, pattern, compression, args)
+        try:
+            with recording:
+                return _record(shell, recording, pattern, compression, args)
+        except LogWriteError as error:
+            shell.state, shell.last_error = ServiceState.FAILED, f"{error}; {what_the_log_holds(error.path)}"
+            shell.log.error("%s", shell.last_error)
+            return EXIT_LOG_WRITE
+
+
+def what_the_log_holds(path) -> str:
+    """'it holds the run up to step S (M messages) ...': what a log whose writing failed still holds."""
+    try:
+        log = read_log(path)
+    except (LogError, OSError) as error:
+        return f"nothing of it can be read ({error})"
+    last = last_estimate_steps(log)
+    if not last:
+        held = f"it holds no estimate ({len(log.messages):,} messages)"
+    elif len(last) == 1:
+        held = f"it holds the run up to step {next(iter(last.values()))} ({len(log.messages):,} messages)"
+    else:
+        held = (f"it holds {len(last)} twins up to steps {min(last.values())}-{max(last.values())} "
+                f"({len(log.messages):,} messages)")
+    return held + (f"; 'dtpf recover {path} --output FILE' writes it as a complete file" if not log.complete else "")
 
 
 def _record(shell: ServiceShell, recording: McapRecording, pattern: str, compression: str,
@@ -109,6 +138,8 @@ def _record(shell: ServiceShell, recording: McapRecording, pattern: str, compres
 
 #: Rejected payloads the recorder keeps a sample of: in all, and of one kind of reason.
 MAX_SAMPLES, MAX_SAMPLES_PER_KIND = 1000, 10
+#: Estimates of one (key, step) the recorder keeps; the (key, step) pairs it counts them for, newest kept.
+MAX_COPIES, MAX_TRACKED_STEPS = 8, 1 << 16
 
 
 class Admission:
@@ -119,7 +150,7 @@ class Admission:
         self.all_twins = all_twins
         self.samples = 0
         self.samples_of: dict[str, int] = {}
-        self.last_estimate: dict[str, int] = {}  # by key (--all-twins records many)
+        self.estimate_copies: dict[tuple[str, int], int] = {}  # by (key, step), oldest first
 
     def record(self, recording: McapRecording, item) -> bool:
         """Write ``item`` if a service would take it (True); else count it and maybe sample it."""
@@ -136,13 +167,18 @@ class Admission:
         misfit = shell.shape.misfit(message) if shell.shape is not None else None
         if misfit is not None:
             return self._reject(recording, item, misfit.kind, misfit.detail)
-        if isinstance(message, Estimate):  # the entity estimates each step once, in order
-            last = self.last_estimate.get(item.key, 0)
-            if message.step <= last:
-                return self._reject(recording, item, "estimate of a step already recorded",
-                                    f"an estimate of step {message.step} on {item.key} after step {last}")
-            if len(self.last_estimate) < 1000:
-                self.last_estimate[item.key] = message.step
+        if isinstance(message, Estimate):
+            # Without access control a forger can publish a well-formed estimate of any step, early or
+            # twice. Every one is kept, in the order received, so a forgery never costs the real estimate
+            # its place; the log tools say which steps had more than one (scripts.logs). Only copies past
+            # MAX_COPIES of one step are refused, so a flood of one step cannot grow the log without bound.
+            copies = self.estimate_copies.get((item.key, message.step), 0)
+            if copies >= MAX_COPIES:
+                return self._reject(recording, item, "too many estimates of one step",
+                                    f"estimate {copies + 1} of step {message.step} on {item.key}")
+            if len(self.estimate_copies) >= MAX_TRACKED_STEPS:
+                del self.estimate_copies[next(iter(self.estimate_copies))]
+            self.estimate_copies[item.key, message.step] = copies + 1
         recording.write(item.key, item.payload)
         return True
 

@@ -37,9 +37,12 @@ def test_pyproject_lists_every_package_and_maps_every_folder():
 @pytest.fixture(scope="module")
 def installed(tmp_path_factory) -> Path:
     """dtpf installed from this checkout, not editable, into a folder of its own (no dependencies)."""
-    target = tmp_path_factory.mktemp("site")
+    source, target = tmp_path_factory.mktemp("source") / "dtpf", tmp_path_factory.mktemp("site")
+    # A copy, so that the build leaves nothing in the checkout (setuptools builds in build/ beside the source).
+    shutil.copytree(ROOT, source, ignore=shutil.ignore_patterns(".git", ".venv", "build", "*.egg-info", "runs",
+                                                                 "__pycache__", ".pytest_cache"))
     done = subprocess.run([sys.executable, "-m", "pip", "install", "--quiet", "--no-deps", "--no-build-isolation",
-                           "--target", str(target), str(ROOT)], capture_output=True, text=True, timeout=600)
+                           "--target", str(target), str(source)], capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr[-3000:]
     return target
 

@@ -73,7 +73,8 @@ from dtpf.recording.crc import crc32, use_fast_crc
 # mcap's readers and writer check and compute CRCs with it too (dtpf/recording/crc.py).
 use_fast_crc()
 
-__all__ = ["Log", "LogMessage", "LogError", "CutRecord", "read_log", "read_logs", "join_logs", "write_log", "MAGIC"]
+__all__ = ["Log", "LogMessage", "LogError", "CutRecord", "read_log", "read_logs", "join_logs", "write_log", "MAGIC",
+           "last_estimate_steps"]
 
 #: The eight bytes every MCAP file starts and ends with.
 MAGIC = b"\x89MCAP0\r\n"
@@ -579,6 +580,16 @@ def _chunk_records(data: bytes) -> tuple[list, int, Exception | None]:
 
 
 # --- writing ---
+
+def last_estimate_steps(log: Log) -> dict[str, int]:
+    """The highest step of an estimate each twin has in ``log``, by twin (estimates that do not decode
+    are left out)."""
+    last: dict[str, int] = {}
+    for item, message in log.decoded(lambda topic: topic.endswith("/entity/estimate")):
+        if not isinstance(message, MessageError):
+            last[message.twin_id] = max(last.get(message.twin_id, 0), message.step)
+    return last
+
 
 def join_logs(logs: list[Log]) -> Log:
     """The segments of one run (a recorder restarted into ``run.1.mcap``, ...) as one log.

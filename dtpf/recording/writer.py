@@ -10,9 +10,16 @@ with only the ``mcap`` library and the file can decode it::
 The open chunk is flushed to disk at least every ``flush_interval`` seconds,
 so a killed recorder loses at most that much; ``close()`` (also on leaving
 the ``with`` block, whatever the exception) writes the summary and footer.
+
+A write that fails (a full disk, a file-size limit, a file system turned
+read-only, the file deleted under the recorder) raises :class:`LogWriteError`
+once and ends the recording: the file keeps every chunk written before, and
+``dtpf recover`` rewrites it as a complete file once there is room.
 """
 from __future__ import annotations
 
+import errno
+import os
 import time
 from pathlib import Path
 
@@ -20,12 +27,13 @@ from mcap.writer import CompressionType, Writer
 
 from dtpf.messages import keys
 from dtpf.messages.codec import message_encoding, schema_for
+from dtpf.messages.errors import DtpfError
 from dtpf.recording.crc import use_fast_crc
 
 # Chunk CRCs with zlib-ng (dtpf/recording/crc.py): the same numbers, 13x faster than CPython's zlib.
 use_fast_crc()
 
-__all__ = ["McapRecording", "UNKNOWN_ENCODING"]
+__all__ = ["LogWriteError", "McapRecording", "UNKNOWN_ENCODING"]
 
 #: Message encoding of payloads on keys outside the topic table (no schema).
 UNKNOWN_ENCODING = "application/octet-stream"
@@ -47,6 +55,26 @@ def auto_compression(particle_set_bytes: int) -> str:
     lockstep layers. So: lz4 up to :data:`AUTO_LIMIT` bytes, none above.
     """
     return "lz4" if particle_set_bytes <= AUTO_LIMIT else "none"
+
+
+class LogWriteError(DtpfError, RuntimeError):
+    """The log could not be written; the recording has ended.
+
+    ``path``: the file; ``cause``: the OSError (``cause.errno``: ENOSPC for a
+    full disk, EFBIG past a file-size limit, EROFS on a read-only file
+    system; None when the file was deleted); ``messages``: those written
+    before it failed.
+    """
+
+    def __init__(self, path: Path, cause: OSError | None, messages: int, what: str):
+        self.path, self.cause, self.messages = path, cause, messages
+        super().__init__(f"cannot write the log {path}: {what}")
+
+    @property
+    def disk_full(self) -> bool:
+        """True when retrying on the same disk would fail again (full, over a size limit, read-only)."""
+        return self.cause is not None and self.cause.errno in (errno.ENOSPC, errno.EFBIG, errno.EDQUOT,
+                                                               errno.EROFS)
 
 
 class McapRecording:
@@ -82,6 +110,7 @@ class McapRecording:
         self._last_flush = time.monotonic()
         self.messages = 0
         self.closed = False
+        self.failure: LogWriteError | None = None
 
     def _channel(self, key: str) -> int:
         channel = self._channels.get(key)
@@ -103,14 +132,21 @@ class McapRecording:
         return channel
 
     def write(self, key: str, payload: bytes, log_time_ns: int | None = None) -> None:
-        """Append one message received on ``key`` at ``log_time_ns`` (default: now)."""
+        """Append one message received on ``key`` at ``log_time_ns`` (default: now); LogWriteError if the
+        file cannot take it (and every call after)."""
+        if self.failure is not None:
+            raise self.failure
         if self.closed:
             raise ValueError(f"recording {self.path} is closed")
         now = time.time_ns() if log_time_ns is None else int(log_time_ns)
-        channel = self._channel(key)
-        sequence = self._sequence.get(channel, 0)
-        self._sequence[channel] = sequence + 1
-        self._writer.add_message(channel, log_time=now, data=bytes(payload), publish_time=now, sequence=sequence)
+        try:
+            channel = self._channel(key)
+            sequence = self._sequence.get(channel, 0)
+            self._sequence[channel] = sequence + 1
+            self._writer.add_message(channel, log_time=now, data=bytes(payload), publish_time=now,
+                                     sequence=sequence)
+        except OSError as error:
+            raise self._fail(error) from None
         self.messages += 1
         self.flush_if_due()
 
@@ -120,19 +156,45 @@ class McapRecording:
             self.flush()
 
     def flush(self) -> None:
-        """Close the open chunk and push it to the file (no fsync)."""
-        self._writer.flush()
+        """Close the open chunk and push it to the file (no fsync); LogWriteError if it cannot, or if the
+        file was deleted meanwhile (what is written then goes nowhere)."""
+        if self.failure is not None:
+            raise self.failure
+        try:
+            self._writer.flush()
+            self._file.flush()
+            removed = os.fstat(self._file.fileno()).st_nlink == 0
+        except OSError as error:
+            raise self._fail(error) from None
+        if removed:
+            raise self._fail(None, "the file was deleted while it was being written (its folder removed?)")
         self._last_flush = time.monotonic()
 
+    def _fail(self, cause: OSError | None, what: str | None = None) -> LogWriteError:
+        """End the recording after a failed write: the file is closed as it stands (no summary or footer,
+        which would not fit either)."""
+        if what is None:
+            what = f"{cause.strerror or cause} ({errno.errorcode.get(cause.errno, cause.errno)})"
+        self.failure = LogWriteError(self.path, cause, self.messages, what)
+        self.closed = True
+        try:
+            self._file.close()
+        except OSError:  # the buffer's tail does not fit either
+            pass
+        return self.failure
+
     def close(self) -> None:
-        """Write the summary and footer and close the file; safe to call twice."""
+        """Write the summary and footer and close the file; safe to call twice. LogWriteError if they
+        cannot be written (the file keeps what was flushed before)."""
         if self.closed:
             return
         self.closed = True
         try:
             self._writer.finish()
-        finally:
             self._file.close()
+        except OSError as error:
+            self.closed = False
+            raise self._fail(error) from None
 
     def __enter__(self) -> "McapRecording":
         return self

@@ -1,0 +1,151 @@
+"""Nothing recorded is lost, whatever the disk or the bus does: a forged future step, a full disk."""
+from __future__ import annotations
+
+import errno
+import os
+import threading
+import time
+
+import numpy as np
+import pytest
+import zenoh
+
+from dtpf.messages.codec import MessageError, decode_for_key, encode
+from dtpf.messages.config import RunConfig
+from dtpf.messages.models import Estimate
+from dtpf.recording.logfile import last_estimate_steps, read_log
+from dtpf.recording.writer import LogWriteError, McapRecording
+from dtpf.scripts.launch import launch
+from dtpf.shell.bus import BusError, Inbox, free_port, open_session, zenoh_config
+
+
+class Forger:
+    """A session on a plain twin's router that, once the twin's first estimate passes, publishes
+    well-formed estimates of the steps ``forged`` (all at once, long before the twin gets there)."""
+
+    def __init__(self, twin: str, port: int, forged: range):
+        self.twin, self.forged, self.sent = twin, forged, 0
+        self.session = open_session(zenoh_config(mode="client", connect=[f"tcp/127.0.0.1:{port}"]))
+        self.inbox = Inbox(self.session, f"dtpf/{twin}/entity/estimate")
+        self.publisher = self.session.declare_publisher(f"dtpf/{twin}/entity/estimate",
+                                                        congestion_control=zenoh.CongestionControl.BLOCK)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set() and not self.sent:
+            item = self.inbox.get(timeout=0.05)
+            if item is None:
+                continue
+            try:
+                real = decode_for_key(item.key, item.payload)
+            except MessageError:
+                continue
+            for step in self.forged:
+                self.publisher.put(encode(real.model_copy(update={"step": step, "mean": [1000.0]})))
+                self.sent += 1
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=10)
+        self.inbox.close()
+        self.session.close()
+
+
+def test_a_forged_estimate_of_future_steps_leaves_every_real_step_in_the_log(tmp_path):
+    config = RunConfig(particles=100, steps=120, seed=3, twin="t-forged")
+    port, log_path, outcome = free_port(), tmp_path / "forged.mcap", {}
+    forged = range(90, 120)
+
+    def run():
+        outcome["result"] = launch(config, log_path=log_path, port=port, timeout=5.0, rate=60.0,
+                                   notify=lambda text: None)
+
+    launcher = threading.Thread(target=run)
+    launcher.start()
+    forger = None
+    try:
+        deadline = time.monotonic() + 60
+        while forger is None:  # the launcher's router is not listening at once
+            try:
+                forger = Forger(config.twin, port, forged)
+            except BusError:
+                if time.monotonic() > deadline or not launcher.is_alive():
+                    raise
+                time.sleep(0.1)
+        launcher.join(timeout=180)
+    finally:
+        if forger is not None:
+            forger.close()
+        launcher.join(timeout=60)
+    assert forger.sent == len(forged)
+    result = outcome["result"]
+    assert len({e.step for e in result.estimates}) == config.steps
+    log = read_log(log_path)
+    steps: dict[int, list[Estimate]] = {}
+    for _, message in log.decoded(lambda topic: topic.endswith("/entity/estimate")):
+        steps.setdefault(message.step, []).append(message)
+    assert sorted(steps) == list(range(1, config.steps + 1))  # every real step is in the log
+    competing = {step for step, found in steps.items() if len(found) > 1}
+    assert competing == set(forged)  # the forged steps hold the forgery and the real estimate
+    for step in forged:
+        assert sorted(float(np.ravel(e.mean)[0]) == 1000.0 for e in steps[step]) == [False, True]
+
+
+def test_the_recorder_keeps_at_most_a_bounded_number_of_copies_of_one_step():
+    from dtpf.scripts import record
+
+    assert 2 <= record.MAX_COPIES <= 64 and record.MAX_TRACKED_STEPS >= 1 << 12
+
+
+# --- a log that cannot be written --------------------------------------------------------------------------
+
+
+def _fill(recording: McapRecording, count: int, size: int) -> None:
+    for i in range(count):
+        recording.write("dtpf/t/entity/unknown", os.urandom(size))
+
+
+def test_a_write_past_a_file_size_limit_raises_one_log_write_error_and_keeps_what_came_before(tmp_path):
+    import resource
+
+    path = tmp_path / "limited.mcap"
+    soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (256 << 10, hard))  # CPython ignores SIGXFSZ: writes fail EFBIG
+    try:
+        recording = McapRecording(path, compression="none", chunk_size=16 << 10, flush_interval=0.0)
+        with pytest.raises(LogWriteError) as raised:
+            _fill(recording, 10_000, 1000)
+    finally:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
+    error = raised.value
+    assert error.cause.errno == errno.EFBIG and error.disk_full
+    assert str(error).startswith(f"cannot write the log {path}: ") and "\n" not in str(error)
+    assert 100 < error.messages < 10_000
+    with pytest.raises(LogWriteError):  # the recording has ended
+        recording.write("dtpf/t/entity/unknown", b"x")
+    recording.close()  # and closing it again is quiet
+    log = read_log(path)
+    assert not log.complete and error.messages - 20 <= len(log.messages) <= error.messages
+
+
+def test_a_log_deleted_while_recording_is_a_log_write_error(tmp_path):
+    path = tmp_path / "gone" / "run.mcap"
+    recording = McapRecording(path, flush_interval=0.0)
+    recording.write("dtpf/t/entity/unknown", b"before")
+    os.unlink(path)
+    with pytest.raises(LogWriteError, match="deleted while it was being written") as raised:
+        recording.write("dtpf/t/entity/unknown", b"after")
+    assert raised.value.cause is None and not raised.value.disk_full
+
+
+def test_last_estimate_steps_names_each_twins_highest_step(tmp_path):
+    path = tmp_path / "steps.mcap"
+    with McapRecording(path) as recording:
+        for twin, last in (("a", 7), ("b", 3)):
+            for step in (*range(1, last + 1), 2):
+                estimate = Estimate(run_id="r", twin_id=twin, step=step, mean=[0.0], var=[1.0], lower=[-2.0],
+                                    upper=[2.0], ess=1.0, ess_ratio=0.01, resampled=True, degraded=False)
+                recording.write(f"dtpf/{twin}/entity/estimate", encode(estimate))
+    assert last_estimate_steps(read_log(path)) == {"a": 7, "b": 3}

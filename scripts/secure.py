@@ -9,6 +9,10 @@ Writes (every file owner-only, every folder 0700)::
         router.json5             the router: tls/ listener, mTLS, the access-control list
         <role>.json5             one per role: client mode, its certificate and key
         certs/<role>.pem, keys/<role>.key
+
+The TLS configurations hold the certificates and keys themselves (Zenoh's
+``*_base64`` keys), so any Zenoh client opens them from any working
+directory: ``zenoh.open(zenoh.Config.from_file("DIR/tls/viewer.json5"))``.
     DIR/usrpwd/                  the same roles by user name and password, over plain tcp/
         dtpf-secure.json, router.json5, <role>.json5, passwords.txt
 
@@ -161,6 +165,16 @@ def _write(path: Path, data: bytes | str) -> None:
     os.chmod(path, 0o600)
 
 
+def _inline(folder: Path, **files: str) -> dict:
+    """Zenoh's ``<name>_base64`` keys holding the files' contents: a configuration that names no path works
+    from any working directory and in any Zenoh client (Zenoh resolves a relative path against the working
+    directory, not against the file). The files stay in the folder beside it."""
+    import base64
+
+    return {f"{name}_base64": base64.b64encode((folder / file).read_bytes()).decode("ascii")
+            for name, file in files.items()}
+
+
 def _json(data) -> str:
     return json.dumps(data, indent=2) + "\n"
 
@@ -203,15 +217,15 @@ def init(folder, *, hosts: tuple[str, ...] = DEFAULT_HOSTS, port: int = DEFAULT_
         put(tls / "certs" / f"{name}.pem", _pem_cert(cert))
     router = _base("router", tls_endpoint)
     router["transport"] = {"link": {"tls": {
-        "root_ca_certificate": "ca.pem", "listen_certificate": "certs/router.pem",
-        "listen_private_key": "keys/router.key", "enable_mtls": True}}}
+        **_inline(tls, root_ca_certificate="ca.pem", listen_certificate="certs/router.pem",
+                  listen_private_key="keys/router.key"), "enable_mtls": True}}}
     router["access_control"] = access_control("tls", twins)
     put(tls / "router.json5", _json(router))
     for role in ROLES:
         client = _base("client", tls_endpoint)
         client["transport"] = {"link": {"tls": {
-            "root_ca_certificate": "ca.pem", "connect_certificate": f"certs/{role}.pem",
-            "connect_private_key": f"keys/{role}.key", "enable_mtls": True}}}
+            **_inline(tls, root_ca_certificate="ca.pem", connect_certificate=f"certs/{role}.pem",
+                      connect_private_key=f"keys/{role}.key"), "enable_mtls": True}}}
         put(tls / f"{role}.json5", _json(client))
     put(tls / MANIFEST, _json({"kind": "tls", "roles": list(ROLES), "twins": twins, "hosts": list(hosts)}))
 

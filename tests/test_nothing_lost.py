@@ -149,3 +149,56 @@ def test_last_estimate_steps_names_each_twins_highest_step(tmp_path):
                                     upper=[2.0], ess=1.0, ess_ratio=0.01, resampled=True, degraded=False)
                 recording.write(f"dtpf/{twin}/entity/estimate", encode(estimate))
     assert last_estimate_steps(read_log(path)) == {"a": 7, "b": 3}
+
+
+# --- a viewer's configuration from any working directory -----------------------------------------------------
+
+_VIEWER = """
+import sys, time, zenoh
+config = zenoh.Config.from_file(sys.argv[1])
+deadline, session = time.monotonic() + 120, None
+while session is None:  # the launcher's router may not listen yet
+    try:
+        session = zenoh.open(config)
+    except zenoh.ZError:
+        if time.monotonic() > deadline:
+            raise
+        time.sleep(0.2)
+got = []
+subscriber = session.declare_subscriber(sys.argv[2], lambda sample: got.append(sample))
+while len(got) < 10 and time.monotonic() < deadline:
+    time.sleep(0.05)
+print(len(got), flush=True)
+session.close()
+"""
+
+
+def test_a_viewer_file_opened_from_another_folder_by_plain_zenoh_receives_a_secured_twin(tmp_path):
+    """A Zenoh client that knows nothing of dtpf opens DIR/tls/viewer.json5 from elsewhere: its certificates
+    are in the file, not at paths Zenoh would resolve against the working directory."""
+    pytest.importorskip("cryptography")
+    import subprocess
+    import sys
+
+    from dtpf.scripts import secure
+
+    port = free_port()
+    secure.init(tmp_path / "deploy", port=port)
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    viewer_file = (tmp_path / "deploy" / "tls" / "viewer.json5").resolve()
+    twin = "t-viewer-anywhere"
+    viewer = subprocess.Popen([sys.executable, "-c", _VIEWER, str(viewer_file), f"dtpf/{twin}/entity/estimate"],
+                              cwd=elsewhere, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        result = launch(RunConfig(particles=100, steps=120, seed=1, twin=twin), log_path=tmp_path / "v.mcap",
+                        port=port, rate=20.0, timeout=5.0, secure=tmp_path / "deploy" / "tls",
+                        notify=lambda text: None)
+        out, err = viewer.communicate(timeout=120)
+    finally:
+        if viewer.poll() is None:
+            viewer.kill()
+            viewer.wait()
+    assert len(result.estimates) == 120
+    assert viewer.returncode == 0, err[-2000:]
+    assert int(out.split()[-1]) >= 10

@@ -5,8 +5,11 @@
 and ``DIR/usrpwd`` (Zenoh's user/password authentication over plain TCP).
 Each holds ``dtpf-secure.json`` (what the folder is), ``router.json5`` (the
 router's configuration, with the access-control list) and one
-``<role>.json5`` per role. Paths inside the JSON5 files are relative to the
-folder; :func:`role_config` resolves them, so the folder can move.
+``<role>.json5`` per role. A TLS file holds its certificates and key inline
+(Zenoh's ``*_base64`` keys), so it works from any working directory and in
+any Zenoh client; a path inside a file (the router's password list, or a
+folder written with paths) is relative to the folder and :func:`role_config`
+resolves it, so the folder can move.
 
 Every role may put only on its own keys (``dtpf/<twin>/<role>/**``); the
 viewer puts nothing. This is the access control the router enforces; the

@@ -168,12 +168,21 @@ def _normalise(log_weights: np.ndarray) -> tuple[np.ndarray, float, float]:
     exponentials into the new array (Eq. 23 normalised, shifted by the maximum)."""
     top = float(np.max(log_weights))
     if not np.isfinite(top):
+        if np.isnan(top):
+            raise FilterError("a log-weight is NaN (the model's log_likelihood gave NaN): no particle explains "
+                              "the observation")
         raise FilterError(f"every log-weight is {top}: no particle explains the observation")
     weights = np.subtract(log_weights, top)
     np.exp(weights, out=weights)
     total = weights.sum()
     weights /= total
     return weights, top + float(np.log(total)), top
+
+
+def _shown(values: np.ndarray, most: int = 8) -> str:
+    """A short text of an observation's values, for a one-line error: the first ``most`` of them."""
+    shown = ", ".join(f"{v:.6g}" for v in values[:most])
+    return f"[{shown}{', ...' if values.size > most else ''}]"
 
 
 def normalised_innovation(model, particles: np.ndarray, prior_weights: np.ndarray, observation: np.ndarray,
@@ -439,7 +448,10 @@ class ParticleFilter:
             np.copyto(self.log_weights, log_likelihood)
         else:
             np.add(self.log_weights, log_likelihood, out=self.log_weights)
-        weights, log_total, top = _normalise(self.log_weights)
+        try:
+            weights, log_total, top = _normalise(self.log_weights)
+        except FilterError as error:
+            raise FilterError(f"step {k}: {error} z = {_shown(z)}") from None
         log_predictive = log_total - prior_log_total  # log sum_i W_(k-1)^i p(z_k | x_k^i)
         self._log_total = log_total - top
         ess = 1.0 / float(np.dot(weights, weights))

@@ -19,7 +19,11 @@ CSV (``.csv``)
     the true state, when it is known (a test rig, a replayed simulation), in
     file order; every other column is an observation, in file order. Here the
     filter sees 2 values per step (range, bearing), the truth has 4
-    dimensions. To choose otherwise, name the columns: ``observation_columns``,
+    dimensions. The truth may cover a part of the state: ``truth_x,truth_y``
+    of a state (x, y, vx, vy) are its first two components (truth columns are
+    the state's leading components, in file order), and names that end in a
+    component number (``truth_0``, ``truth_x2``, ``true_3``) say which
+    component each is; RMSE is then over those components. To choose otherwise, name the columns: ``observation_columns``,
     ``truth_columns`` (``[]`` for none) and ``time_column`` select by exact
     name, in the order given; columns a role leaves out are not read (a
     time- or truth-named column that is not chosen is ignored, never an
@@ -35,7 +39,8 @@ NumPy archive (``.npz``, as written by ``np.savez``)
     Arrays ``observations`` (or ``z``; an archive holding a single array may
     name it anything), ``truth`` (or ``x``; optional, ``(T, d)`` or ``(T,)``)
     and ``time`` (or ``t``; optional, ``(T,)``), all with the same ``T``.
-    Truth columns are named ``x0 .. x(d-1)``. Other arrays are ignored.
+    Truth columns are named ``x0 .. x(d-1)``, the state's leading components
+    (a ``(T, 2)`` truth of a 4-d state: x[0], x[1]). Other arrays are ignored.
 
 In Python::
 
@@ -43,6 +48,7 @@ In Python::
     table = read_observations("radar.csv", obs_dim=2, state_dim=4)
     table.observations      # (T, 2) float64: range, bearing per step
     table.truth             # (T, 4) float64, or None without truth columns
+    table.truth_components  # (0, 1, 2, 3): the state components the truth columns hold
     table.times             # (T,) float64, or None without a time column
     table.columns           # ('range', 'bearing')
     table.head(100)         # the first 100 steps
@@ -62,6 +68,7 @@ counted from 0 as NumPy does), the column and the value::
     radar.csv line 9, column 'bearing': NaN (observations must be finite)
     radar.csv line 8, column 'time': 3.0 is before 4.0 on the line above
     radar.csv: 1 observation column (range), the model observes 2 values per step
+    radar.csv: 5 truth columns (truth_x, ...), more than the model's state has (4 dimensions)
     radar.npy row 3, column 0: nan (observations must be finite)
 
 Invalid arguments (``steps=0``, a name listed twice, one column in two
@@ -80,6 +87,7 @@ import csv
 import math
 import operator
 import os
+import re
 import zipfile
 import zlib
 from array import array
@@ -160,6 +168,9 @@ class ObservationTable:
         Names of the d truth columns (``x0 ..`` for arrays); empty without truth.
     source : str
         The file, as given.
+    truth_components : tuple of int
+        The state component each truth column holds (default: 0 .. d-1, the
+        state's leading components); empty without truth.
     """
 
     observations: np.ndarray
@@ -168,6 +179,7 @@ class ObservationTable:
     columns: tuple[str, ...]
     truth_columns: tuple[str, ...]
     source: str
+    truth_components: tuple[int, ...] | None = None
 
     def __post_init__(self):
         z = _frozen(self.observations)
@@ -185,6 +197,15 @@ class ObservationTable:
                 raise ValueError(f"{len(truth_columns)} truth column names for {truth.shape[1]} truth columns")
         elif truth_columns:
             raise ValueError(f"truth columns {truth_columns} without truth")
+        components = self.truth_components
+        if components is None:
+            components = tuple(range(len(truth_columns)))
+        components = tuple(int(c) for c in components)
+        if len(components) != len(truth_columns) or len(set(components)) != len(components) \
+                or any(c < 0 for c in components):
+            raise ValueError(f"truth_components {components} must name a distinct state component (>= 0) for "
+                             f"each of the {len(truth_columns)} truth columns")
+        object.__setattr__(self, "truth_components", components)
         times = self.times
         if times is not None:
             times = _frozen(times)
@@ -200,6 +221,10 @@ class ObservationTable:
         """T, the number of rows: one filter step each."""
         return self.observations.shape[0]
 
+    def covers(self, state_dim: int) -> bool:
+        """Whether the truth is the whole state of ``state_dim`` components, in order."""
+        return self.truth is not None and self.truth_components == tuple(range(state_dim))
+
     def head(self, steps: int | None) -> ObservationTable:
         """The first ``steps`` rows (all of them if ``steps`` is None or at least T)."""
         steps = _check_count(steps, "steps")
@@ -209,7 +234,8 @@ class ObservationTable:
             observations=self.observations[:steps],
             truth=None if self.truth is None else self.truth[:steps],
             times=None if self.times is None else self.times[:steps],
-            columns=self.columns, truth_columns=self.truth_columns, source=self.source)
+            columns=self.columns, truth_columns=self.truth_columns, source=self.source,
+            truth_components=self.truth_components)
 
 
 def read_observations(path, *, obs_dim: int | None = None, state_dim: int | None = None,
@@ -227,7 +253,8 @@ def read_observations(path, *, obs_dim: int | None = None, state_dim: int | None
         observation columns.
     state_dim : int, optional
         Dimension of the model's state; truth, when the file has it, must
-        have that many columns.
+        have at most that many columns (a leading part of the state, or the
+        components its names number).
     steps : int, optional
         Read only the first ``steps`` rows (all if None or if there are fewer).
     observation_columns, truth_columns : list of str, optional
@@ -353,15 +380,44 @@ def _open_check(source: str, name: str, kind: str) -> None:
         raise ObservationError(f"{name}: not a NumPy .npz archive{hint}", source=source)
 
 
-def _check_model(name: str, source: str, columns, truth_columns, obs_dim, state_dim):
+#: A truth column named by its state component: truth_0, truth_x2, true_3, x1 (the number is the component).
+_NUMBERED_TRUTH = re.compile(r"^(?:(?:truth|true)_?)?[a-z]?(\d+)$", re.IGNORECASE)
+
+
+def _check_model(name: str, source: str, columns, truth_columns, obs_dim, state_dim) -> tuple[int, ...]:
+    """Check the columns against the model; the state component of each truth column."""
     m = len(columns)
     if obs_dim is not None and m != obs_dim:
         raise ObservationError(f"{name}: {_count(m, 'observation column')} ({_names(columns)}), "
                                f"the model observes {_count(obs_dim, 'value')} per step", source=source)
     d = len(truth_columns)
-    if state_dim is not None and d and d != state_dim:
-        raise ObservationError(f"{name}: {_count(d, 'truth column')} ({_names(truth_columns)}), "
-                               f"the model's state has {_count(state_dim, 'dimension')}", source=source)
+    if state_dim is not None and d > state_dim:
+        raise ObservationError(f"{name}: {_count(d, 'truth column')} ({_names(truth_columns)}), more than the "
+                               f"model's state has ({_count(state_dim, 'dimension')})", source=source)
+    return _truth_components(name, source, truth_columns, state_dim)
+
+
+def _truth_components(name: str, source: str, truth_columns, state_dim) -> tuple[int, ...]:
+    """The state component of each truth column: the number its name ends in when every name has one
+    (truth_0, truth_x2), else the leading components in file order."""
+    numbers = [_NUMBERED_TRUTH.match(column) for column in truth_columns]
+    if not truth_columns or not any(numbers):
+        return tuple(range(len(truth_columns)))
+    if not all(numbers):
+        plain = [c for c, n in zip(truth_columns, numbers) if not n]
+        raise ObservationError(f"{name}: truth columns {_names(truth_columns)} mix names numbered by state "
+                               f"component with names that are not ({_names(plain)}); number all or none",
+                               source=source)
+    components = tuple(int(n.group(1)) for n in numbers)
+    if len(set(components)) != len(components):
+        raise ObservationError(f"{name}: truth columns {_names(truth_columns)} name a state component twice",
+                               source=source)
+    if state_dim is not None and max(components) >= state_dim:
+        column = truth_columns[components.index(max(components))]
+        raise ObservationError(f"{name}: truth column {_show(column)} names state component {max(components)}, "
+                               f"the model's state has {_count(state_dim, 'dimension')} (0 .. {state_dim - 1})",
+                               source=source, column=column)
+    return components
 
 
 def _frozen(a) -> np.ndarray:
@@ -515,7 +571,7 @@ def _parse_csv(reader, lines, source, name, steps, obs_names, truth_names, time_
     time_i, obs_i, truth_i = _csv_roles(name, source, header, where, obs_names, truth_names, time_name)
     columns = tuple(header[i] for i in obs_i)
     truth_columns = tuple(header[i] for i in truth_i)
-    _check_model(name, source, columns, truth_columns, obs_dim, state_dim)
+    components = _check_model(name, source, columns, truth_columns, obs_dim, state_dim)
 
     # The rows: only the chosen columns are parsed, in file order.
     chosen = sorted(set(obs_i) | set(truth_i) | ({time_i} if time_i is not None else set()))
@@ -587,7 +643,7 @@ def _parse_csv(reader, lines, source, name, steps, obs_names, truth_names, time_
     observations = _take(values, [position[c] for c in obs_i])
     truth = _take(values, [position[c] for c in truth_i]) if truth_i else None
     return ObservationTable(observations=observations, truth=truth, times=times, columns=columns,
-                            truth_columns=truth_columns, source=source)
+                            truth_columns=truth_columns, source=source, truth_components=components)
 
 
 def _take(values: np.ndarray, positions: list[int]) -> np.ndarray:
@@ -814,7 +870,7 @@ def _read_archive(archive: zipfile.ZipFile, source, name, steps, *, obs_dim, sta
 
     columns = tuple(f"z{j}" for j in range(width("observations")))
     truth_columns = tuple(f"x{j}" for j in range(width("truth"))) if "truth" in headers else ()
-    _check_model(name, source, columns, truth_columns, obs_dim, state_dim)
+    components = _check_model(name, source, columns, truth_columns, obs_dim, state_dim)
 
     T = headers["observations"].shape[0]
     rows = T if steps is None else min(steps, T)
@@ -831,4 +887,5 @@ def _read_archive(archive: zipfile.ZipFile, source, name, steps, *, obs_dim, sta
         times = data["time"][:, 0]
         _check_times(times, f"{name} array {keys['time']!r}", source)
     return ObservationTable(observations=data["observations"], truth=data.get("truth"), times=times,
-                            columns=columns, truth_columns=truth_columns, source=source)
+                            columns=columns, truth_columns=truth_columns, source=source,
+                            truth_components=components)

@@ -8,6 +8,7 @@ model is simulated, so the truth is known), a file, or a live sensor::
     model = sources.load_model(config)                 # resolved and checked on a probe
     data = sources.observations_of(config, model)      # file or simulation; None when live
     data.observations, data.truth                      # (T, m), (T, d) or None
+    data.known_truth, data.truth_components            # (T, k), the k state components the truth covers
 
 Every layer process calls :func:`load_model`, so the information layer's
 likelihood rule and the system layer's simulation use the model the entity
@@ -32,12 +33,31 @@ __all__ = ["RunData", "load_model", "observations_of", "sampling_need", "ModelEr
 
 @dataclass(frozen=True)
 class RunData:
-    """The observations a run filters, with the truth where it is known."""
+    """The observations a run filters, with the truth where it is known.
+
+    ``truth`` is the whole state per step, or None; a file whose truth covers
+    only some components of the state (positions of a state with velocities)
+    has ``truth`` None and those components in ``known_truth``, the state
+    component of each column in ``truth_components``.
+    """
 
     observations: np.ndarray
     truth: np.ndarray | None
     #: Where they came from: "simulation of <model>" or the file name.
     source: str
+    #: (T, k) the truth as known: all of ``truth``, or the part of the state a file gives.
+    known_truth: np.ndarray | None = None
+    #: The state component of each column of ``known_truth``.
+    truth_components: tuple[int, ...] = ()
+    #: The names of those columns (the file's truth columns; x0, x1, ... for a simulation).
+    truth_columns: tuple[str, ...] = ()
+
+    def __post_init__(self):
+        if self.truth is not None and self.known_truth is None:
+            object.__setattr__(self, "known_truth", self.truth)
+            object.__setattr__(self, "truth_components", tuple(range(self.truth.shape[1])))
+            if not self.truth_columns:
+                object.__setattr__(self, "truth_columns", tuple(f"x{j}" for j in range(self.truth.shape[1])))
 
     @property
     def steps(self) -> int:
@@ -96,7 +116,10 @@ def observations_of(config, model: StateSpaceModel) -> RunData | None:
     if config.observation_file is not None:
         table: ObservationTable = read_observations(config.observation_file, obs_dim=model.obs_dim,
                                                     state_dim=model.dim, steps=config.steps)
-        return RunData(table.observations, table.truth, table.source)
+        whole = table.covers(model.dim)
+        return RunData(table.observations, table.truth if whole else None, table.source,
+                       known_truth=table.truth, truth_components=table.truth_components,
+                       truth_columns=table.truth_columns)
     truth, observations = model.simulate(config.steps, stream(config.seed, config.twin, 0, "scenario"))
     return RunData(np.asarray(observations, dtype=np.float64), np.asarray(truth, dtype=np.float64),
                    f"simulation of {config.model_ref}")

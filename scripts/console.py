@@ -3,15 +3,37 @@
 :class:`ProgressBar` follows the steps of one run (``dtpf run``, ``launch``,
 ``play``); :class:`TaskProgress` the runs of an experiment (the paper's
 reports). Imported by the commands, the log tools and the reports alike.
+
+Progress is drawn only on a terminal: piped output and CI logs get the
+summary lines alone. ``DTPF_PROGRESS=1`` in the environment draws it anyway
+(``DTPF_PROGRESS=0`` never).
 """
 from __future__ import annotations
 
+import os
 import sys
 import time
 
 from dtpf.messages.errors import DtpfError
 
-__all__ = ["ProgressBar", "TaskProgress", "run_command", "stop_on_signals"]
+__all__ = ["ProgressBar", "TaskProgress", "run_command", "stop_on_signals", "shows_progress"]
+
+#: Environment variable that forces progress on ("1") or off ("0") whatever the stream is.
+PROGRESS_ENV = "DTPF_PROGRESS"
+
+
+def shows_progress(stream, force: bool | None = None) -> bool:
+    """Whether progress is drawn on ``stream``: ``force`` if given, else ``DTPF_PROGRESS`` if set to 1 or 0,
+    else whether the stream is a terminal."""
+    if force is not None:
+        return bool(force)
+    setting = os.environ.get(PROGRESS_ENV, "").strip()
+    if setting in ("0", "1"):
+        return setting == "1"
+    try:
+        return bool(stream.isatty())
+    except (AttributeError, ValueError):  # no isatty, or a closed stream
+        return False
 
 
 def stop_on_signals():
@@ -41,14 +63,18 @@ def run_command(parser, args) -> int:
 
 
 class ProgressBar:
-    """A one-line progress bar on stderr, redrawn at most every 2 %."""
+    """A one-line progress bar on stderr, redrawn at most every 2 %; drawn only on a terminal
+    (``force``: True draws it anyway, False never; default: :func:`shows_progress`)."""
 
-    def __init__(self, stream=sys.stderr, width: int = 30):
-        self.stream = stream
+    def __init__(self, stream=None, width: int = 30, force: bool | None = None):
+        self.stream = sys.stderr if stream is None else stream
         self.width = width
         self.shown = -1
+        self.enabled = shows_progress(self.stream, force)
 
     def __call__(self, done: int, total: int | None) -> None:
+        if not self.enabled:
+            return
         if not total:  # a live run: no end known
             if done - self.shown >= 10 or self.shown < 0:
                 self.shown = done
@@ -67,14 +93,21 @@ class ProgressBar:
 
 
 class TaskProgress:
-    """Progress of one experiment on stderr: a redrawn line on a terminal, a line per 10% otherwise."""
+    """Progress of one experiment on stderr: a redrawn line on a terminal; nothing otherwise unless
+    forced (``force`` or ``DTPF_PROGRESS=1``: then a line per 10%)."""
 
-    def __init__(self, name: str, total: int):
+    def __init__(self, name: str, total: int, force: bool | None = None):
         self.name, self.total, self.start = name, total, time.perf_counter()
-        self.tty = sys.stderr.isatty()
+        try:
+            self.tty = sys.stderr.isatty()
+        except (AttributeError, ValueError):
+            self.tty = False
+        self.enabled = shows_progress(sys.stderr, force)
         self.shown = -1
 
     def __call__(self, done: int) -> None:
+        if not self.enabled:
+            return
         percent = 100 * done // max(self.total, 1)
         step = 1 if self.tty else 10
         if percent // step == self.shown // step and done != self.total:

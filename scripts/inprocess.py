@@ -56,10 +56,29 @@ class RunResult:
     """Per-step record of one run and its summary figures."""
 
     config: RunConfig
+    #: (T, k) the known truth of the components ``truth_components`` (all of the state, mostly), or None.
     truth: np.ndarray | None
     observations: np.ndarray
     steps: list[FilterStep] = field(default_factory=list)
     elapsed: float = 0.0
+    #: The state component of each column of ``truth`` (None: 0 .. k-1).
+    truth_components: tuple[int, ...] | None = None
+    #: The names of the truth columns (the observation file's), for the summary.
+    truth_columns: tuple[str, ...] = ()
+
+    @property
+    def components(self) -> tuple[int, ...]:
+        """The state components the truth (and so the RMSE) covers."""
+        if self.truth is None:
+            return ()
+        if self.truth_components is None:
+            return tuple(range(self.truth.shape[1]))
+        return tuple(self.truth_components)
+
+    @property
+    def partial_truth(self) -> bool:
+        """Whether the truth covers only some of the state's components (RMSE over those)."""
+        return bool(self.steps) and self.truth is not None and self.components != tuple(range(len(self.steps[0].mean)))
 
     @property
     def means(self) -> np.ndarray:
@@ -72,15 +91,19 @@ class RunResult:
 
     @property
     def errors(self) -> np.ndarray:
-        """(T, d) estimate minus truth; ValueError when the run has no truth."""
+        """(T, k) estimate minus truth over the components the truth covers (:attr:`components`; all d
+        mostly); ValueError when the run has no truth."""
         if self.truth is None:
             raise ValueError("this run has no truth: its observations came from outside")
-        return self.means - self.truth[: len(self.steps)]
+        means = self.means
+        if self.components != tuple(range(means.shape[1])):
+            means = means[:, list(self.components)]
+        return means - self.truth[: len(self.steps)]
 
     @property
     def rmse(self) -> float:
-        """Root mean square error of the posterior mean against the truth, over steps and dimensions
-        (NaN without truth)."""
+        """Root mean square error of the posterior mean against the truth, over steps and the
+        components the truth covers (NaN without truth)."""
         return float(np.sqrt(np.mean(self.errors ** 2))) if self.has_truth else float("nan")
 
     @property
@@ -159,8 +182,9 @@ def run(config: RunConfig, progress=None, model=None) -> RunResult:
     if model is None:
         model = sources.load_model(config)
     data = sources.observations_of(config, model)
-    result = RunResult(config, data.truth, data.observations)
-    pf = build(config, data.observations, model, innovation=data.truth is None)
+    result = RunResult(config, data.known_truth, data.observations, truth_components=data.truth_components,
+                       truth_columns=data.truth_columns)
+    pf = build(config, data.observations, model, innovation=data.known_truth is None)
     start = time.perf_counter()
     for step in pf:
         result.steps.append(step)

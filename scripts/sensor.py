@@ -32,7 +32,29 @@ from dtpf.scripts.console import run_command
 from dtpf.shell.bus import BusError, Inbox, add_zenoh_arguments, zenoh_config_from_args
 from dtpf.shell.service import ServiceShell
 
-__all__ = ["main", "register", "resume_point"]
+__all__ = ["main", "register", "resume_point", "sensor_command"]
+
+
+def sensor_command(config: RunConfig, endpoint: str, secure=None) -> str:
+    """The ``dtpf sensor`` command line, shell-quoted, that feeds the live twin of ``config`` through the
+    router at ``endpoint``: the same model (scenario or ``--model``), seed, twin and run id, and with
+    ``secure`` (the secure folder) the sensor's role."""
+    import shlex
+
+    from dtpf.messages.config import RunConfig as Defaults
+
+    defaults = Defaults()
+    words = ["dtpf", "sensor"]
+    words += ["--model", config.model] if config.model is not None else ["--scenario", config.scenario]
+    words += ["--twin", config.twin]
+    if config.seed != defaults.seed:
+        words += ["--seed", str(config.seed)]
+    if config.run_id != defaults.run_id:
+        words += ["--run-id", config.run_id]
+    words += ["--connect", endpoint]
+    if secure is not None:
+        words += ["--secure", str(secure), "--role", "sensor"]
+    return shlex.join(words)
 
 
 def resume_point(shell: ServiceShell, wait: float) -> int:

@@ -4,6 +4,7 @@
 
     dtpf plot runs/demo.mcap -o demo.png
     dtpf plot runs/demo.mcap --twin ungm-1 --steps-at 10 50 90 --dpi 150
+    dtpf plot runs/cv.mcap --component 1       # the state's second component, x[1]
 
 The figure has, top to bottom:
 
@@ -399,10 +400,10 @@ def _mark_particle_steps(ax, steps_at):
         ax.axvline(k, color="0.5", lw=0.8, ls=":", zorder=0)
 
 
-def _plot_state(ax, run: RunLog, steps, model, steps_at):
+def _plot_state(ax, run: RunLog, steps, model, steps_at, component: int = 0):
     e = run.estimates
-    mean, lower, upper = _series(e, "mean"), _series(e, "lower"), _series(e, "upper")
-    truth, z = _series(e, "truth"), _series(e, "observation")
+    mean, lower, upper = (_series(e, name, component) for name in ("mean", "lower", "upper"))
+    truth, z = _series(e, "truth", component), _observed(e, component)
     ax.fill_between(steps, lower, upper, color=COLOURS["band"], alpha=0.6, lw=0, label="95% interval")
     if np.isfinite(truth).any():
         ax.plot(steps, truth, color=COLOURS["truth"], lw=1.4, label="state $x_k$ (truth)")
@@ -418,9 +419,9 @@ def _plot_state(ax, run: RunLog, steps, model, steps_at):
     _mark_degraded(ax, steps, np.array([x.degraded for x in e]))
     _mark_particle_steps(ax, steps_at)
     dim = len(e[0].mean)
-    component = "" if dim == 1 else f" (component x[0] of d = {dim})"
-    inside = _inside(e)
-    title = "State, observation and estimate with 95% interval (Figs. 6, 7)" + component
+    shown = "" if dim == 1 else f" (component x[{component}] of d = {dim})"
+    inside = _inside(e, component)
+    title = "State, observation and estimate with 95% interval (Figs. 6, 7)" + shown
     if inside is not None:
         title += f": truth inside the interval at {inside[0]} of {inside[1]} steps"
     ax.set_title(title, loc="left", fontsize=10)
@@ -439,18 +440,24 @@ def _headroom(ax, fraction):
     ax.set_ylim(low, high + fraction * (high - low))
 
 
-def _inside(estimates):
-    rows = [(e.lower[0], e.truth[0], e.upper[0]) for e in estimates if e.truth is not None]
+def _observed(estimates, component: int) -> np.ndarray:
+    """The observation's value ``component`` per step, where the observation has one (NaN elsewhere)."""
+    return np.array([e.observation[component] if e.observation is not None and len(e.observation) > component
+                     else np.nan for e in estimates])
+
+
+def _inside(estimates, component: int = 0):
+    rows = [(e.lower[component], e.truth[component], e.upper[component]) for e in estimates if e.truth is not None]
     if not rows:
         return None
     return sum(low <= x <= high for low, x, high in rows), len(rows)
 
 
-def _plot_error(ax, run: RunLog, steps, model, steps_at):
-    """The error against the truth (Fig. 8); without truth, the log predictive likelihood of each
-    observation, what a filter on real data is judged by."""
+def _plot_error(ax, run: RunLog, steps, model, steps_at, component: int = 0):
+    """The error of the state's ``component`` against the truth (Fig. 8); without truth, the log
+    predictive likelihood of each observation, what a filter on real data is judged by."""
     e = run.estimates
-    mean, truth, z = _series(e, "mean"), _series(e, "truth"), _series(e, "observation")
+    mean, truth, z = _series(e, "mean", component), _series(e, "truth", component), _observed(e, component)
     lp = _series_optional(e, "log_predictive")
     ylabel = "error (state units)"
     predictive = not np.isfinite(truth).any() and np.isfinite(lp).any()
@@ -462,7 +469,7 @@ def _plot_error(ax, run: RunLog, steps, model, steps_at):
                      "(higher is better)", loc="left", fontsize=10)
         ylabel = "log predictive"
     else:
-        half = 1.96 * np.sqrt(_series(e, "var"))
+        half = 1.96 * np.sqrt(_series(e, "var", component))
         ax.fill_between(steps, -half, half, color=COLOURS["band"], alpha=0.6, lw=0,
                         label=r"$\pm$ 95% half-width $1.96\,\sigma_k$")
         ax.axhline(0.0, color="0.3", lw=0.6)
@@ -551,7 +558,7 @@ def _processed_mask(before, after) -> np.ndarray | None:
     return np.any(before.particles != after.particles, axis=1)
 
 
-def _particle_panels(figure, spec, run: RunLog, steps_at):
+def _particle_panels(figure, spec, run: RunLog, steps_at, component: int = 0):
     """Two rows of panels: before preprocessing (top) and after it (bottom), one column per step."""
     estimates = {e.step: e for e in run.estimates}
     if not run.propagated_count and not run.preprocessed_count:
@@ -581,7 +588,7 @@ def _particle_panels(figure, spec, run: RunLog, steps_at):
             top.set_title(f"k = {k}, before preprocessing", fontsize=9)
             _no_set(top, f"no propagated set at step {k}" + _why_no_set(estimate))
         else:
-            x, w = before.particles[:, 0], before.weights
+            x, w = before.particles[:, component], before.weights
             counts = f"N = {w.size}"
             if mask is None:
                 top.scatter(x, w, s=6, color=COLOURS["kept"], lw=0, label="particle")
@@ -604,7 +611,7 @@ def _particle_panels(figure, spec, run: RunLog, steps_at):
             _no_set(bottom, reason)
             bottom.set_title(f"k = {k}, after preprocessing", fontsize=9)
         else:
-            x, w = after.particles[:, 0], after.weights
+            x, w = after.particles[:, component], after.weights
             moved = f"{after.n_processed} moved" if after.n_processed is not None else "moved"
             detail = (f" ({after.n_mixed} by Eq. 33, {after.n_plain} by Eq. 34)"
                       if after.n_mixed is not None and after.n_plain is not None else "")
@@ -618,8 +625,9 @@ def _particle_panels(figure, spec, run: RunLog, steps_at):
         for ax in (top, bottom):
             if estimate is not None:
                 if estimate.truth is not None:
-                    ax.axvline(estimate.truth[0], color=COLOURS["truth"], lw=1.0, ls="--", label="truth $x_k$")
-                ax.axvline(estimate.mean[0], color=COLOURS["estimate"], lw=1.0, label=r"estimate $\hat{x}_k$")
+                    ax.axvline(estimate.truth[component], color=COLOURS["truth"], lw=1.0, ls="--",
+                               label="truth $x_k$")
+                ax.axvline(estimate.mean[component], color=COLOURS["estimate"], lw=1.0, label=r"estimate $\hat{x}_k$")
             ax.tick_params(labelsize=8)
             ax.yaxis.get_offset_text().set_fontsize(7)
             if first:
@@ -627,8 +635,8 @@ def _particle_panels(figure, spec, run: RunLog, steps_at):
                 ax.set_ylabel(f"{source}\n" + r"weight $w_k^i$", fontsize=9)
             for handle, label in zip(*ax.get_legend_handles_labels()):
                 legend.setdefault(label, handle)
-        component = "" if len(run.estimates[0].mean) == 1 else " (component 0)"
-        bottom.set_xlabel(r"particle value $x_k^i$" + component)
+        shown = "" if len(run.estimates[0].mean) == 1 else f" (component {component})"
+        bottom.set_xlabel(r"particle value $x_k^i$" + shown)
         top.tick_params(labelbottom=True)
     if legend:
         figure.legend(list(legend.values()), list(legend), loc="outside lower center", ncol=len(legend),
@@ -646,11 +654,12 @@ def _no_set(ax, text):
     ax.text(0.5, 0.5, text, transform=ax.transAxes, ha="center", va="center", fontsize=9, wrap=True)
 
 
-def plot_run(run: RunLog, steps_at: Sequence[int] | None = None, *, figsize=FIGSIZE):
+def plot_run(run: RunLog, steps_at: Sequence[int] | None = None, *, figsize=FIGSIZE, component: int = 0):
     """The figure of one run: a matplotlib Figure (not attached to pyplot, so nothing is shown).
 
     ``steps_at`` are the steps of the particle panels (default: the steps
-    whose sets ``run`` holds, else :func:`default_steps`).
+    whose sets ``run`` holds, else :func:`default_steps`); ``component`` is the
+    state component drawn (x[component], from 0; PlotError beyond the state).
     """
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
@@ -658,6 +667,10 @@ def plot_run(run: RunLog, steps_at: Sequence[int] | None = None, *, figsize=FIGS
 
     if not run.estimates:
         raise PlotError("no estimates to plot")
+    dim = len(run.estimates[0].mean)
+    if not 0 <= component < dim:
+        raise PlotError(f"--component {component}: the state has {dim} component{'s' if dim != 1 else ''} "
+                        f"(0 .. {dim - 1})", code=2)
     if steps_at is None:
         steps_at = sorted(set(run.propagated) | set(run.preprocessed)) or default_steps(run)
     steps_at = sorted({int(k) for k in steps_at})[:MAX_PARTICLE_STEPS]
@@ -672,13 +685,13 @@ def plot_run(run: RunLog, steps_at: Sequence[int] | None = None, *, figsize=FIGS
     steps = run.steps
     model = _growth_model(run.config)
     state = figure.add_subplot(grid[0])
-    _plot_state(state, run, steps, model, steps_at)
+    _plot_state(state, run, steps, model, steps_at, component)
     error = figure.add_subplot(grid[1], sharex=state)
-    _plot_error(error, run, steps, model, steps_at)
+    _plot_error(error, run, steps, model, steps_at, component)
     health = figure.add_subplot(grid[2], sharex=state)
     _plot_health(health, run, steps, steps_at)
     state.xaxis.set_major_locator(MaxNLocator(integer=True))  # steps are whole numbers (shared by all three)
-    _particle_panels(figure, grid[3], run, steps_at)
+    _particle_panels(figure, grid[3], run, steps_at, component)
     return figure
 
 
@@ -718,11 +731,24 @@ def _add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--steps-at", type=int, nargs="+", default=None, metavar="K",
                         help=f"steps of the particle panels, at most {MAX_PARTICLE_STEPS} (default: "
                              f"{DEFAULT_PARTICLE_STEPS} evenly spaced steps)")
+    parser.add_argument("--component", "-c", type=_component, default=0, metavar="K",
+                        help="state component to draw, x[K] counted from 0 (default: %(default)s)")
     parser.add_argument("--dpi", type=float, default=DEFAULT_DPI,
                         help=f"resolution; the image is {FIGSIZE[0]:g} x {FIGSIZE[1]:g} inches, so "
                              f"{FIGSIZE[0] * DEFAULT_DPI:.0f} x {FIGSIZE[1] * DEFAULT_DPI:.0f} pixels at the default "
                              "(default: %(default)s)")
     parser.set_defaults(handler=cmd_plot)
+
+
+def _component(text: str) -> int:
+    """``--component K``: a whole number >= 0 (checked against the state's dimension once the log is read)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a state component number (0, 1, ...), got {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be 0 or more, got {value}")
+    return value
 
 
 def cmd_plot(args: argparse.Namespace) -> int:
@@ -738,7 +764,7 @@ def cmd_plot(args: argparse.Namespace) -> int:
                 shown = ", ".join(map(str, run.set_steps[:12])) + (" ..." if len(run.set_steps) > 12 else "")
                 print(f"dtpf plot: note: no particle set at step {', '.join(map(str, missing))}; "
                       f"steps with sets: {shown}", file=sys.stderr)
-        figure = plot_run(run, steps_at=args.steps_at)
+        figure = plot_run(run, steps_at=args.steps_at, component=getattr(args, "component", 0))
         try:
             save(figure, output, dpi=args.dpi)
         except ValueError as error:  # unknown image format

@@ -26,7 +26,16 @@ from dtpf.recording.logfile import Log, write_log
 from dtpf.scripts.logs.play import topic_matcher
 from dtpf.scripts.logs.summary import read_for_command
 
-__all__ = ["StepRange", "choose", "as_json", "register"]
+__all__ = ["StepRange", "choose", "as_json", "as_text", "register"]
+
+#: Header fields every message has; the text form shows the step and leaves the rest to --json.
+_HEADER = frozenset({"run_id", "twin_id", "step", "stamp", "layer"})
+#: Fields that carry base64 bytes (a point cloud's or an image's data, a rejected payload's sample).
+_BINARY = frozenset({"data", "sample"})
+#: Lists longer than this are summarised (count, first values, range) in the text form.
+_LIST_SHOWN = 6
+#: Strings longer than this are cut in the text form.
+_TEXT_SHOWN = 80
 
 
 class StepRange:
@@ -73,6 +82,66 @@ def as_json(message: Message) -> dict:
     return fields
 
 
+def as_text(message: Message) -> str:
+    """The main fields of a message as ``name=value`` pairs for a terminal: numbers to 4 significant digits,
+    long lists and particle arrays summarised (size and range), long texts cut; header fields (run, twin,
+    stamp, layer) and the run configuration JSON left out (``dtpf cat --json`` has them)."""
+    parts = []
+    for name in type(message).model_fields:
+        if name in _HEADER or name == "config_json":
+            continue
+        value = getattr(message, name)
+        if value is None or (isinstance(value, list) and not value and name != "values"):
+            continue
+        if name in _BINARY and isinstance(value, str):
+            parts.append(f"{name}=({len(value) * 3 // 4 - value[-2:].count('=')} bytes)")
+            continue
+        parts.append(f"{name}={_value_text(value)}")
+    return " ".join(parts)
+
+
+def _value_text(value) -> str:
+    """One field's value, short."""
+    if isinstance(value, np.ndarray):
+        if value.size == 0:
+            return f"({'x'.join(map(str, value.shape))})"
+        return (f"({'x'.join(map(str, value.shape))} array, {_number(float(np.min(value)))} .. "
+                f"{_number(float(np.max(value)))})")
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, float):
+        return _number(value)
+    if isinstance(value, (list, tuple)):
+        if all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value):
+            if len(value) <= _LIST_SHOWN:
+                return "[" + ", ".join(_number(v) for v in value) + "]"
+            head = ", ".join(_number(v) for v in value[:3])
+            return f"[{head}, ... {len(value)} values, {_number(min(value))} .. {_number(max(value))}]"
+        shown = [_value_text(v) for v in value[:_LIST_SHOWN]]
+        more = f", ... {len(value)} in all" if len(value) > _LIST_SHOWN else ""
+        return "[" + ", ".join(shown) + more + "]"
+    if hasattr(value, "model_fields"):  # a nested record: its fields that are set
+        inner = {k: getattr(value, k) for k in type(value).model_fields}
+        if set(inner) == {"name", "count"}:
+            return f"{_cut(str(inner['name']))}:{inner['count']}"
+        return "{" + " ".join(f"{k}={_value_text(v)}" for k, v in inner.items() if v is not None) + "}"
+    if hasattr(value, "value") and isinstance(getattr(value, "value"), str):  # an enum
+        return value.value
+    if isinstance(value, str):
+        text = _cut(value)
+        return text if text and all(c.isalnum() or c in "._-/:" for c in text) else repr(text)
+    return str(value)
+
+
+def _number(v) -> str:
+    return str(v) if isinstance(v, int) else f"{v:.4g}"
+
+
+def _cut(text: str) -> str:
+    text = " ".join(text.split())
+    return text if len(text) <= _TEXT_SHOWN else text[:_TEXT_SHOWN - 3] + "..."
+
+
 def _read(args, command: str) -> Log | None:
     log = read_for_command(args, command)
     if log is not None and log.problem:
@@ -93,7 +162,9 @@ def cmd_cat(args: argparse.Namespace) -> int:
         else:
             kind = type(message).__name__
             shape = f" {message.particles.shape[0]}x{message.particles.shape[1]}" if isinstance(message, ParticleSet) else ""
-            out.write(f"{item.log_time / 1e9:.6f} {item.topic} step {message.step} [{kind}{shape}]\n")
+            fields = as_text(message)
+            out.write(f"{item.log_time / 1e9:.6f} {item.topic} step {message.step} [{kind}{shape}]"
+                      f"{'  ' + fields if fields else ''}\n")
     return 0
 
 
@@ -132,7 +203,9 @@ def register(subparsers) -> None:
     """Add ``cat`` and ``filter`` to an argparse subparsers object."""
     cat = subparsers.add_parser(
         "cat", help="print the messages of a log, one a line (--json: JSON lines, particle sets as arrays)",
-        description="Print the messages of an MCAP log in file order, one a line: time, topic, step and kind; "
+        description="Print the messages of an MCAP log in file order, one a line: time, topic, step, kind and "
+                    "the message's fields (numbers to 4 significant digits, long lists and particle arrays "
+                    "summarised by size and range); "
                     "--json prints each as a JSON object {topic, log_time, message} with a particle set's "
                     "particles and weights as arrays (like 'mcap cat --json').")
     _selection_arguments(cat)

@@ -13,7 +13,7 @@ import numba
 import numpy as np
 
 #: From this many draws on, the kernels draw the normals themselves; below it numpy does, because
-#: handing a Generator to a compiled function costs about 8 us (numba builds its ctypes view).
+#: handing a Generator to a compiled function has a fixed cost (numba builds its ctypes view).
 COMPILED_DRAWS = 2048
 
 

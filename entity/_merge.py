@@ -40,8 +40,8 @@ ROUNDING = 1e-9
 
 # --- numpy's PCG64, inline ------------------------------------------------------
 # numba's Generator methods call numpy's bit generator through a function pointer per number
-# (2.5 ms for 1e6 uniforms, more than numpy's own rng.random(N)); stepping the same 128-bit LCG in
-# registers takes 1.6 ms and lets the merge run beside it. The state comes from the Generator's
+# (slower than numpy's own rng.random(N)); stepping the same 128-bit LCG in registers is faster
+# and lets the merge run beside it. The state comes from the Generator's
 # public ``bit_generator.state`` and goes back there, so the stream is numpy's, number for number
 # (tests/test_resampling.py checks uniforms and exponentials against the Generator's own).
 
@@ -140,8 +140,8 @@ def pcg_exponentials(words, out):  # pragma: no cover - compiled
 
 #: Copies each particle writes without a branch (one 64-byte store): at most N w_j + 1 copies go to
 #: particle j, so with the weights of dtpf.scripts.bench.resampling (N w lognormal, median 0.6) 99.5% of
-#: particles need no loop. Two stores, as before, left the loop's exit mispredicted for the 12% with
-#: three copies or more: systematic took 3.0 ms at N = 1e6, with eight 2.0 ms.
+#: particles need no loop. With two stores the loop's exit was mispredicted for the 12% with
+#: three copies or more, which made systematic resampling markedly slower than with eight.
 UNCONDITIONAL = 8
 
 
@@ -234,7 +234,7 @@ def stratified_pcg(weights, words, out):  # pragma: no cover - compiled
     # (rng.random(N)'s numbers, in order; ``words`` is not advanced: the caller advances the
     # Generator by N). The merge reads v at the stratum m = floor(N C_j), which only grows, and
     # rarely at m - 1, so a ring holds the values from m - 1 on. One uniform is drawn per particle,
-    # beside the merge (the two dependency chains overlap: 1.8 ms less than drawing all N first);
+    # beside the merge (the two dependency chains overlap: faster than drawing all N first);
     # the merge catches up when m passes the drawn ones (a particle with many points), and the
     # drawing pauses when it is a ring ahead of m (a run of particles with none).
     n = weights.shape[0]
@@ -326,19 +326,19 @@ def _point(points, tail, base, stored, d):  # pragma: no cover - compiled
 # How multinomial and residual hand particle j the sorted points d, d + 1, ... below its running
 # sum, at output positions k, k + 1, ...: the plain merge "while the next point is below the running
 # sum, take it" has a loop exit that depends on the data at every particle, and its mispredictions
-# cost 7.7 ms of multinomial's 15.7 at N = 1e6. Instead the next COMPARED points are compared at
+# cost about half of multinomial's time at large N. Instead the next COMPARED points are compared at
 # once (_count_below: sorted, the c below the sum are the first c), j goes to the next COMPARED
 # positions unconditionally (as in _put), k and d move on by c, and the plain merge runs only when
 # all were below (or near the end). The points live in ``out`` itself (as float64), SHIFT positions
 # to the right of where their ancestors go: the positions written hold points already taken, and
-# the loads never share a cache line with what the previous particles have just stored (points in
-# place took 17 ms for multinomial, SHIFT = COMPARED 44 ms, 2 COMPARED 10 ms: the loads waited for
-# the stores). The merge loops are written out in each kernel: the same steps in an inlined
-# function that returned early took 40 ms.
+# the loads never share a cache line with what the previous particles have just stored (with the
+# points in place, or closer behind, the loads waited for the stores). The merge loops are written
+# out in each kernel: the same steps in an inlined function that returned early were several times
+# slower.
 
 
 #: Residual's points compared at once: its particles take R / N (0.43 here) of them on average,
-#: and 4 beat 8 (8.3 against 9.2 ms at N = 1e6); multinomial's take one, and 8 beat 4 (10.0 against 12.3).
+#: and 4 beat 8 at large N; multinomial's take one, and 8 beat 4.
 RESIDUAL_COMPARED = 4
 
 

@@ -10,7 +10,7 @@
     for step in pf:
         print(step.step, step.mean, step.ess)
 
-One step k (DESIGN.md, "One filter step"):
+One step k:
 
 1. propagate: x_k ~ p(x_k | x_(k-1)) (k = 1: draw from the prior);
 2. weight: log w_k = log w_(k-1) + log p(z_k | x_k) (Eq. 23, in logs, so
@@ -307,9 +307,8 @@ class ParticleFilter:
 
     def warm_up(self) -> None:
         """Resample and gather a small throwaway set, writable and read-only, so that the compiled
-        resampler and gather are loaded before the first step (the first call costs about 0.15 s, a
-        compilation seconds), and make a stream of step 0 (the compiled SeedSequence); the run's random
-        streams are not touched."""
+        resampler and gather are loaded (or, on a cold cache, compiled) before the first step, and make a
+        stream of step 0 (the compiled SeedSequence); the run's random streams are not touched."""
         weights, particles = np.full(8, 1.0 / 8), np.zeros((8, self.model.dim))
         ancestors = self.resample(weights, np.random.default_rng(0))
         resampling.gather(particles, ancestors, np.empty_like(particles))

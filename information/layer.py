@@ -91,9 +91,9 @@ class InformationLayer:
 
         numba compiles read-only arrays apart from writable ones, and the rules' path changes with N
         (one compiled call below SMALL_SET, three from it on, the radix select from RADIX_MIN on): a
-        service that warmed up on writable arrays compiled for 4.8 s on its first set, past the entity's
-        lockstep timeout, and one that warmed up every class and kind did not come up within the
-        entity's 20 s startup timeout on a cold cache (21 s of compiling).
+        service that warmed up on writable arrays compiled for seconds on its first set, past the
+        entity's lockstep timeout, and one that warmed up every class and kind compiled for longer
+        than the entity's default startup timeout on a cold cache.
         """
         stream(self.seed, self.twin, 0, "information")  # the compiled SeedSequence (dtpf.messages._seedseq)
         size = rules.size_class(particles)

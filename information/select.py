@@ -64,7 +64,7 @@ def _order_statistics(values, ranks):  # pragma: no cover - compiled
             b += 1
         local[q] = start + ranks[q] - below_of[q]
     # Select, not sort: near-uniform weights put most of N in one bucket, and
-    # sorting it cost 4 ms at N = 1e5 (np.partition is O(size) per rank).
+    # sorting it costs O(size log size) (np.partition is O(size) per rank).
     members = np.partition(members, local)
     out = np.empty(ranks.shape[0])
     for q in range(ranks.shape[0]):

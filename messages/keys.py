@@ -163,7 +163,7 @@ def key_for(message: Message) -> str:
 
 
 #: The keys of messages published before, by (class, layer, kind, twin): a service publishes the same few
-#: at every step, and finding one went through every topic (6,003 calls, 0.30 s of an entity's cProfile).
+#: at every step, and finding one went through every topic, a visible share of an entity's time.
 _KEYS: dict[tuple, str] = {}
 
 

@@ -1,7 +1,7 @@
 """``dtpf router``: a Zenoh router alone, for twins whose layers run on several machines.
 
 There is no ``zenohd`` to install: a Python session in router mode routes
-between clients (ECOSYSTEM.md). With ``--secure DIR`` it is the router of a
+between clients. With ``--secure DIR`` it is the router of a
 secure folder: it listens on the folder's protocol, checks every client's
 certificate or password and enforces the access control of
 ``dtpf secure init``; the services then connect with ``--secure DIR``::

@@ -7,8 +7,8 @@ A policy is a plain object with one verb, ``decide``::
     decision = ps_policy.decide(step, forecast)     # forecast: dtpf.system.predict.Forecast
     decision.ps, decision.reason, decision.predicted
 
-The decision made at step k applies from step k + 1 on (DESIGN.md, "One
-filter step"). Every policy keeps PS in [0, 1]; the adaptive ones move it by
+The decision made at step k applies from step k + 1 on (step k's set is
+being resampled while the decision is made). Every policy keeps PS in [0, 1]; the adaptive ones move it by
 at most ``max_change`` per step and say why in ``reason``, with the figures
 they decided on in ``predicted`` (they go on the PS topic and so into the log).
 

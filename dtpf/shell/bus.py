@@ -12,8 +12,8 @@ Every dtpf process takes the same Zenoh flags (after zenoh-python's
 
 Defaults are safe on a shared machine: multicast and gossip scouting are off,
 and a process that listens listens on loopback only unless told otherwise.
-Publishers use congestion control BLOCK: the default DROP lost 227 of 300
-80 KB messages in a burst (ECOSYSTEM.md).
+Publishers use congestion control BLOCK: the default DROP loses most of a
+burst of large messages.
 """
 from __future__ import annotations
 
@@ -305,7 +305,7 @@ class Presence:
     """This process's liveliness token (declared by :meth:`announce`), and the live peers of its twin.
 
     Tokens are ``dtpf/<twin>/<layer>/alive``; a peer that dies (even SIGKILL)
-    disappears within a few milliseconds (ECOSYSTEM.md).
+    disappears within a few milliseconds.
     """
 
     def __init__(self, session: zenoh.Session, twin: str, layer: str, names=None, doorbell: Doorbell | None = None):

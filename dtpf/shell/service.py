@@ -42,9 +42,9 @@ __all__ = ["ServiceShell", "add_service_arguments", "run_service"]
 #: Seconds between two periodic status reports.
 STATUS_INTERVAL = 1.0
 #: Seconds between two statuses of a fleet's twin once it runs (a shared service's twin, a hosted entity twin).
-#: A K = 100 fleet published about 0.76 statuses per twin-step at 1 s, each decoded by the recorder, the
-#: launcher and (an entity's) by both shared services: 5 s ran 474, 547, 555 twin-steps/s against 444, 507,
-#: 456 at 1 s (python -m dtpf.scripts.bench.fleet --cases 1e3:100 --solo-max 0, interleaved). A starting twin
+#: Every status of a large fleet is decoded by the recorder, the launcher and (an entity's) by both shared
+#: services, so a longer interval than one twin's leaves more time to the steps (measure with
+#: python -m dtpf.scripts.bench.fleet --cases 1e3:100 --solo-max 0). A starting twin
 #: still says so every STATUS_INTERVAL (its status is how the shared services learn it), and every twin
 #: publishes its last status when it ends.
 FLEET_STATUS_INTERVAL = 5.0
@@ -465,10 +465,9 @@ def keep_large_blocks() -> bool:
 
     Every message is a fresh buffer of N x (d + 1) x 8 bytes (copied out of Zenoh,
     decoded, encoded, written to MCAP); above glibc's mmap threshold each one is
-    mapped and unmapped again, and its pages fault on first touch (PERF-ANCHORS.md,
-    "Copy floor"). Raising the mmap and trim thresholds keeps them on the heap: the
-    lockstep step at N = 1e5 went from 14.5 to 11.4 ms (bench_pipeline, 2 cores,
-    with the recorder). A layer process owns its
+    mapped and unmapped again, and its pages fault on first touch. Raising the mmap
+    and trim thresholds keeps them on the heap, which shortens a lockstep step at
+    large N (python -m dtpf.scripts.bench.pipeline). A layer process owns its
     allocator; the in-process pipeline, which runs inside the user's program, does
     not do this. False where mallopt is not glibc's.
     """
@@ -500,8 +499,8 @@ def run_service(layer: str, main, parser: argparse.ArgumentParser, argv=None) ->
 
     args = parser.parse_args(argv)
     # One BLAS thread per layer process. OpenBLAS's idle worker threads spin, and with the layers
-    # sharing the machine they took the CPU the other layers were waiting for: at N = 1e5 on 2 cores
-    # a lockstep step cost 22.8 ms with the default 2 threads and 13.9 ms with 1 (bench_pipeline).
+    # sharing the machine they took the CPU the other layers were waiting for: spinning OpenBLAS
+    # threads slowed the lockstep pipeline at large N on 2 cores.
     threadpool_limits(limits=1, user_api="blas")
     keep_large_blocks()
     logging.basicConfig(level=args.log_level, stream=sys.stderr,

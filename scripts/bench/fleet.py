@@ -83,8 +83,8 @@ class RssSampler:
 
         A process's kind is the last one other than "other" that its samples gave: a child sampled
         between its fork and its exec still shows this process's command line (kind "other"), and a
-        sampler that kept the first kind lost that layer's CPU for good (runs of this stop read 0.000 ms
-        for the information service, or half the entities' time). Some samples of a running layer read an
+        sampler that kept the first kind lost that layer's CPU for good (it read no time at all for the
+        information service, or half the entities' time). Some samples of a running layer read an
         empty command line too (seen for a fleet's one entity process); they keep the kind it had. A
         process never seen as a layer stays "other", counted in "all". Its peak RSS starts again when its
         kind changes.

@@ -39,7 +39,7 @@ from dtpf.messages.models import Estimate, Observation, ServiceState, Status, Ti
 from dtpf.scripts.bench.pipeline import fmt_n
 from dtpf.shell.bus import BusError, Inbox, free_port, open_session, publisher, zenoh_config
 
-#: Targets at N = 1e3 on 2 cores (issue 11): p50 and p99 latency in ms.
+#: Targets at N = 1e3 on 2 cores: p50 and p99 latency in ms.
 TARGET_N, TARGET_P50_MS, TARGET_P99_MS = 1_000, 1.0, 3.0
 BUSY_LOAD = 1.0
 

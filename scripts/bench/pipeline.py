@@ -32,7 +32,7 @@ Run from the repository root::
     python -m dtpf.scripts.bench.pipeline                          # N = 1e3 .. 1e6, about 5 minutes
     python -m dtpf.scripts.bench.pipeline --sizes 1e5 --steps 200 --repeats 5
     python -m dtpf.scripts.bench.pipeline --recorder with         # (a) and (b) only
-    python -m dtpf.scripts.bench.pipeline --sizes 1e3 1e5 --recorder with --secure tls   # issue 15's figures
+    python -m dtpf.scripts.bench.pipeline --sizes 1e3 1e5 --recorder with --secure tls   # secured against plain
 """
 from __future__ import annotations
 

@@ -42,7 +42,7 @@ Per-step time = (construction + run) / steps. Every implementation computes
 the weighted mean at every step; its RMSE against the true path is printed,
 as a check that all four filter the same model.
 
-Method (PERF-ANCHORS.md sections 1-2): implementations run interleaved, in a
+Method: implementations run interleaved, in a
 new random order in every repetition, after an untimed warm-up at each N that
 takes every numba JIT; cells are medians over repetitions, and ratios (xR) are
 medians of per-repetition ratios against the reference of the same repetition.
@@ -167,7 +167,7 @@ BOUNDS = {
     "systematic + gather": ("weight pass", "gather"),
     "preprocess": ("select", "partners"),
 }
-#: Targets (issue 18): (row, measure, reference rows summed, limit, N).
+#: Targets: (row, measure, reference rows summed, limit, N).
 TARGETS = [
     ("systematic", "weight pass", ("weight pass",), 2.0, 1_000_000),
     ("stratified", "weight pass", ("weight pass",), 2.0, 1_000_000),
@@ -661,7 +661,7 @@ def main(argv=None) -> int:
           + ", ".join(f"{s} {impl} {statistics.median(f):.0f}"
                       for (s, impl), f in kfaults.items() if f and statistics.median(f)) + ".")
 
-    print("\nTargets (issue 18):")
+    print("\nTargets:")
     failed = False
     for row, measure, _, limit, target_n in TARGETS:
         impls = [threads_label(t) for t in threads] if row == "systematic + gather" else ["dtpf"]

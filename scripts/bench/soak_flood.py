@@ -1,6 +1,6 @@
 """Floods on a running launch: does memory stay bounded, and is what a flood added given back?
 
-Issue 12's target: "memory is bounded under any input: queues and per-step
+The target: "memory is bounded under any input: queues and per-step
 buffers have limits, and what a flood added is released once it stops". This
 starts ``dtpf launch`` (``--rate`` steps per second), waits for step
 ``--flood-at``, samples the RSS of every process, then ``--floods`` times

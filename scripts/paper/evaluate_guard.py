@@ -1,4 +1,4 @@
-"""Does the system layer ever make the filter worse? The guard policies against the field's cures (issue 17).
+"""Does the system layer ever make the filter worse? The guard policies against the field's cures.
 
 For each scenario, N and seed (each seed its own simulated data set, shared by every variant, so all
 comparisons are paired by seed) the in-process pipeline runs:

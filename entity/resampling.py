@@ -173,7 +173,7 @@ def gather(particles: np.ndarray, ancestors: np.ndarray, out: np.ndarray | None 
 
     ``threads`` > 1: from PARALLEL_GATHER particles on, the rows are copied on that many of
     numba's threads, the same array whatever their number. It does not pay on the 2-core machine of ``dtpf.scripts.bench.resampling`` while
-    anything else runs there (2 threads took 3x one at N = 1e6), so the filter gathers on one.
+    anything else runs there (2 threads were slower than one at large N), so the filter gathers on one.
     """
     x = np.ascontiguousarray(particles, dtype=np.float64)
     a = np.ascontiguousarray(ancestors, dtype=np.int64)

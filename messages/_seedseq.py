@@ -1,8 +1,8 @@
 """SeedSequence's state, compiled (for :func:`dtpf.messages.streams.stream`).
 
 numpy builds ``SeedSequence(entropy).generate_state(4, uint64)``, the 256 bits
-that seed a PCG64, in Python loops over uint32 scalars: 14 us of the 17 a
-stream cost, once per layer and step. These are the same hash and mix
+that seed a PCG64, in Python loops over uint32 scalars: most of what making a
+stream costs, once per layer and step. These are the same hash and mix
 functions (numpy/random/bit_generator.pyx, after O'Neill's seed_seq), compiled.
 """
 from __future__ import annotations

@@ -21,6 +21,8 @@ from dtpf.messages import keys
 from dtpf.messages.codec import MessageError, decode_for_key
 from dtpf.messages.config import RunConfig
 from dtpf.messages.models import Estimate, Layer, Status
+from dtpf.recording.logfile import what_it_holds
+from dtpf.recording.writer import EXIT_LOG_WRITE, LogWriteError
 from dtpf.scripts.launch import (
     DEFAULT_RESTARTS,
     Bridge,
@@ -82,6 +84,8 @@ class FleetResult:
     statuses: dict[tuple[int, str], Status] = field(default_factory=dict)
     exit_codes: dict[str, int | None] = field(default_factory=dict)
     failures: dict[str, str] = field(default_factory=dict)
+    #: Set when the log could not be written to the end (what happened and what the log holds, in words).
+    log_problem: str | None = None
     #: What the launcher did when a shared service died, in words.
     restarts: list[str] = field(default_factory=list)
     #: The files that make up the log, in order (more than one when the recorder was restarted).
@@ -118,6 +122,7 @@ class FleetResult:
             f"degraded steps  {sum(t.degraded for t in self.tallies.values())}",
             "rejected        " + (", ".join(f"{k} {v}" for k, v in sorted(self.rejected.items())) or "-"),
             *(["restarts        " + "; ".join(self.restarts)] if self.restarts else []),
+            *([f"log ended       {self.log_problem}"] if self.log_problem else []),
             f"throughput      {rate:.0f} twin-steps/s (first estimate to last)",
             f"time            {self.elapsed:.2f} s",
             f"log             {' + '.join(str(path) for path in (self.segments or [self.log_path]))}",
@@ -189,28 +194,46 @@ def launch_fleet(config: RunConfig, count: int, *, log_path: Path | None = None,
             time.monotonic() + startup_timeout * max(1.0, count / 10) + per_step * (config.steps or 0) + 60.0)
         entity_names = [f"entity-{index}" for index in range(1, len(groups) + 1)]
         restarted = {"information": 0, "system": 0, "recorder": 0}
+        gone: set[str] = set()  # a recorder that could not write the log is not started again
         while True:
             item = watch.get(timeout=0.1)
             taken = 0
             while item is not None:
-                estimate = _take(result, item, layer_of_pid)
-                if estimate is not None:
+                if isinstance(_take(result, item, layer_of_pid), Estimate):
                     last_estimate = time.monotonic()
                     first_estimate = first_estimate or last_estimate
                     if progress is not None:
                         progress(result.twin_steps, total)
                 taken += 1
                 item = watch.get(timeout=0) if taken < _BATCH else None
-            for bridge in bridges:
-                bridge.pump()
+            for bridge in list(bridges):
+                try:
+                    bridge.pump()
+                except LogWriteError as error:
+                    bridges.remove(bridge)
+                    result.log_problem = f"{error}; {what_it_holds(error.path)}"
+                    if notify is not None:
+                        notify(f"{result.log_problem}; the launcher stops recording")
             if bridges and any(pid == children["recorder"].pid for pid, _ in result.statuses):
                 bridges.pop().close()  # the new recorder listens: it said so
             if all(children[name].poll() is not None for name in entity_names):
                 break
             for layer in ("recorder", "information", "system"):
-                if children[layer].poll() is None:
+                if layer in gone or children[layer].poll() is None:
                     continue
                 code = children[layer].returncode
+                if layer == "recorder" and code == EXIT_LOG_WRITE:
+                    # The log's disk is full, over a size limit or read-only: a new recorder would write into
+                    # the same place. The fleet goes on unrecorded.
+                    gone.add(layer)
+                    said = [s.last_error for (pid, _), s in result.statuses.items()
+                            if pid == children[layer].pid and s.last_error]
+                    result.log_problem = said[-1] if said else \
+                        f"the recorder could not write {result.segments[-1]}; {what_it_holds(result.segments[-1])}"
+                    if notify is not None:
+                        notify(f"{result.log_problem}; the fleet goes on without a recorder (not started again: "
+                               f"it would write to the same place)")
+                    continue
                 if code == 2 or restarted[layer] >= restarts:
                     raise LaunchError(f"the shared {layer} service died ({_describe_code(code)})"
                                       + ("" if code == 2 else "; no restarts left"))
@@ -244,7 +267,10 @@ def launch_fleet(config: RunConfig, count: int, *, log_path: Path | None = None,
     finally:
         _stop(children, tuple(children), result)
         for bridge in bridges:
-            bridge.close()
+            try:
+                bridge.close()
+            except LogWriteError as error:
+                result.log_problem = f"{error}; {what_it_holds(error.path)}"
         result.elapsed = time.monotonic() - start
         if first_estimate is not None:
             result.stepping = last_estimate - first_estimate
@@ -256,7 +282,8 @@ def launch_fleet(config: RunConfig, count: int, *, log_path: Path | None = None,
     return result
 
 
-def _take(result: FleetResult, item, layer_of_pid) -> Estimate | None:
+def _take(result: FleetResult, item, layer_of_pid) -> Estimate | Status | None:
+    """Fold one received message into the result; the message when it was the fleet's own and taken."""
     try:
         message = decode_for_key(item.key, item.payload)
     except MessageError:
@@ -269,10 +296,16 @@ def _take(result: FleetResult, item, layer_of_pid) -> Estimate | None:
             return message
     elif isinstance(message, Status) and layer_of_pid.get(message.pid) == message.layer.value:
         result.statuses[message.pid, message.twin_id] = message
+        return message
     return None
 
 
-def _drain(watch: Inbox, result: FleetResult, layer_of_pid) -> None:
+def _drain(watch: Inbox, result: FleetResult, layer_of_pid, quiet: float = 0.3) -> None:
+    """Take what is still in flight until none of the fleet's own estimates or statuses came for ``quiet``
+    seconds (what others publish meanwhile does not hold the launcher), at most 5 s."""
     deadline = time.monotonic() + 5.0
-    while time.monotonic() < deadline and (item := watch.get(timeout=0.3)) is not None:
-        _take(result, item, layer_of_pid)
+    last_taken = time.monotonic()
+    while (now := time.monotonic()) < deadline and now - last_taken < quiet:
+        item = watch.get(timeout=max(0.0, quiet - (now - last_taken)))
+        if item is not None and _take(result, item, layer_of_pid) is not None:
+            last_taken = time.monotonic()

@@ -31,6 +31,8 @@ from dtpf.messages.codec import MessageError, decode_for_key
 from dtpf.messages.config import RunConfig
 from dtpf.messages.errors import DtpfError
 from dtpf.messages.models import Estimate, Layer, Status
+from dtpf.recording.logfile import what_it_holds
+from dtpf.recording.writer import EXIT_LOG_WRITE, LogWriteError
 from dtpf.shell.bus import BusError, Inbox, Presence, free_port, open_session, zenoh_config
 from dtpf.shell.service import release_memory
 
@@ -179,6 +181,8 @@ class LaunchResult:
     ignored_statuses: int = 0
     #: Set when the entity did not end its run normally (what happened, in words).
     failure: str | None = None
+    #: Set when the log could not be written to the end (what happened and what the log holds, in words).
+    log_problem: str | None = None
     elapsed: float = 0.0
     interrupted: bool = False
 
@@ -236,6 +240,7 @@ class LaunchResult:
                f"run's own (repeated or out-of-order steps, unknown processes)"]
               if t.ignored or self.ignored_statuses else []),
             *([f"failed          {self.failure}"] if self.failure else []),
+            *([f"log ended       {self.log_problem}"] if self.log_problem else []),
             f"time            {self.elapsed:.2f} s",
             f"log             {log}",
         ]
@@ -399,6 +404,17 @@ def launch(config: RunConfig, *, log_path: Path | None = None, port: int | None 
         code = children[layer].returncode
         if code == 2:  # the service refused its arguments or configuration: starting it again cannot help
             raise LaunchError(f"the {layer} service exited with code 2 (a configuration error; see above)")
+        if layer == "recorder" and code == EXIT_LOG_WRITE:
+            # The log's disk is full, over a size limit or read-only (or the file went away): a new recorder, or
+            # the launcher's own bridge, would write into the same place. The run goes on unrecorded.
+            gone.add(layer)
+            status = result.statuses.get("recorder")
+            said = status.last_error if status is not None and status.last_error else None
+            result.log_problem = said or f"the recorder could not write {result.segments[-1]}; " \
+                                         f"{what_it_holds(result.segments[-1])}"
+            notify(f"{result.log_problem}; the run goes on without a recorder (not started again: it would "
+                   f"write to the same place)")
+            return
         again = used[layer] < restarts
         segment = bridge = None
         if layer == "recorder":  # the launcher records until a new recorder listens (or to the end)
@@ -449,8 +465,13 @@ def launch(config: RunConfig, *, log_path: Path | None = None, port: int | None 
                 _take(result, item, progress, layer_of_pid)
                 taken += 1
                 item = watch.get(timeout=0) if taken < _BATCH else None
-            for bridge in bridges:
-                bridge.pump()
+            for bridge in list(bridges):
+                try:
+                    bridge.pump()
+                except LogWriteError as error:
+                    bridges.remove(bridge)
+                    result.log_problem = f"{error}; {what_it_holds(error.path)}"
+                    notify(f"{result.log_problem}; the launcher stops recording")
             if bridges and "recorder" not in gone and children["recorder"].pid in result.statuses_by_pid:
                 bridges.pop().close()  # the new recorder listens: it said so
             if children["entity"].poll() is not None:
@@ -484,7 +505,10 @@ def launch(config: RunConfig, *, log_path: Path | None = None, port: int | None 
         except KeyboardInterrupt:  # a second Ctrl-C: no more waiting for the drain
             pass
         for bridge in bridges:
-            bridge.close()
+            try:
+                bridge.close()
+            except LogWriteError as error:
+                result.log_problem = f"{error}; {what_it_holds(error.path)}"
         _stop(children, tuple(reversed(LAYERS)), result)
         if bridge_to_foxglove is not None:
             bridge_to_foxglove.close()
@@ -531,32 +555,42 @@ def _rows(config: RunConfig) -> int:
     return read_observations(config.observation_file).steps
 
 
-def _take(result: LaunchResult, item, progress, layer_of_pid: dict[int, str]) -> None:
+def _take(result: LaunchResult, item, progress, layer_of_pid: dict[int, str]) -> bool:
     """Fold one received message into the result: estimates of this run in step order, and
     statuses of the launcher's own children (one that claims a child's layer from another
-    process is counted as ignored; a sensor's is none of the launcher's business)."""
+    process is counted as ignored; a sensor's is none of the launcher's business). True when the
+    message was the run's own and taken."""
     try:
         message = decode_for_key(item.key, item.payload)
     except MessageError:
-        return  # the services count their own rejects
+        return False  # the services count their own rejects
     if message.run_id != result.config.run_id:
-        return
+        return False
     if isinstance(message, Estimate):
-        if result.tally.add(message) and progress is not None:
+        taken = result.tally.add(message)
+        if taken and progress is not None:
             progress(message.step, result.config.steps)
-    elif isinstance(message, Status):
+        return taken
+    if isinstance(message, Status):
         if message.layer.value not in LAYERS:
-            return  # a sensor, a viewer: not a process of the launcher, and not its business
+            return False  # a sensor, a viewer: not a process of the launcher, and not its business
         if layer_of_pid.get(message.pid) != message.layer.value:
             result.ignored_statuses += 1
-            return
+            return False
         result.statuses_by_pid[message.pid] = message
+        return True
+    return False
 
 
 def _drain(watch: Inbox, result: LaunchResult, progress, layer_of_pid, quiet: float) -> None:
-    deadline = time.monotonic() + 5.0  # a flood cannot keep the launcher here
-    while time.monotonic() < deadline and (item := watch.get(timeout=quiet)) is not None:
-        _take(result, item, progress, layer_of_pid)
+    """Take what is still in flight until none of the run's own messages came for ``quiet`` seconds (what
+    others publish meanwhile, a flood of statuses say, does not hold the launcher), at most 5 s."""
+    deadline = time.monotonic() + 5.0
+    last_taken = time.monotonic()
+    while (now := time.monotonic()) < deadline and now - last_taken < quiet:
+        item = watch.get(timeout=max(0.0, quiet - (now - last_taken)))
+        if item is not None and _take(result, item, progress, layer_of_pid):
+            last_taken = time.monotonic()
 
 
 def _stop(children: dict[str, subprocess.Popen], layers, result: LaunchResult, grace: float = 10.0) -> None:

@@ -12,7 +12,7 @@ log stays readable; a SIGKILL loses at most the last ``--flush-interval``
 seconds. A log that cannot be written (a full disk, a file-size limit, a
 read-only file system, the file deleted) ends the recording: the recorder
 says in one line what happened and up to which step the file holds the run,
-and exits with code 3 (:data:`EXIT_LOG_WRITE`).
+and exits with code 3 (:data:`dtpf.recording.writer.EXIT_LOG_WRITE`).
 
 Run ``python -m dtpf.scripts.record --help`` for the options.
 """
@@ -30,8 +30,8 @@ from dtpf.messages.admission import RunShape, kind_of
 from dtpf.messages.codec import MessageError, decode_for_key, encode
 from dtpf.messages.config import RunConfig, add_run_arguments
 from dtpf.messages.models import MAX_REJECTED_SAMPLE, Estimate, Rejected, ServiceState
-from dtpf.recording.logfile import LogError, last_estimate_steps, read_log
-from dtpf.recording.writer import COMPRESSION, LogWriteError, McapRecording, auto_compression
+from dtpf.recording.logfile import what_it_holds
+from dtpf.recording.writer import COMPRESSION, EXIT_LOG_WRITE, LogWriteError, McapRecording, auto_compression
 from dtpf.shell.bus import add_zenoh_arguments
 from dtpf.shell.service import ServiceShell, add_service_arguments, run_service
 
@@ -40,10 +40,7 @@ RECORDER_INBOX_PAYLOADS, RECORDER_INBOX_BYTES = 64, 512 << 20
 #: ... and at most this many messages (a fleet of 40 twins filled 4,096 with small ones in a burst).
 RECORDER_INBOX_ITEMS = 1 << 16
 
-#: Exit code of a recorder whose log could not be written (the file holds what came before).
-EXIT_LOG_WRITE = 3
-
-__all__ = ["EXIT_LOG_WRITE", "main", "what_the_log_holds"]
+__all__ = ["main"]
 
 
 def main(config: RunConfig, zenoh_config: zenoh.Config, args: argparse.Namespace) -> int:
@@ -68,26 +65,9 @@ def main(config: RunConfig, zenoh_config: zenoh.Config, args: argparse.Namespace
             with recording:
                 return _record(shell, recording, pattern, compression, args)
         except LogWriteError as error:
-            shell.state, shell.last_error = ServiceState.FAILED, f"{error}; {what_the_log_holds(error.path)}"
+            shell.state, shell.last_error = ServiceState.FAILED, f"{error}; {what_it_holds(error.path)}"
             shell.log.error("%s", shell.last_error)
             return EXIT_LOG_WRITE
-
-
-def what_the_log_holds(path) -> str:
-    """'it holds the run up to step S (M messages) ...': what a log whose writing failed still holds."""
-    try:
-        log = read_log(path)
-    except (LogError, OSError) as error:
-        return f"nothing of it can be read ({error})"
-    last = last_estimate_steps(log)
-    if not last:
-        held = f"it holds no estimate ({len(log.messages):,} messages)"
-    elif len(last) == 1:
-        held = f"it holds the run up to step {next(iter(last.values()))} ({len(log.messages):,} messages)"
-    else:
-        held = (f"it holds {len(last)} twins up to steps {min(last.values())}-{max(last.values())} "
-                f"({len(log.messages):,} messages)")
-    return held + (f"; 'dtpf recover {path} --output FILE' writes it as a complete file" if not log.complete else "")
 
 
 def _record(shell: ServiceShell, recording: McapRecording, pattern: str, compression: str,

@@ -202,3 +202,110 @@ def test_a_viewer_file_opened_from_another_folder_by_plain_zenoh_receives_a_secu
     assert len(result.estimates) == 120
     assert viewer.returncode == 0, err[-2000:]
     assert int(out.split()[-1]) >= 10
+
+
+# --- a launch onto a full disk ------------------------------------------------------------------------------
+
+
+@pytest.fixture
+def small_disk(tmp_path):
+    """A 2 MiB folder: a tmpfs where this process may mount one, else the same limit as RLIMIT_FSIZE (the
+    launcher and its children inherit it; a write past it fails with EFBIG, as CPython ignores SIGXFSZ)."""
+    import resource
+    import subprocess
+
+    folder = tmp_path / "small"
+    folder.mkdir()
+    mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=2m", "tmpfs", str(folder)],
+                             capture_output=True).returncode == 0 if os.geteuid() == 0 else False
+    limit = None if mounted else (lambda: resource.setrlimit(resource.RLIMIT_FSIZE, (2 << 20, 2 << 20)))
+    try:
+        yield folder, limit
+    finally:
+        if mounted:
+            subprocess.run(["umount", "-l", str(folder)], capture_output=True)
+
+
+def test_a_launch_onto_a_full_disk_ends_its_log_cleanly_and_says_up_to_which_step(small_disk):
+    import subprocess
+    import sys
+
+    folder, limit = small_disk
+    log = folder / "x.mcap"
+    started = time.monotonic()
+    done = subprocess.run([sys.executable, "-m", "dtpf", "launch", "-q", "--steps", "200", "--rate", "100",
+                           "-o", str(log)], capture_output=True, text=True, timeout=180, preexec_fn=limit)
+    took = time.monotonic() - started
+    assert done.returncode == 0, done.stderr[-3000:]  # the run itself completed
+    assert "Traceback" not in done.stderr, done.stderr[-3000:]
+    assert took < 60
+    assert "steps           200 of 200" in done.stdout
+    ended = [line for line in done.stdout.splitlines() if line.startswith("log ended")]
+    assert len(ended) == 1 and ("ENOSPC" in ended[0] or "EFBIG" in ended[0]), done.stdout
+    held = int(ended[0].split("it holds the run up to step ")[1].split()[0])
+    assert 1 <= held < 200
+    assert sorted(p.name for p in folder.iterdir()) == ["x.mcap"]  # no recorder restarted into the full disk
+    # The log holds exactly what the launcher said, and reads as a cut-short file.
+    read = read_log(log)
+    assert not read.complete
+    assert last_estimate_steps(read) == {"ungm-1": held}
+    steps = sorted({m.step for _, m in read.decoded(lambda t: t.endswith("/entity/estimate"))})
+    assert steps == list(range(1, held + 1))
+
+
+# --- what others publish does not hold the end of a run -------------------------------------------------------
+
+
+class Flooder:
+    """Publishes ``{}`` at ``rate`` Hz on a twin's system status key until closed."""
+
+    def __init__(self, twin: str, port: int, rate: float):
+        self.twin, self.rate, self.sent = twin, rate, 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, args=(port,), daemon=True)
+        self._thread.start()
+
+    def _run(self, port: int) -> None:
+        session = None
+        while session is None and not self._stop.is_set():
+            try:
+                session = open_session(zenoh_config(mode="client", connect=[f"tcp/127.0.0.1:{port}"]))
+            except BusError:
+                time.sleep(0.05)
+        if session is None:
+            return
+        publisher = session.declare_publisher(f"dtpf/{self.twin}/system/status")
+        while not self._stop.wait(1.0 / self.rate):
+            publisher.put(b"{}")
+            self.sent += 1
+        session.close()
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=10)
+
+
+def _tail(twin: str, flood: bool) -> tuple[float, int]:
+    """Seconds from the run's last estimate to the launch's return, and how many flood messages were sent."""
+    port, last = free_port(), {}
+    flooder = Flooder(twin, port, rate=50.0) if flood else None
+
+    def progress(step, total):
+        last["at"] = time.monotonic()
+
+    try:
+        result = launch(RunConfig(particles=100, steps=60, twin=twin), record=False, port=port, timeout=5.0,
+                        rate=30.0, progress=progress, notify=lambda text: None)
+        ended = time.monotonic()
+    finally:
+        if flooder is not None:
+            flooder.close()
+    assert len(result.estimates) == 60
+    return ended - last["at"], flooder.sent if flooder else 0
+
+
+def test_a_status_flood_does_not_hold_the_end_of_a_launch():
+    quiet, _ = _tail("t-quiet-end", flood=False)
+    flooded, sent = _tail("t-flooded-end", flood=True)
+    assert sent >= 50  # the flood ran for the whole run (60 steps at 30 steps/s: 2 s)
+    assert flooded <= quiet + 2.0, (flooded, quiet)

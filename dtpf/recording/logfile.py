@@ -74,7 +74,7 @@ from dtpf.recording.crc import crc32, use_fast_crc
 use_fast_crc()
 
 __all__ = ["Log", "LogMessage", "LogError", "CutRecord", "read_log", "read_logs", "join_logs", "write_log", "MAGIC",
-           "last_estimate_steps"]
+           "last_estimate_steps", "what_it_holds"]
 
 #: The eight bytes every MCAP file starts and ends with.
 MAGIC = b"\x89MCAP0\r\n"
@@ -589,6 +589,24 @@ def last_estimate_steps(log: Log) -> dict[str, int]:
         if not isinstance(message, MessageError):
             last[message.twin_id] = max(last.get(message.twin_id, 0), message.step)
     return last
+
+
+def what_it_holds(path) -> str:
+    """'it holds the run up to step S (M messages) ...': in words, what the log at ``path`` holds (for a log
+    whose writing failed)."""
+    try:
+        log = read_log(path)
+    except (LogError, OSError) as error:
+        return f"nothing of it can be read ({error})"
+    last = last_estimate_steps(log)
+    if not last:
+        held = f"it holds no estimate ({len(log.messages):,} messages)"
+    elif len(last) == 1:
+        held = f"it holds the run up to step {next(iter(last.values()))} ({len(log.messages):,} messages)"
+    else:
+        held = (f"it holds {len(last)} twins up to steps {min(last.values())}-{max(last.values())} "
+                f"({len(log.messages):,} messages)")
+    return held + (f"; 'dtpf recover {path} --output FILE' writes it as a complete file" if not log.complete else "")
 
 
 def join_logs(logs: list[Log]) -> Log:

@@ -33,7 +33,10 @@ from dtpf.recording.crc import use_fast_crc
 # Chunk CRCs with zlib-ng (dtpf/recording/crc.py): the same numbers, 13x faster than CPython's zlib.
 use_fast_crc()
 
-__all__ = ["LogWriteError", "McapRecording", "UNKNOWN_ENCODING"]
+__all__ = ["EXIT_LOG_WRITE", "LogWriteError", "McapRecording", "UNKNOWN_ENCODING"]
+
+#: Exit code of a recorder whose log could not be written: starting another on the same disk would not help.
+EXIT_LOG_WRITE = 3
 
 #: Message encoding of payloads on keys outside the topic table (no schema).
 UNKNOWN_ENCODING = "application/octet-stream"

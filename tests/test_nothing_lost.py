@@ -53,10 +53,14 @@ class Forger:
         self.session.close()
 
 
-def test_a_forged_estimate_of_future_steps_leaves_every_real_step_in_the_log(tmp_path):
+FORGED = range(90, 120)
+
+
+@pytest.fixture(scope="module")
+def forged_launch(tmp_path_factory):
+    """A plain launch of 120 steps whose estimates of steps 90-119 a forger publishes after step 1."""
     config = RunConfig(particles=100, steps=120, seed=3, twin="t-forged")
-    port, log_path, outcome = free_port(), tmp_path / "forged.mcap", {}
-    forged = range(90, 120)
+    port, log_path, outcome = free_port(), tmp_path_factory.mktemp("forged") / "forged.mcap", {}
 
     def run():
         outcome["result"] = launch(config, log_path=log_path, port=port, timeout=5.0, rate=60.0,
@@ -69,7 +73,7 @@ def test_a_forged_estimate_of_future_steps_leaves_every_real_step_in_the_log(tmp
         deadline = time.monotonic() + 60
         while forger is None:  # the launcher's router is not listening at once
             try:
-                forger = Forger(config.twin, port, forged)
+                forger = Forger(config.twin, port, FORGED)
             except BusError:
                 if time.monotonic() > deadline or not launcher.is_alive():
                     raise
@@ -79,8 +83,12 @@ def test_a_forged_estimate_of_future_steps_leaves_every_real_step_in_the_log(tmp
         if forger is not None:
             forger.close()
         launcher.join(timeout=60)
-    assert forger.sent == len(forged)
-    result = outcome["result"]
+    assert forger.sent == len(FORGED)
+    return config, outcome["result"], log_path
+
+
+def test_a_forged_estimate_of_future_steps_leaves_every_real_step_in_the_log(forged_launch):
+    config, result, log_path = forged_launch
     assert len({e.step for e in result.estimates}) == config.steps
     log = read_log(log_path)
     steps: dict[int, list[Estimate]] = {}
@@ -88,9 +96,46 @@ def test_a_forged_estimate_of_future_steps_leaves_every_real_step_in_the_log(tmp
         steps.setdefault(message.step, []).append(message)
     assert sorted(steps) == list(range(1, config.steps + 1))  # every real step is in the log
     competing = {step for step, found in steps.items() if len(found) > 1}
-    assert competing == set(forged)  # the forged steps hold the forgery and the real estimate
-    for step in forged:
+    assert competing == set(FORGED)  # the forged steps hold the forgery and the real estimate
+    for step in FORGED:
         assert sorted(float(np.ravel(e.mean)[0]) == 1000.0 for e in steps[step]) == [False, True]
+
+
+def test_dtpf_summary_names_the_competing_steps_and_uses_the_real_estimates(forged_launch):
+    from dtpf.scripts.logs.summary import format_summary, summarise
+
+    config, result, log_path = forged_launch
+    summary = summarise(read_log(log_path))
+    (twin,) = summary.twins
+    assert twin.steps == list(range(1, config.steps + 1))
+    assert twin.competing_steps == list(FORGED) and twin.duplicate_estimates == len(FORGED)
+    assert f"{twin.rmse:.4f}" == f"{result.rmse:.4f}"  # the launcher's own figure: the forgeries not used
+    assert "competing     30 steps had more than one estimate (90-119; 30 more)" in format_summary(summary)
+
+
+def test_dtpf_verify_reproduces_one_of_a_steps_competing_commands_and_says_which(forged_launch, tmp_path):
+    import dataclasses
+
+    from dtpf.recording.logfile import write_log
+    from dtpf.scripts.logs.verify import decoded_by_topic, verify_twin
+
+    config, _, log_path = forged_launch
+    log = read_log(log_path)
+    topic = f"dtpf/{config.twin}/system/ps"
+    at = next(i for i, item in enumerate(log.messages)
+              if item.topic == topic and decode_for_key(item.topic, item.data).step == 5)
+    real = decode_for_key(topic, log.messages[at].data)
+    forged = dataclasses.replace(log.messages[at], data=encode(real.model_copy(update={"ps": 0.25})))
+    log.messages.insert(at, forged)  # received first
+    write_log(log, tmp_path / "two-commands.mcap")
+    result = verify_twin(decoded_by_topic(read_log(tmp_path / "two-commands.mcap")), config.twin)
+    assert result.ok and len(result.checked) == config.steps
+    assert result.competing == {topic: [5]} and result.used == {(topic, 5): 1}
+    # With the forgery alone at that step, the re-run does not reproduce it.
+    del log.messages[at + 1]
+    write_log(log, tmp_path / "forged-command.mcap")
+    result = verify_twin(decoded_by_topic(read_log(tmp_path / "forged-command.mcap")), config.twin)
+    assert not result.ok and result.mismatch.step == 5 and result.mismatch.field == "ps"
 
 
 def test_the_recorder_keeps_at_most_a_bounded_number_of_copies_of_one_step():

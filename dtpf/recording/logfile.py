@@ -74,7 +74,7 @@ from dtpf.recording.crc import crc32, use_fast_crc
 use_fast_crc()
 
 __all__ = ["Log", "LogMessage", "LogError", "CutRecord", "read_log", "read_logs", "join_logs", "write_log", "MAGIC",
-           "last_estimate_steps", "what_it_holds"]
+           "last_estimate_steps", "what_it_holds", "in_step_order"]
 
 #: The eight bytes every MCAP file starts and ends with.
 MAGIC = b"\x89MCAP0\r\n"
@@ -589,6 +589,43 @@ def last_estimate_steps(log: Log) -> dict[str, int]:
         if not isinstance(message, MessageError):
             last[message.twin_id] = max(last.get(message.twin_id, 0), message.step)
     return last
+
+
+def in_step_order(messages: list) -> tuple[dict[int, object], dict[int, int]]:
+    """One message per step from ``messages`` (a twin's messages of one topic, in file order): (chosen by
+    step, how many competed for each step that had more than one).
+
+    A layer publishes its steps in increasing order and Zenoh keeps one publisher's order, so the real
+    messages form an increasing run of steps through the file; a forged one breaks it (an estimate of a
+    future step sent early, a copy sent late). Where a step has several, the one on the longest strictly
+    increasing run of steps is chosen (the earliest where two runs tie); a step with none on that run keeps
+    its first. O(n log n).
+    """
+    import bisect
+
+    tail_steps: list[int] = []   # the smallest last step of an increasing run of each length
+    tail_index: list[int] = []
+    before = [-1] * len(messages)
+    for i, message in enumerate(messages):
+        at = bisect.bisect_left(tail_steps, message.step)
+        if at < len(tail_steps) and tail_steps[at] == message.step:
+            continue  # an earlier message of this step already ends such a run
+        before[i] = tail_index[at - 1] if at else -1
+        if at == len(tail_steps):
+            tail_steps.append(message.step)
+            tail_index.append(i)
+        else:
+            tail_steps[at], tail_index[at] = message.step, i
+    chosen: dict[int, object] = {}
+    i = tail_index[-1] if tail_index else -1
+    while i >= 0:
+        chosen[messages[i].step] = messages[i]
+        i = before[i]
+    counts: dict[int, int] = {}
+    for message in messages:
+        counts[message.step] = counts.get(message.step, 0) + 1
+        chosen.setdefault(message.step, message)
+    return dict(sorted(chosen.items())), {step: n for step, n in counts.items() if n > 1}
 
 
 def what_it_holds(path) -> str:

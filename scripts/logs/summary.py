@@ -30,7 +30,7 @@ import numpy as np
 
 from dtpf.messages.codec import MessageError, class_for_schema, schema_for
 from dtpf.messages.models import Estimate, PSCommand, Status
-from dtpf.recording.logfile import Log, LogError, read_log, read_logs, write_log
+from dtpf.recording.logfile import Log, LogError, in_step_order, read_log, read_logs, write_log
 
 __all__ = ["LogInfo", "TopicInfo", "SchemaInfo", "LogSummary", "TwinSummary", "Trajectory", "LayerStatus",
            "log_info", "summarise", "format_info", "format_summary", "format_ranges",
@@ -232,7 +232,8 @@ class TwinSummary:
     expected_steps: int | None = None   #: T from the recorded configuration
     missing_steps: list[int] = field(default_factory=list)  #: the first MAX_LISTED missing steps
     missing_count: int = 0              #: every missing step, listed or not
-    duplicate_estimates: int = 0
+    duplicate_estimates: int = 0        #: estimates beyond the one used, of steps that had several
+    competing_steps: list[int] = field(default_factory=list)  #: steps with more than one estimate
     out_of_range: int = 0               #: estimates beyond the recorded T (not used)
     rmse: float | None = None           #: over the steps whose estimate records the truth
     truth_steps: int = 0
@@ -332,15 +333,12 @@ def _twin_summary(twin: str, run_id: str, estimates: list[Estimate], ps: list[PS
     out.statuses = dict(sorted(out.statuses.items()))
     if out.config is not None and isinstance(out.config.get("steps"), int):
         out.expected_steps = out.config["steps"]
-    by_step: dict[int, Estimate] = {}
-    for estimate in estimates:
-        if out.expected_steps is not None and estimate.step > out.expected_steps:
-            out.out_of_range += 1
-        elif estimate.step in by_step:
-            out.duplicate_estimates += 1
-        else:
-            by_step[estimate.step] = estimate
-    ordered = [by_step[k] for k in sorted(by_step)]
+    in_range = [e for e in estimates if out.expected_steps is None or e.step <= out.expected_steps]
+    out.out_of_range = len(estimates) - len(in_range)
+    by_step, competing = in_step_order(in_range)
+    out.competing_steps = sorted(competing)
+    out.duplicate_estimates = sum(competing.values()) - len(competing)
+    ordered = list(by_step.values())
     out.steps = [e.step for e in ordered]
     last = max(out.expected_steps or 0, out.steps[-1] if out.steps else 0)
     out.missing_count, out.missing_steps = _missing(out.steps, last)
@@ -444,8 +442,10 @@ def format_summary(summary: LogSummary) -> str:
             lines.append(f"  missing       {format_ranges(t.missing_steps)}{more}")
         if t.out_of_range:
             lines.append(f"  out of range  {t.out_of_range} estimates beyond step {t.expected_steps} (not used)")
-        if t.duplicate_estimates:
-            lines.append(f"  duplicates    {t.duplicate_estimates} estimates repeat a step (the first is used)")
+        if t.competing_steps:
+            lines.append(f"  competing     {len(t.competing_steps)} steps had more than one estimate "
+                         f"({format_ranges(t.competing_steps)}; {t.duplicate_estimates} more): each uses the "
+                         f"one received in step order, as the twin's entity publishes them")
         if t.rmse is not None:
             lines.append(f"  RMSE          {t.rmse:.4f} (truth at {t.truth_steps} steps)")
         if t.rmse is None or t.truth_steps < len(t.steps):

@@ -19,7 +19,7 @@ import numpy as np
 from dtpf.information.layer import InformationLayer
 from dtpf.messages.config import RunConfig
 from dtpf.messages.models import ParticleSet, Status
-from dtpf.recording.logfile import Log, LogError, read_logs
+from dtpf.recording.logfile import Log, LogError, in_step_order, read_logs
 from dtpf.system.layer import SystemLayer
 from dtpf.system.predict import Snapshot
 
@@ -50,6 +50,10 @@ class Verification:
     unanswered: list[int] = field(default_factory=list)
     mismatch: Mismatch | None = None
     problem: str | None = None
+    #: Steps that had more than one recorded message, by topic (a forger's, or a copy).
+    competing: dict[str, list[int]] = field(default_factory=dict)
+    #: Of a competing step's messages, the one the re-run reproduced (its index in file order), by (topic, step).
+    used: dict[tuple[str, int], int] = field(default_factory=dict)
 
     @property
     def ok(self) -> bool:
@@ -131,14 +135,34 @@ def verify_twin(by_topic: dict[str, list], twin: str, problem: str | None = None
                 model_override: str | None = None) -> Verification:
     """:func:`verify` of one twin of an already decoded log."""
 
-    def recorded(topic: str) -> dict[int, object]:
-        return {m.step: m for m in by_topic.get(f"dtpf/{twin}/{topic}", [])}
+    def recorded(topic: str) -> dict[int, list]:
+        """The topic's messages by step, each step's in file order."""
+        by_step: dict[int, list] = {}
+        for message in by_topic.get(f"dtpf/{twin}/{topic}", []):
+            by_step.setdefault(message.step, []).append(message)
+        for step, found in by_step.items():
+            if len(found) > 1:
+                result.competing.setdefault(f"dtpf/{twin}/{topic}", []).append(step)
+        return by_step
+
+    def matching(step: int, topic: str, candidates: list, compare) -> Mismatch | None:
+        """None when one of the step's recorded messages is reproduced; else the first one's mismatch.
+        A step with several says which one matched."""
+        mismatches = [compare(candidate) for candidate in candidates]
+        if None in mismatches:
+            if len(candidates) > 1:
+                result.used[topic, step] = mismatches.index(None)
+            return None
+        return mismatches[0]
 
     statuses = [m for topic, ms in by_topic.items() if topic.startswith(f"dtpf/{twin}/") for m in ms
                 if isinstance(m, Status)]
     config = _config_of(statuses, twin)
     result = Verification(twin, config, problem=problem)
-    particle_sets = recorded("entity/particles")
+    # The entity's sets are the re-run's input: where a step has several, the one in step order (as the
+    # entity publishes them) is used.
+    particle_sets, _ = in_step_order(by_topic.get(f"dtpf/{twin}/entity/particles", []))
+    recorded("entity/particles")
     preprocessed = recorded("information/preprocessed")
     weight_states = recorded("information/weight_state")
     commands = recorded("system/ps")
@@ -154,13 +178,16 @@ def verify_twin(by_topic: dict[str, list], twin: str, problem: str | None = None
         if step not in preprocessed:
             result.unanswered.append(step)
         else:
-            mismatch = _compare_preprocessed(step, twin, preprocessed[step], out)
+            mismatch = matching(step, f"dtpf/{twin}/information/preprocessed", preprocessed[step],
+                                lambda recorded_set: _compare_preprocessed(step, twin, recorded_set, out))
             if mismatch is not None:
                 result.mismatch = mismatch
                 return result
         if step in weight_states:
-            mismatch = _compare_fields(step, f"dtpf/{twin}/information/weight_state", weight_states[step],
-                                       {**out.summary.as_dict(), "ps": out.preprocessed.report.ps})
+            topic = f"dtpf/{twin}/information/weight_state"
+            expected = {**out.summary.as_dict(), "ps": out.preprocessed.report.ps}
+            mismatch = matching(step, topic, weight_states[step],
+                                lambda state: _compare_fields(step, topic, state, expected))
             if mismatch is not None:
                 result.mismatch = mismatch
                 return result
@@ -170,7 +197,9 @@ def verify_twin(by_topic: dict[str, list], twin: str, problem: str | None = None
         decision = system.observe(step, out.summary, snapshot)
         information.set_ps(decision.ps, decision.applies_from_step, decision.preprocess)
         if step in commands:
-            mismatch = _compare_fields(step, f"dtpf/{twin}/system/ps", commands[step], decision.command_fields())
+            topic = f"dtpf/{twin}/system/ps"
+            mismatch = matching(step, topic, commands[step],
+                                lambda command: _compare_fields(step, topic, command, decision.command_fields()))
             if mismatch is not None:
                 result.mismatch = mismatch
                 return result
@@ -198,6 +227,13 @@ def _compare_fields(step: int, topic: str, recorded, expected: dict) -> Mismatch
         if not _same(got, value):
             return Mismatch(step, topic, name, got, value)
     return None
+
+
+def _ordinals(found: list[int]) -> str:
+    """[1, 1, 2] -> 'the 1st received at 2 steps, the 2nd received at 1 step'."""
+    counts = {n: found.count(n) for n in sorted(set(found))}
+    words = {1: "1st", 2: "2nd", 3: "3rd"}
+    return ", ".join(f"the {words.get(n, f'{n}th')} received at {k} step{'s' * (k != 1)}" for n, k in counts.items())
 
 
 def _ranges(steps: list[int]) -> str:
@@ -243,6 +279,14 @@ def _report(result: Verification, verbose: bool) -> int:
     if result.unanswered:
         print(f"steps without a recorded preprocessed set (the information layer did not answer): "
               f"{_ranges(result.unanswered)}")
+    for topic, steps in sorted(result.competing.items()):
+        if topic.endswith("/entity/particles"):
+            how = "the re-run used the one received in step order, as the entity publishes them"
+        else:
+            found = [result.used[topic, step] + 1 for step in steps if (topic, step) in result.used]
+            how = (f"the re-run reproduced one message of each ({_ordinals(found)}); the rest are not what the "
+                   f"twin's layers computed" if found else "none was checked")
+        print(f"competing: {topic} had more than one message at steps {_ranges(sorted(steps))}: {how}")
     if result.mismatch is not None:
         print(f"MISMATCH {result.mismatch}")
         if result.checked:

@@ -1,4 +1,4 @@
-"""Small things a newcomer hit (issue 14): --version, dtpf play with nobody to hear it, dtpf plot on a cut log."""
+"""Small things a newcomer hit: --version, dtpf play with nobody to hear it, dtpf plot on a cut log."""
 from __future__ import annotations
 
 import subprocess

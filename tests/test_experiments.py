@@ -1,7 +1,7 @@
 """``python -m dtpf.scripts.paper.experiments``: the reduced run writes every output, with finite numbers.
 
 These tests check that the command works, not that it reproduces the paper:
-the full run and its verdicts are in docs/experiments.md.
+the full run and its verdicts are in docs/results/experiments.md.
 """
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""dtpf launch --foxglove: a client of Foxglove's WebSocket protocol sees every estimate of the run (issue 14)."""
+"""dtpf launch --foxglove: a client of Foxglove's WebSocket protocol sees every estimate of the run."""
 from __future__ import annotations
 
 import json

@@ -1,4 +1,4 @@
-"""Issue 17: the decision "off", the guard policy, the relative move rule and the jitters."""
+"""The decision "off", the guard policy, the relative move rule and the jitters."""
 from __future__ import annotations
 
 import math

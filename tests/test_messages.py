@@ -745,7 +745,7 @@ def test_mcap_round_trip_with_decoder_factory():
 
 
 def test_mcap_file_decodes_with_only_mcap_json_and_numpy():
-    # The recipe of docs/encoding.md, without importing dtpf.
+    # The recipe of docs/guides/encoding.md, without importing dtpf.
     message = particle_set(n=20, d=3, kind="preprocessed")
     reader = make_reader(record([message, weight_state()]))
     seen = {}

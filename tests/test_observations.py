@@ -369,9 +369,12 @@ def test_observation_columns_against_the_model():
 
 
 def test_truth_columns_against_the_model():
+    # Fewer truth columns than the state: its leading components; more than the state: refused.
     write("obs.csv", "z,truth_x,truth_y,truth_vx\n0,1,2,3\n")
-    fails("obs.csv", exact("obs.csv: 3 truth columns (truth_x, truth_y, truth_vx), "
-                           "the model's state has 4 dimensions"), state_dim=4)
+    table = read_observations("obs.csv", state_dim=4)
+    assert table.truth.shape == (1, 3) and table.truth_components == (0, 1, 2)
+    fails("obs.csv", exact("obs.csv: 3 truth columns (truth_x, truth_y, truth_vx), more than the "
+                           "model's state has (2 dimensions)"), state_dim=2)
 
 
 def test_model_checks_come_before_reading_rows():
@@ -607,8 +610,10 @@ def test_npz_bad_values_name_the_array():
 
 def test_npz_against_the_model():
     np.savez("obs.npz", z=np.ones((3, 2)), x=np.ones((3, 3)))
-    fails("obs.npz", exact("obs.npz: 3 truth columns (x0, x1, x2), the model's state has 4 dimensions"),
-          state_dim=4)
+    table = read_observations("obs.npz", state_dim=4)  # the truth covers the state's first three components
+    assert table.truth.shape == (3, 3) and table.truth_components == (0, 1, 2)
+    fails("obs.npz", exact("obs.npz: 3 truth columns (x0, x1, x2), more than the model's state has (2 dimensions)"),
+          state_dim=2)
 
 
 def test_npz_unpacking_beyond_the_limit(monkeypatch):

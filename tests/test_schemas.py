@@ -2,7 +2,7 @@
 
 Checked with an independent validator (``jsonschema``), not with the models
 that wrote them, over launches in the default, ``--no-preprocess``, ``--policy predictive``
-and ``--scenario video`` modes (issue 14).
+and ``--scenario video`` modes.
 """
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Issue 15: only a twin's own layers can steer it (mutual TLS or user/password, and access control).
+"""Only a twin's own layers can steer it (mutual TLS or user/password, and access control).
 
 Real launches on free loopback ports. An attacker session watches the run and,
 for every particle set the entity publishes, forges the answers a layer would

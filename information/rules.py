@@ -292,7 +292,7 @@ def _move_blocked(particles, small, rows, ps, state, out):  # pragma: no cover -
     # particles: first the block's draws (a dependency chain through the generator's state), then
     # its moves, whose random reads of the partners are independent of each other, so the processor
     # overlaps them instead of waiting on the generator between two reads; the gain grows with d
-    # (docs/kernels.md).
+    # (docs/results/kernels.md).
     n_large = rows.shape[0]
     d = particles.shape[1]
     mixed_below = _mixed_below(ps)

@@ -20,7 +20,7 @@ Record (MCAP): the key expression is the topic;
 with ``make_reader(f, decoder_factories=[McapDecoderFactory()])``.
 
 Particle sets travel in a binary envelope (JSON header + raw little-endian
-float64; layout in :mod:`dtpf.messages.codec` and ``docs/encoding.md``), every other
+float64; layout in :mod:`dtpf.messages.codec` and ``docs/guides/encoding.md``), every other
 message as plain JSON that Foxglove can plot. Array validation shared with the
 algorithms lives in :mod:`dtpf.messages.arrays`, per-step random streams in
 :mod:`dtpf.messages.streams`, the names a configuration may use in

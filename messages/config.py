@@ -227,12 +227,12 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
                        help=f"weights of processed particles (default: {defaults.weight_rule})")
     group.add_argument("--move-rule", default=None, choices=names.MOVE_RULES,
                        help="how small particles are moved: 'paper' (Eq. 29-30), 'relative' (translation invariant, "
-                            f"not the paper's; see docs/system-layer.md) (default: {defaults.move_rule})")
+                            f"not the paper's; see docs/guides/policies.md) (default: {defaults.move_rule})")
     group.add_argument("--policy", default=None, choices=sorted(names.POLICIES),
                        help="PS policy of the system layer: 'fixed' (the paper's), 'rule' and 'predictive' (adapt PS "
                             "to the predicted degradation), 'guard' (preprocess only where the twin's simulation "
                             "predicts it lowers the error), 'guard-observed' (only while the real observations "
-                            f"favour it); see docs/system-layer.md (default: {defaults.policy})")
+                            f"favour it); see docs/guides/policies.md (default: {defaults.policy})")
     group.add_argument("--ps", type=float, default=None,
                        help=f"PS of the fixed policy, initial PS of the others (default: {defaults.ps})")
     group.add_argument("--ps-rate", type=float, default=None, metavar="CHANGE",

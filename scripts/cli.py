@@ -183,7 +183,7 @@ def cmd_launch(args: argparse.Namespace) -> int:
     except LaunchError as error:
         print(f"dtpf launch: error: {error}", file=sys.stderr)
         return 1
-    return _finish(result.summary(), result.failure, result.interrupted)
+    return _finish(result.summary(), result.failure or _log_failure(result.log_problem), result.interrupted)
 
 
 def _note_partial_truth(config, model) -> None:
@@ -199,6 +199,11 @@ def _note_partial_truth(config, model) -> None:
         print(f"dtpf: note: the truth of {config.observation_file} covers {covered} of the state's {model.dim} "
               f"components; a launch judges by the log predictive ('dtpf run' gives the RMSE over {covered})",
               file=sys.stderr)
+
+
+def _log_failure(problem: str | None) -> str | None:
+    """The launch's error when its log ended early (the run went on; the record of it did not)."""
+    return f"the log is incomplete: {problem}" if problem else None
 
 
 def _finish(summary: str, failure: str | None, interrupted: bool) -> int:
@@ -226,7 +231,7 @@ def _launch_fleet(config, args: argparse.Namespace, port: int) -> int:
         print(f"dtpf launch: error: {error}", file=sys.stderr)
         return 1
     failure = f"{len(result.failures)} twins did not end their run" if result.failures else None
-    return _finish(result.summary(), failure, result.interrupted)
+    return _finish(result.summary(), failure or _log_failure(result.log_problem), result.interrupted)
 
 
 def _address(text: str):
@@ -272,7 +277,7 @@ def build_parser() -> argparse.ArgumentParser:
                     "the scenario in lockstep, record every message to MCAP and print a summary. Ctrl-C stops "
                     "every service and leaves a readable log. Without --secure the router listens on loopback "
                     "only, unauthenticated: any process of this machine can read and publish on it; with "
-                    "--secure DIR only the twin's own layers can steer it (docs/security.md).")
+                    "--secure DIR only the twin's own layers can steer it (docs/guides/security.md).")
     add_run_arguments(launch)
     group = launch.add_argument_group("launch")
     group.add_argument("--log", "-o", type=Path, default=None, metavar="PATH",

@@ -295,7 +295,7 @@ def main(args: argparse.Namespace) -> int:
     folder = Path(args.dir)
     print(f"wrote {len(written)} files into {folder} (owner-only)")
     print(f"  {folder / 'tls'}      mutual TLS, roles: {', '.join(ROLES)}")
-    print(f"  {folder / 'usrpwd'}   user and password over tcp/ (weaker: see docs/security.md)")
+    print(f"  {folder / 'usrpwd'}   user and password over tcp/ (weaker: see docs/guides/security.md)")
     print(f"  {folder / 'ca'}       the certificate authority: keep ca.key off the twin's machines")
     print(f"run a secured twin:  dtpf launch --secure {folder / 'tls'}")
     return 0
@@ -306,7 +306,7 @@ def register(subparsers) -> None:
     secure = subparsers.add_parser(
         "secure", help="make what a secured twin needs (certificates, passwords, access control)",
         description="Secured deployments: mutual TLS or user/password, and an access-control list on the "
-                    "router so that only a twin's own layers can steer it. See docs/security.md.")
+                    "router so that only a twin's own layers can steer it. See docs/guides/security.md.")
     actions = secure.add_subparsers(dest="secure_command", metavar="ACTION", required=True)
     make = actions.add_parser(
         "init", help="write a certificate authority, a certificate and key per role, and Zenoh configurations",

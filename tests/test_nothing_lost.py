@@ -281,7 +281,8 @@ def test_a_launch_onto_a_full_disk_ends_its_log_cleanly_and_says_up_to_which_ste
     done = subprocess.run([sys.executable, "-m", "dtpf", "launch", "-q", "--steps", "200", "--rate", "100",
                            "-o", str(log)], capture_output=True, text=True, timeout=180, preexec_fn=limit)
     took = time.monotonic() - started
-    assert done.returncode == 0, done.stderr[-3000:]  # the run itself completed
+    assert done.returncode == 1, done.stderr[-3000:]  # the run itself completed, its record did not
+    assert "dtpf launch: error: the log is incomplete: cannot write the log" in done.stderr
     assert "Traceback" not in done.stderr, done.stderr[-3000:]
     assert took < 60
     assert "steps           200 of 200" in done.stdout

@@ -38,6 +38,22 @@ Z95 = 1.959963984540054
 #: Figures: small PNGs (the report links them).
 DPI = 80
 
+def report_of(out: Path) -> Path:
+    """The Markdown report of the data folder ``out``: ``docs/results/<name>.md`` for a folder of ``docs/``
+    (the reports are results, the data beside the guides), else ``out`` + ``.md`` beside the folder."""
+    out = Path(out)
+    if out.parent.name == "docs":
+        return out.parent / "results" / f"{out.name}.md"
+    return out.with_name(out.name + ".md")
+
+
+def relative_to_report(path: Path, out: Path) -> str:
+    """``path`` as a link from the report of ``out`` (forward slashes)."""
+    import os
+
+    return os.path.relpath(path, report_of(out).parent).replace(os.sep, "/")
+
+
 def mean_ci(values) -> tuple[float, float]:
     """Mean and the half-width of its 95% normal interval (NaN half-width for one value)."""
     values = np.asarray(values, dtype=float)

@@ -2,7 +2,7 @@
 
 ::
 
-    python -m dtpf.scripts.paper.experiments                  # everything: CSV, PNG, docs/experiments.md
+    python -m dtpf.scripts.paper.experiments                  # everything: CSV, PNG, docs/results/experiments.md
     python -m dtpf.scripts.paper.experiments --quick          # a reduced run (minutes -> seconds), same outputs
     python -m dtpf.scripts.paper.experiments --only table3    # one experiment again; the report is rebuilt
 
@@ -24,7 +24,7 @@ the same entity random streams for every method, so comparisons are paired.
 
 Each experiment writes its CSV files and figure into ``--out`` and one row
 of ``runs.csv`` (Monte Carlo runs, seconds, machine load); the report
-(``--out`` + ``.md``) is then rebuilt from every CSV found there, so the
+(``docs/results/experiments.md`` for ``--out docs/experiments``, else ``--out`` + ``.md``) is then rebuilt from every CSV found there, so the
 report's numbers are the files' numbers. Progress goes to stderr.
 """
 from __future__ import annotations
@@ -58,6 +58,8 @@ from dtpf.scripts.paper.common import (
     _save,
     mean_ci,
     pm,
+    relative_to_report,
+    report_of,
     significance,
     write_csv,
 )
@@ -1037,7 +1039,7 @@ def _tracking_section(out: Path, lines: list[str], closing: list[str]) -> None:
     if not rows:
         lines += ["Not run yet (`--only tracking`).", ""]
         return
-    report = _rel(folder.with_name(folder.name + ".md"), out)
+    report = _rel(report_of(folder), out)
     lines += [
         "**The paper.** A walking person in a 640x480 indoor video, 50 frames, 100 particles: DT \"can "
         "accurately track moving targets in an indoor environment\" (Figs. 9-11).",
@@ -1063,12 +1065,11 @@ def _tracking_section(out: Path, lines: list[str], closing: list[str]) -> None:
 
 
 def _rel(path: Path, out: Path) -> str:
-    report = report_path(out)
-    return os.path.relpath(path, report.parent).replace(os.sep, "/")
+    return relative_to_report(path, out)
 
 
 def report_path(out: Path) -> Path:
-    return out.with_name(out.name + ".md")
+    return report_of(out)
 
 
 def write_report(out: Path) -> Path:
@@ -1114,7 +1115,7 @@ def write_report(out: Path) -> Path:
     _figs68_section(out, lines)
     _table3_section(out, lines, closing)
     _tracking_section(out, lines, closing)
-    lines += ["## Closing note", "", "The comparisons the issue asks for, as the command printed them:", "",
+    lines += ["## Closing note", "", "The comparisons, as the command printed them:", "",
               "```", *closing, "```", "",
               "What we did not change: the paper's settings (PS = 0.81, 100 time points, the noise variances, "
               "x_1 = 0.1, prior N(1, 5)) and the library's defaults (W by N_eff, systematic resampling after DT). "
@@ -1134,7 +1135,8 @@ def main(argv: list[str] | None = None) -> int:
                     "Figs. 6-8, Table 3; the tracking application, Figs. 9-11, with its own report beside "
                     "this one) and write CSV, PNG and a Markdown report.")
     parser.add_argument("--out", type=Path, default=Path("docs/experiments"),
-                        help="folder for CSV and PNG files; the report is this path + '.md' (default: %(default)s)")
+                        help="folder for CSV and PNG files; the report is docs/results/NAME.md for a folder docs/NAME, "
+                             "else this path + '.md' (default: %(default)s)")
     parser.add_argument("--quick", action="store_true", help="a reduced run: few Monte Carlo runs, small N")
     parser.add_argument("--only", action="append", choices=list(EXPERIMENTS), metavar="NAME",
                         help=f"run only this experiment (repeatable): {', '.join(EXPERIMENTS)}; "

@@ -2,7 +2,7 @@
 
 ::
 
-    python -m dtpf.scripts.paper.tracking                 # Figs. 9-11 and the error table: docs/tracking.md
+    python -m dtpf.scripts.paper.tracking                 # Figs. 9-11 and the error table: docs/results/tracking.md
     python -m dtpf.scripts.paper.tracking --quick         # a reduced run (seconds), the same outputs
     python -m dtpf.scripts.paper.tracking --seeds 300 --out runs/tracking
 
@@ -19,7 +19,7 @@ frames and comparisons are paired by seed.
 Outputs in ``--out`` (default ``docs/tracking``): ``runs.csv`` (one row per
 method and seed), ``summary.csv``, ``per_frame.csv``, ``fig9.csv``,
 ``fig9.png``, ``fig10.png``, ``fig11.png``, ``error.png``, ``timing.csv``;
-the report is ``--out`` + ``.md``.
+the report is ``docs/results/tracking.md`` for ``--out docs/tracking``, else ``--out`` + ``.md``.
 """
 from __future__ import annotations
 
@@ -48,6 +48,8 @@ from dtpf.scripts.paper.common import (
     _save,
     mean_ci,
     pm,
+    relative_to_report,
+    report_of,
     significance,
     write_csv,
 )
@@ -342,8 +344,8 @@ def _early_words(rows: list[dict], per_frame: list[dict], last: int = 25) -> str
 
 def write_report(out: Path, rows: list[dict], timing: dict, fig9_rows: list[dict], per_frame: list[dict]) -> Path:
     model = models.get("video")
-    path = out.parent / (out.name + ".md")
-    rel = out.name
+    path = report_of(out)
+    rel = relative_to_report(out, out)
     quick = timing["plan"] == "quick"
     best = rows[0]["best_traditional"]
     dt_zero = sum(r["copies_dt"] == 0 for r in fig9_rows)
@@ -477,7 +479,8 @@ def main(argv: list[str] | None = None) -> int:
         description="The paper's section 5 (tracking a walking person) on a synthetic video: Figs. 9, 10, 11 "
                     "and the tracking error of every resampling method over many seeds; CSV, PNG, Markdown.")
     parser.add_argument("--out", type=Path, default=Path("docs/tracking"),
-                        help="folder for CSV and PNG files; the report is this path + '.md' (default: %(default)s)")
+                        help="folder for CSV and PNG files; the report is docs/results/NAME.md for a folder docs/NAME, "
+                             "else this path + '.md' (default: %(default)s)")
     parser.add_argument("--seeds", type=int, default=None,
                         help="number of seeds (filter runs per method; default 500, --quick 4)")
     parser.add_argument("--quick", action="store_true", help="a reduced run: 4 seeds")

@@ -29,7 +29,7 @@ from dtpf.messages import keys
 from dtpf.messages.admission import RunShape, kind_of
 from dtpf.messages.codec import MessageError, decode_for_key, encode
 from dtpf.messages.config import RunConfig, add_run_arguments
-from dtpf.messages.models import MAX_REJECTED_SAMPLE, Estimate, Rejected, ServiceState
+from dtpf.messages.models import MAX_REJECTED_SAMPLE, Estimate, Layer, Rejected, ServiceState, Status
 from dtpf.recording.logfile import what_it_holds
 from dtpf.recording.writer import COMPRESSION, EXIT_LOG_WRITE, LogWriteError, McapRecording, auto_compression
 from dtpf.shell.bus import add_zenoh_arguments
@@ -81,15 +81,20 @@ def _record(shell: ServiceShell, recording: McapRecording, pattern: str, compres
     # layer's; 64 MiB dropped sets at N = 1e5 with the machine's 2 cores shared.
     inbox = shell.inbox_on(pattern, *extra, payloads=RECORDER_INBOX_PAYLOADS, min_bytes=RECORDER_INBOX_BYTES,
                            max_items=RECORDER_INBOX_ITEMS)
-    admission = Admission(shell, all_twins=args.all_twins)
+    silences = Silences(shell.log, args.gap_after)
+    admission = Admission(shell, all_twins=args.all_twins, silences=silences)
     shell.running()
     shell.log.info("recording %s into %s (%s chunks)", pattern, args.output, compression)
+    next_check = time.monotonic() + 1.0
     while not shell.stopping:
         item = inbox.get(timeout=0.2)
         if item is not None:
             admission.record(recording, item)
         else:
             recording.flush_if_due()
+        if time.monotonic() >= next_check:
+            silences.check()
+            next_check = time.monotonic() + 1.0
     # Stopping: write what had arrived (the inbox's bound bounds it: the exit watchdog waits while
     # this moves), then what is still in flight for at most --drain seconds.
     shell.watchdog.step = "writing the messages received before the stop"
@@ -122,12 +127,71 @@ MAX_SAMPLES, MAX_SAMPLES_PER_KIND = 1000, 10
 MAX_COPIES, MAX_TRACKED_STEPS = 8, 1 << 16
 
 
+class Silences:
+    """When a twin's messages stop and when they come back, said in the recorder's log.
+
+    A twin whose messages stop for ``after`` seconds before its entity said it finished (a link cut, a
+    partition between hosts, a dead entity) is named once with its last step; when its messages come back,
+    the recorder says after how long and from which step, so a gap in the record is never silent. At most
+    :data:`MAX_TWINS` twins are followed (the oldest forgotten first).
+    """
+
+    def __init__(self, log, after: float):
+        self.log, self.after = log, after
+        self.last: dict[str, tuple[float, int]] = {}  # twin -> (monotonic time, step) of its last message
+        self.silent: dict[str, float] = {}            # twin -> when it was found silent
+        self.finished: set[str] = set()               # twins whose entity said its run is over
+        self.gaps = 0
+
+    def heard(self, message) -> None:
+        """Note a recorded message of a twin; only its entity's count (a shared service elsewhere may still
+        speak of a twin whose entity is out of reach)."""
+        if message.layer != Layer.ENTITY:
+            return
+        twin, now = message.twin_id, time.monotonic()
+        if isinstance(message, Status):
+            if message.state in (ServiceState.FINISHED, ServiceState.FAILED):
+                self.last.pop(twin, None)  # its run is over: its silence from now on is no gap
+                self.silent.pop(twin, None)
+                if len(self.finished) >= MAX_TWINS:
+                    self.finished.pop()
+                self.finished.add(twin)
+                return
+            self.finished.discard(twin)  # running (again)
+        if twin in self.finished:
+            return  # the other layers' last words after its entity's
+        since = self.silent.pop(twin, None)
+        if since is not None:
+            gone = now - self.last[twin][0] if twin in self.last else now - since
+            self.log.warning("twin %s: messages again after %.1f s without any, from step %d", twin, gone,
+                             message.step)
+        if twin not in self.last and len(self.last) >= MAX_TWINS:
+            del self.last[next(iter(self.last))]
+        self.last.pop(twin, None)
+        self.last[twin] = (now, message.step)
+
+    def check(self) -> None:
+        """Name the twins that have just gone silent."""
+        now = time.monotonic()
+        for twin, (when, step) in self.last.items():
+            if twin not in self.silent and now - when >= self.after:
+                self.silent[twin] = now
+                self.gaps += 1
+                self.log.warning("twin %s: no message for %.0f s, the last at step %d; the record has a gap "
+                                 "until its messages come back", twin, now - when, step)
+
+
+#: Most twins :class:`Silences` follows.
+MAX_TWINS = 10_000
+
+
 class Admission:
     """What the recorder writes: the run's valid messages; a bounded sample of the rest."""
 
-    def __init__(self, shell: ServiceShell, all_twins: bool):
+    def __init__(self, shell: ServiceShell, all_twins: bool, silences: Silences | None = None):
         self.shell = shell
         self.all_twins = all_twins
+        self.silences = silences
         self.samples = 0
         self.samples_of: dict[str, int] = {}
         self.estimate_copies: dict[tuple[str, int], int] = {}  # by (key, step), oldest first
@@ -160,6 +224,8 @@ class Admission:
                 del self.estimate_copies[next(iter(self.estimate_copies))]
             self.estimate_copies[item.key, message.step] = copies + 1
         recording.write(item.key, item.payload)
+        if self.silences is not None:
+            self.silences.heard(message)
         return True
 
     def _reject(self, recording: McapRecording, item, reason: str, detail: str) -> bool:
@@ -188,6 +254,9 @@ def build_parser() -> argparse.ArgumentParser:
                              "(default: %(default)s)")
     parser.add_argument("--flush-interval", type=float, default=1.0, metavar="SECONDS",
                         help="flush the open chunk at least this often (default: %(default)s)")
+    parser.add_argument("--gap-after", type=float, default=5.0, metavar="SECONDS",
+                        help="say in the log when a twin's messages stop for this long before its entity finished "
+                             "(a link cut, a partition), and when they come back (default: %(default)s)")
     parser.add_argument("--drain", type=float, default=0.5, metavar="SECONDS",
                         help="on SIGINT/SIGTERM, after writing every message already received, keep writing "
                              "the ones still arriving for at most this long; it stops as soon as none comes "

@@ -36,6 +36,7 @@ raises :class:`LogError`.
 """
 from __future__ import annotations
 
+import heapq
 import io
 import os
 import struct
@@ -647,15 +648,14 @@ def what_it_holds(path) -> str:
 
 
 def join_logs(logs: list[Log]) -> Log:
-    """The segments of one run (a recorder restarted into ``run.1.mcap``, ...) as one log.
+    """Several logs of one run as one: the segments of a restarted recorder (``run.mcap``, ``run.1.mcap``,
+    ...) or the logs of recorders on several hosts.
 
-    Messages follow each other segment by segment; each segment's channel and
-    schema ids are moved to a range of their own, so no two segments' ids
-    collide. Segments are taken in the order of their first message, so they
-    may be named in any order. A message that is in two adjacent segments (the same bytes on
-    the same topic: two recorders overlapped) is kept once. The joined log is complete when every segment is, and its
-    problems name the segment they come from. For reading; :func:`write_log`
-    writes one segment at a time.
+    Messages are merged by the time they were received (``log_time``; each log's own order kept), so the
+    logs may be named in any order. A message that is in more than one log (the same bytes on the same
+    topic: two recorders heard it) is kept once. Each log's channel and schema ids are moved to a range of
+    their own, so no two logs' ids collide. The joined log is complete when every log is, and its problems
+    name the log they come from. For reading; :func:`write_log` writes one log at a time.
     """
     if len(logs) == 1:
         return logs[0]
@@ -664,24 +664,24 @@ def join_logs(logs: list[Log]) -> Log:
     joined = Log(path=logs[0].path, size=sum(log.size for log in logs), header=logs[0].header,
                  complete=all(log.complete for log in logs), data_end=all(log.data_end for log in logs),
                  segments=[log.path for log in logs])
-    seen: set[tuple[str, bytes]] = set()
+    streams = []
     for index, log in enumerate(logs):
-        offset = index << 16  # MCAP ids are 16 bits: each segment gets a range of its own
+        offset = index << 16  # MCAP ids are 16 bits: each log gets a range of its own
         for sid, schema in log.schemas.items():
             joined.schemas[sid + offset] = replace(schema, id=sid + offset)
         for cid, channel in log.channels.items():
             joined.channels[cid + offset] = replace(
                 channel, id=cid + offset, schema_id=channel.schema_id + offset if channel.schema_id else 0)
-        before = seen
-        seen = set()
-        for m in log.messages:
-            seen.add((m.topic, m.data))
-            if (m.topic, m.data) not in before:
-                joined.messages.append(replace(m, channel_id=m.channel_id + offset))
+        streams.append([(m.log_time, index, replace(m, channel_id=m.channel_id + offset)) for m in log.messages])
         joined.attachments.extend(log.attachments)
         joined.metadata.extend(log.metadata)
         joined.problems.extend(f"{log.path}: {problem}" for problem in log.problems)
         joined.cut = log.cut or joined.cut
+    seen: set[tuple[str, bytes]] = set()
+    for _, _, message in heapq.merge(*streams, key=lambda entry: (entry[0], entry[1])):
+        if (message.topic, message.data) not in seen:
+            seen.add((message.topic, message.data))
+            joined.messages.append(message)
     return joined
 
 

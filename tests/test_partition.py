@@ -1,0 +1,168 @@
+"""A fleet split over two hosts keeps its whole record through a partition longer than a Zenoh lease.
+
+Two hosts are two network namespaces joined by a veth link (10.77.0.1 and
+10.77.0.2), each with a dtpf router; the routers join. Host A runs the shared
+information and system services, a recorder and two twins; host B runs two
+twins and a recorder of its own. The link is cut for 15 s mid-run, longer
+than a Zenoh session's 10 s lease: host B's twins run on with plain resampling
+and host A's recorder hears nothing of them. With a recorder on each host,
+``dtpf summary a.mcap b.mcap`` holds every step of every twin, and host A's
+recorder says when host B's twins went silent and when they came back.
+
+Making namespaces needs root and the ``ip`` command; where either is missing
+the test is skipped and says so.
+"""
+from __future__ import annotations
+
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from dtpf.recording.logfile import LogError, read_log, read_logs
+from dtpf.scripts.logs.summary import summarise
+
+STEPS, RATE, CUT = 260, 10.0, 15.0
+PORT = 7447
+
+
+def _ip(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run(["ip", *args], capture_output=True, text=True, timeout=30)
+
+
+@pytest.fixture
+def two_hosts():
+    """Two network namespaces joined by a veth link: {'a': (namespace, address), 'b': ...}."""
+    if os.geteuid() != 0 or shutil.which("ip") is None:
+        pytest.skip("two hosts need network namespaces: root and the ip command (iproute2)")
+    tag = f"{os.getpid() % 100000}"
+    hosts = {"a": (f"dtpf-a{tag}", "10.77.0.1", f"dtpa{tag}"), "b": (f"dtpf-b{tag}", "10.77.0.2", f"dtpb{tag}")}
+    made = []
+    try:
+        for namespace, _, _ in hosts.values():
+            done = _ip("netns", "add", namespace)
+            if done.returncode != 0:
+                pytest.skip(f"cannot make a network namespace here: {done.stderr.strip()}")
+            made.append(namespace)
+        (na, address_a, link_a), (nb, address_b, link_b) = hosts["a"], hosts["b"]
+        for command in (("link", "add", link_a, "netns", na, "type", "veth", "peer", "name", link_b, "netns", nb),
+                        ("-n", na, "addr", "add", f"{address_a}/24", "dev", link_a),
+                        ("-n", nb, "addr", "add", f"{address_b}/24", "dev", link_b),
+                        ("-n", na, "link", "set", link_a, "up"), ("-n", nb, "link", "set", link_b, "up"),
+                        ("-n", na, "link", "set", "lo", "up"), ("-n", nb, "link", "set", "lo", "up")):
+            done = _ip(*command)
+            assert done.returncode == 0, f"ip {' '.join(command)}: {done.stderr}"
+        yield hosts
+    finally:
+        for namespace in made:
+            _ip("netns", "del", namespace)
+
+
+class Host:
+    """Processes started in one namespace; every one is stopped at the end, pass or fail."""
+
+    def __init__(self, namespace: str, folder: Path):
+        self.namespace, self.folder, self.started = namespace, folder, []
+
+    def start(self, name: str, *args: str) -> subprocess.Popen:
+        log = open(self.folder / f"{self.namespace}-{name}.log", "wb")
+        process = subprocess.Popen(["ip", "netns", "exec", self.namespace, sys.executable, "-P", *args],
+                                   stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+        process.name, process.log_path = name, log.name
+        self.started.append(process)
+        return process
+
+    def output(self, process) -> str:
+        return Path(process.log_path).read_text(errors="replace")
+
+    def stop(self, process, grace: float = 20.0) -> None:
+        if process.poll() is None:
+            os.killpg(process.pid, signal.SIGINT)
+            try:
+                process.wait(timeout=grace)
+            except subprocess.TimeoutExpired:
+                os.killpg(process.pid, signal.SIGKILL)
+                process.wait()
+
+    def kill_all(self) -> None:
+        for process in self.started:
+            if process.poll() is None:
+                os.killpg(process.pid, signal.SIGKILL)
+                process.wait(timeout=10)
+
+
+_PROBE = "import socket, sys; socket.create_connection((sys.argv[1], int(sys.argv[2])), timeout=1).close()"
+
+
+def _wait_listening(namespace: str, address: str, port: int, timeout: float = 60.0) -> None:
+    """Until something accepts TCP connections on ``address:port`` inside ``namespace``."""
+    deadline = time.monotonic() + timeout
+    while subprocess.run(["ip", "netns", "exec", namespace, sys.executable, "-c", _PROBE, address, str(port)],
+                         capture_output=True, timeout=30).returncode != 0:
+        assert time.monotonic() < deadline, f"nothing listens on {address}:{port} in {namespace}"
+        time.sleep(0.2)
+
+
+def _estimate_steps(path: Path, twin: str) -> set[int]:
+    """The steps of ``twin``'s estimates in a log being written (read as far as it goes)."""
+    try:
+        log = read_log(path)
+    except LogError:
+        return set()
+    return {m.step for _, m in log.decoded([f"dtpf/{twin}/entity/estimate"]) if hasattr(m, "step")}
+
+
+def test_a_partition_longer_than_a_lease_loses_nothing_with_a_recorder_on_each_host(two_hosts, tmp_path):
+    (na, address_a, link_a), (nb, address_b, _) = two_hosts["a"], two_hosts["b"]
+    a, b = Host(na, tmp_path), Host(nb, tmp_path)
+    router_a, router_b = f"tcp/{address_a}:{PORT}", f"tcp/{address_b}:{PORT}"
+    run = ("--steps", str(STEPS), "--rate", str(RATE), "--timeout", "0.5", "--log-level", "INFO")
+    try:
+        a.start("router", "-m", "dtpf", "router", "--listen", router_a)
+        _wait_listening(na, address_a, PORT)
+        b.start("router", "-m", "dtpf", "router", "--listen", router_b, "--connect", router_a)
+        _wait_listening(nb, address_b, PORT)
+        recorders = [a.start("recorder", "-m", "dtpf.scripts.record", "--connect", router_a, "--all-twins",
+                             "--flush-interval", "0.2", "--log-level", "INFO", "-o", str(tmp_path / "a.mcap")),
+                     b.start("recorder", "-m", "dtpf.scripts.record", "--connect", router_b, "--all-twins",
+                             "--flush-interval", "0.2", "--log-level", "INFO", "-o", str(tmp_path / "b.mcap"))]
+        shared = [a.start("information", "-m", "dtpf.information.service", "--connect", router_a, "--twins", "p-*"),
+                  a.start("system", "-m", "dtpf.system.service", "--connect", router_a, "--twins", "p-*")]
+        entities = [a.start("entity", "-m", "dtpf.entity.service", "--connect", router_a, "--twin", "p-a",
+                            "--twins", "2", "--wait-for", "information", "--wait-for", "system",
+                            "--wait-for", "recorder", *run),
+                    b.start("entity", "-m", "dtpf.entity.service", "--connect", router_b, "--twin", "p-b",
+                            "--twins", "2", "--wait-for", "information", "--wait-for", "system",
+                            "--wait-for", "recorder", *run)]
+        # Cut the link once host A's recorder hears host B's twins at work.
+        deadline = time.monotonic() + 120
+        while len(_estimate_steps(tmp_path / "a.mcap", "p-b-1")) < 20:
+            assert time.monotonic() < deadline, b.output(entities[1])[-3000:]
+            assert all(e.poll() is None for e in entities), [a.output(entities[0])[-2000:], b.output(entities[1])]
+            time.sleep(0.25)
+        assert _ip("-n", na, "link", "set", link_a, "down").returncode == 0
+        time.sleep(CUT)  # the partition itself: what is measured is what survives it
+        assert _ip("-n", na, "link", "set", link_a, "up").returncode == 0
+        for entity in entities:
+            entity.wait(timeout=240)
+            assert entity.returncode == 0, (a if entity is entities[0] else b).output(entity)[-3000:]
+        for process in [*shared, *recorders]:
+            (a if process in a.started else b).stop(process)
+    finally:
+        a.kill_all()
+        b.kill_all()
+    said_a = a.output(recorders[0])
+    twins = ("p-a-1", "p-a-2", "p-b-1", "p-b-2")
+    # The cut was real: host A's recorder alone lost host B's twins' steps, and said so.
+    alone = {twin: _estimate_steps(tmp_path / "a.mcap", twin) for twin in twins}
+    assert any(len(alone[twin]) < STEPS for twin in ("p-b-1", "p-b-2")), {t: len(s) for t, s in alone.items()}
+    assert "twin p-b-1: no message for" in said_a and "twin p-b-1: messages again after" in said_a, said_a[-3000:]
+    # The two hosts' logs together hold every step of every twin.
+    summary = summarise(read_logs([tmp_path / "b.mcap", tmp_path / "a.mcap"]))
+    steps = {t.twin: t.steps for t in summary.twins if t.twin in twins}
+    assert steps == {twin: list(range(1, STEPS + 1)) for twin in twins}, {t: len(s) for t, s in steps.items()}

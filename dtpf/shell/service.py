@@ -525,6 +525,6 @@ def run_service(layer: str, main, parser: argparse.ArgumentParser, argv=None) ->
         logging.getLogger(f"dtpf.{layer}").exception("failed")
         code = 1
     # The session is closed and the log finished: leave without the interpreter's teardown, where
-    # Zenoh's runtime threads have kept a process from exiting (issue: "a service hangs at exit").
+    # Zenoh's runtime threads have kept a process from exiting.
     logging.shutdown()
     ExitWatchdog._exit(code if isinstance(code, int) else 1)

@@ -13,7 +13,7 @@ where it fits (``--solo-max``), (k) K solo ``dtpf.scripts.launch.launch`` at onc
 - RSS: the largest resident set of each child process, sampled every 0.25 s
   from /proc (the launcher's own process is not counted), summed by kind;
   "shared per twin" is (RSS of the information + system services at K minus
-  at K = 1) / (K - 1), the growth the issue bounds at 2 MB per twin at N = 1e3;
+  at K = 1) / (K - 1), the growth the fleet target bounds at 2 MB per twin at N = 1e3;
 - CPU per twin-step (fleets): each process's CPU time (utime + stime from
   /proc, sampled with the RSS) between the fleet's first and last estimate,
   interpolated between samples, summed by kind and divided by the twin-steps

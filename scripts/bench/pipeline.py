@@ -62,7 +62,7 @@ FIRST_TIMED = 10
 #: Targets: (b) steps per second at N = 1e3, and (b)/(a) at N = 1e5.
 TARGET_RATE_N, TARGET_RATE = 1_000, 200.0
 TARGET_RATIO_N, TARGET_RATIO = 100_000, 1.5
-#: The fleet issue's targets for one twin on the same message path, with the recorder: (b) steps per
+#: The fleet targets for one twin on the same message path, with the recorder: (b) steps per
 #: second at N = 1e3 and (b)/(a) at N = 1e5. Printed beside the targets above; they decide no exit code.
 FLEET_RATE, FLEET_RATIO = 1_000.0, 1.3
 #: Target of a secured launch: (s)/(b) at N = 1e5.
@@ -324,7 +324,7 @@ def main(argv=None) -> int:
         print(f"- N = {fmt_n(TARGET_CLOUD_N)}: (b)/(n), the point cloud's cost, at most {TARGET_CLOUD}: {ratio:.3f}, "
               f"{'PASS' if ok else 'FAIL'}")
     if "b" in launched and (TARGET_RATE_N in configs or TARGET_RATIO_N in configs):
-        print("\nThe fleet issue's targets for one twin, (b), with the recorder (reported, not in the exit code):")
+        print("\nThe fleet targets for one twin, (b), with the recorder (reported, not in the exit code):")
         if TARGET_RATE_N in configs:
             rate = rate_of[TARGET_RATE_N, "b"]
             print(f"- N = {fmt_n(TARGET_RATE_N)}: (b) at least {FLEET_RATE:,.0f} steps/s: {rate:.0f} steps/s, "

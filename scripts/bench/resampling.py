@@ -19,7 +19,7 @@ Part 1, kernels: normalised weights -> N ancestor indices, at each N.
   with X of shape (N, 1) (Eq. 28-30), against dtpf's systematic.
 
 Each dtpf kernel gets its ratio to the floor that bounds it (``BOUNDS``), to
-the weight pass alone, and to particles' kernel; the issue-18 targets
+the weight pass alone, and to particles' kernel; the targets
 (``TARGETS``, ``TARGET_FILTER``) are checked at the end.
 
 W is proportional to exp(lw) with lw ~ N(0, 1) i.i.d. (ESS/N about 0.37), fresh

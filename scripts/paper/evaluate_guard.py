@@ -77,7 +77,7 @@ PILOT_VARIANTS: dict[str, dict] = {
 }
 PILOT_SEED = 10_000
 SCENARIOS = ("ungm", "drift", "drift+100", "range-bearing", "video")
-#: The range-bearing target: the user-model example of the real-twin issue, by reference.
+#: The range-bearing target: the user-model example of docs/examples, by reference.
 RANGE_BEARING = Path(__file__).resolve().parents[2] / "docs" / "examples" / "range_bearing.py"
 
 

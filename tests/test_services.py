@@ -179,7 +179,7 @@ def test_sigint_to_the_launcher_stops_every_child_and_leaves_a_readable_log(proc
     log = tmp_path / "interrupted.mcap"
     launcher = processes.start("launcher", ["-m", "dtpf.scripts.cli", "launch", "--steps", "1000", "--rate", "20",
                                             "--twin", "t-int", "-o", str(log), "--quiet"])
-    deadline = time.monotonic() + 60
+    deadline = time.monotonic() + 120
     while time.monotonic() < deadline and (not log.exists() or log.stat().st_size < 20_000):
         time.sleep(0.2)
     time.sleep(1.0)
@@ -210,10 +210,12 @@ def test_sigint_stops_a_launch_started_with_sigint_ignored(tmp_path):
                                 cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, start_new_session=True,
                                 preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
     try:
-        deadline = time.monotonic() + 60
-        while time.monotonic() < deadline and not (tmp_path / "ignored.mcap").exists():
+        # Mid-run: the recorder has written steps (a fixed wait was either long or, loaded, too short).
+        log = tmp_path / "ignored.mcap"
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and (not log.exists() or log.stat().st_size < 20_000):
             time.sleep(0.2)
-        time.sleep(3.0)
+        assert launcher.poll() is None and log.stat().st_size >= 20_000, "the launch did not get going"
         launcher.send_signal(signal.SIGINT)
         output = launcher.communicate(timeout=60)[0].decode(errors="replace")
         assert launcher.returncode == 130, output

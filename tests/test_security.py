@@ -184,7 +184,20 @@ def test_each_role_puts_only_on_its_own_layers_keys(folder, kind):
 
         viewer_inbox = Inbox(client("viewer"), "dtpf/**")
         senders = {role: client(role) for role in ("entity", "information", "system", "sensor")}
-        time.sleep(0.5)  # the subscriber's declaration reaches every session
+        # The viewer's subscription has reached a sender once the viewer hears it on a key of its own layer
+        # (a fixed wait for that was too short on a loaded machine).
+        ready = {role: publisher(session, f"dtpf/t-acl/{role}/ready") for role, session in senders.items()}
+        heard_ready: set[str] = set()
+        deadline = time.monotonic() + 60.0
+        while heard_ready != set(senders) and time.monotonic() < deadline:
+            for role in set(senders) - heard_ready:
+                ready[role].put(role.encode())
+            item = viewer_inbox.get(timeout=0.1)
+            while item is not None:
+                if item.key.endswith("/ready"):
+                    heard_ready.add(item.payload.decode())
+                item = viewer_inbox.get(timeout=0)
+        assert heard_ready == set(senders)
         layers = ("entity", "information", "system", "sensor", "recorder")
         publishers = {(role, layer): publisher(session, f"dtpf/t-acl/{layer}/probe")
                       for role, session in senders.items() for layer in layers}  # as the services publish
@@ -196,14 +209,15 @@ def test_each_role_puts_only_on_its_own_layers_keys(folder, kind):
                 tried += 1
             time.sleep(0.2)
         heard = Counter()
-        deadline = time.monotonic() + 3.0
+        deadline = time.monotonic() + 30.0
         while time.monotonic() < deadline and sum(heard.values()) < 3 * len(senders):
             item = viewer_inbox.get(timeout=0.1)
-            if item is not None:
+            if item is not None and not item.key.endswith("/ready"):  # a late one of the handshake
                 heard[item.payload.decode(), item.key] += 1
-        time.sleep(0.5)
+        time.sleep(0.5)  # what should never come would have come by now
         while (item := viewer_inbox.get(timeout=0)) is not None:
-            heard[item.payload.decode(), item.key] += 1
+            if not item.key.endswith("/ready"):
+                heard[item.payload.decode(), item.key] += 1
         assert heard == {(role, f"dtpf/t-acl/{role}/probe"): 3 for role in senders}
         assert tried == 60
     finally:

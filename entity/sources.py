@@ -28,7 +28,7 @@ from dtpf.entity.observations import ObservationTable, read_observations
 from dtpf.messages import names
 from dtpf.messages.streams import stream
 
-__all__ = ["RunData", "load_model", "observations_of", "sampling_need", "ModelError"]
+__all__ = ["RunData", "load_model", "observations_of", "read_table", "sampling_need", "ModelError"]
 
 
 @dataclass(frozen=True)
@@ -80,13 +80,30 @@ def _check_simulation(config, model: StateSpaceModel) -> None:
                          f"simulated; give the observations to filter with --observations")
 
 
+def read_table(config, model: StateSpaceModel | None = None, *, steps: int | None = None) -> ObservationTable:
+    """The run's observation file as a table: a CSV, .npy or .npz, or a rosbag2 log (folder or .mcap) read
+    on ``config.topic`` by ``config.ros2_fields`` (:mod:`dtpf.entity.rosbag`). ``model`` checks the
+    dimensions (None: not checked; a bag mapped by the model's own method loads it)."""
+    from dtpf.entity import rosbag
+
+    path = config.observation_file
+    if config.topic is not None or rosbag.is_bag(path):
+        if model is None and config.ros2_fields is None:
+            from dtpf.entity import model_ref
+            model = model_ref.resolve(config.model_ref)
+        return rosbag.read_bag(path, config.topic, config.ros2_fields, obs_dim=None if model is None else model.obs_dim,
+                               state_dim=None if model is None else model.dim, steps=steps, model=model)
+    if model is None:
+        return read_observations(path, steps=steps)
+    return read_observations(path, obs_dim=model.obs_dim, state_dim=model.dim, steps=steps)
+
+
 def _probe_observation(config, model: StateSpaceModel) -> np.ndarray | None:
     """The first row of the observation file, to probe the likelihood with (its columns checked
     against the model's dimensions first, so a file that does not fit is named as the problem)."""
     if config.observation_file is None:
         return None
-    return read_observations(config.observation_file, obs_dim=model.obs_dim, state_dim=model.dim,
-                             steps=1).observations[0]
+    return read_table(config, model, steps=1).observations[0]
 
 
 def load_model(config, *, check: bool = True, sensor: bool = False) -> StateSpaceModel:
@@ -114,8 +131,7 @@ def observations_of(config, model: StateSpaceModel) -> RunData | None:
     if config.live:
         return None
     if config.observation_file is not None:
-        table: ObservationTable = read_observations(config.observation_file, obs_dim=model.obs_dim,
-                                                    state_dim=model.dim, steps=config.steps)
+        table: ObservationTable = read_table(config, model, steps=config.steps)
         whole = table.covers(model.dim)
         return RunData(table.observations, table.truth if whole else None, table.source,
                        known_truth=table.truth, truth_components=table.truth_components,

@@ -45,7 +45,14 @@ class RunConfig(BaseModel):
     observations: str | None = Field(None, max_length=4096, description="Where the observations come from: "
                                      "None simulates the model (truth known); a file (.csv, .npy, .npz, one "
                                      "row per step); 'live' (the key dtpf/<twin>/sensor/observation) or "
-                                     "'live:KEY', a sensor publishing over Zenoh.")
+                                     "'live:KEY', a sensor publishing over Zenoh; 'ros2:TOPIC', a ROS 2 topic "
+                                     "(a bridge process feeds it to the live key); a rosbag2 log (folder or "
+                                     ".mcap) with 'topic'.")
+    topic: str | None = Field(None, max_length=1024, description="The topic of a rosbag2 log given as "
+                              "observations (one message, one step).")
+    ros2_fields: str | None = Field(None, max_length=4096, description="How a ROS 2 message becomes an "
+                                    "observation: field paths, e.g. 'range', 'point.x,point.y', 'ranges[0:8]' "
+                                    "(None: the model's observation_from_ros2(message)).")
     particles: int = Field(1000, ge=1, description="Number of particles N.")
     steps: int | None = Field(100, ge=1, description="Number of time points T (k = 1 .. T). With observations "
                               "from a file: at most this many of its rows (None: every row); live: stop "
@@ -99,6 +106,10 @@ class RunConfig(BaseModel):
             return value
         if not value:
             raise ValueError("observations must name a file, 'live' or 'live:KEY'")
+        if value.startswith("ros2:"):
+            if not value[len("ros2:"):].strip("/"):
+                raise ValueError("observations 'ros2:TOPIC' must name a topic, e.g. ros2:/range")
+            return value
         if value.startswith("live:"):
             from dtpf.messages import keys
             key = value[len("live:"):]
@@ -118,7 +129,16 @@ class RunConfig(BaseModel):
     @property
     def live(self) -> bool:
         """Whether observations arrive over Zenoh, one at a time."""
-        return self.observations is not None and (self.observations == "live" or self.observations.startswith("live:"))
+        return self.observations is not None and (self.observations == "live" or self.observations.startswith("live:")
+                                                  or self.ros2_topic is not None)
+
+    @property
+    def ros2_topic(self) -> str | None:
+        """The ROS 2 topic of ``--observations ros2:TOPIC`` (absolute, with its leading '/'), else None."""
+        if self.observations is None or not self.observations.startswith("ros2:"):
+            return None
+        topic = self.observations[len("ros2:"):]
+        return topic if topic.startswith("/") else "/" + topic
 
     @property
     def observation_file(self) -> str | None:
@@ -135,7 +155,7 @@ class RunConfig(BaseModel):
         if not self.live:
             return None
         if self.observations.startswith("live:"):
-            return self.observations[len("live:"):]
+            return self.observations[len("live:"):]  # a ros2: topic comes through the twin's own key
         return f"dtpf/{self.twin}/sensor/observation"
 
     @field_validator("resampler")
@@ -201,7 +221,13 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--observations", default=None, metavar="SOURCE",
                        help="observations to filter instead of a simulation: a file (.csv with a header, "
                             ".npy or .npz; one row per step; truth columns optional), or 'live' to take them "
-                            "from a sensor on dtpf/<twin>/sensor/observation ('live:KEY' for another key)")
+                            "from a sensor on dtpf/<twin>/sensor/observation ('live:KEY' for another key), "
+                            "'ros2:TOPIC' for a ROS 2 topic, or a rosbag2 log (folder or .mcap) with --topic")
+    group.add_argument("--topic", default=None, metavar="TOPIC",
+                       help="the topic of a rosbag2 log given to --observations (one message, one step)")
+    group.add_argument("--ros2-fields", default=None, metavar="PATHS",
+                       help="how a ROS 2 message becomes an observation: field paths, e.g. 'range', "
+                            "'point.x,point.y', 'ranges[0:8]' (default: the model's observation_from_ros2)")
     group.add_argument("--particles", "-n", type=int, default=None,
                        help=f"number of particles N (default: {defaults.particles})")
     group.add_argument("--steps", "-T", type=int, default=None,
@@ -240,7 +266,7 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 #: The RunConfig fields the run flags set (argparse dest = field name).
-_FLAG_FIELDS = ("scenario", "model", "observations", "particles", "steps", "resampler", "resample_below",
+_FLAG_FIELDS = ("scenario", "model", "observations", "topic", "ros2_fields", "particles", "steps", "resampler", "resample_below",
                 "preprocess", "threshold", "weight_rule", "move_rule", "jitter", "policy", "ps", "ps_rate", "seed", "twin", "run_id")
 
 

@@ -32,11 +32,11 @@ GROWTH_KERNELS = "dtpf.entity._growth"
 def resolved_config(args: argparse.Namespace):
     """The RunConfig of the arguments, with T fixed to the observation file's rows when --steps is
     not given (so every process and the progress bar know T)."""
-    from dtpf.entity.observations import read_observations
+    from dtpf.entity.sources import read_table
 
     config = config_from_args(args)
     if config.observation_file is not None and config.steps is None:
-        config = config.model_copy(update={"steps": read_observations(config.observation_file).steps})
+        config = config.model_copy(update={"steps": read_table(config).steps})
     return fit_simulation(config, args)
 
 
@@ -191,9 +191,9 @@ def _note_partial_truth(config, model) -> None:
     launch carry the whole state's truth or none, so its summary judges by the log predictive."""
     if config.observation_file is None:
         return
-    from dtpf.entity.observations import read_observations
+    from dtpf.entity.sources import read_table
 
-    table = read_observations(config.observation_file, obs_dim=model.obs_dim, state_dim=model.dim, steps=1)
+    table = read_table(config, model, steps=1)
     if table.truth is not None and not table.covers(model.dim):
         covered = ", ".join(f"x[{c}]" for c in table.truth_components)
         print(f"dtpf: note: the truth of {config.observation_file} covers {covered} of the state's {model.dim} "
@@ -336,6 +336,9 @@ def build_parser() -> argparse.ArgumentParser:
     foxglove_layout.register(commands)
     secure.register(commands)
     router.register(commands)
+    from dtpf.scripts.ros2 import bridge as ros2_bridge, export as ros2_export
+    ros2_export.register(commands)
+    ros2_bridge.register(commands)
     return parser
 
 

@@ -332,6 +332,10 @@ def service_command(layer: str, config: RunConfig, endpoint: str, *, timeout: fl
         command += ["--model", config.model]
     if config.observations is not None:
         command += ["--observations", config.observations]
+    if config.topic is not None:
+        command += ["--topic", config.topic]
+    if config.ros2_fields is not None:
+        command += ["--ros2-fields", config.ros2_fields]
     if config.resample_below is not None:
         command += ["--resample-below", repr(config.resample_below)]
     if not config.preprocess:
@@ -551,8 +555,8 @@ def _wait_for_recorder(recorder: subprocess.Popen, presence: Presence, timeout: 
 
 def _rows(config: RunConfig) -> int:
     """The number of rows of the run's observation file (its steps when ``--steps`` is not given)."""
-    from dtpf.entity.observations import read_observations
-    return read_observations(config.observation_file).steps
+    from dtpf.entity.sources import read_table
+    return read_table(config).steps
 
 
 def _take(result: LaunchResult, item, progress, layer_of_pid: dict[int, str]) -> bool:

@@ -1,0 +1,385 @@
+"""``dtpf ros2``: a twin inside a ROS 2 system, a bridge process with a real rclpy node.
+
+In: it subscribes to a ROS 2 topic and publishes each message as one
+:class:`~dtpf.messages.models.Observation` on the twin's live key ``dtpf/<twin>/sensor/observation``,
+numbered 1, 2, ... (after the last the twin's entity accepted), so the entity's intake handles
+duplicates, late, malformed and wrong-length observations as for any sensor. The message's
+``header.stamp`` (its receive time when it has no header) is the observation's stamp, recorded with it.
+Field paths (``--ros2-fields``, :mod:`dtpf.entity.rosbag`) or the model's
+``observation_from_ros2(message)`` make the values; a message they do not fit, or with a NaN or an
+infinity, is counted and skipped (the bridge's status, role sensor), never sent.
+
+Out: the twin's estimate, particles, ESS, PS and degraded flag as ROS 2 messages under
+``/dtpf/<twin>/`` (:mod:`dtpf.scripts.ros2.convert`), QoS reliable, volatile, keep last 100 by default.
+
+``dtpf launch --observations ros2:TOPIC`` starts it beside the layers; alone, it joins a twin running
+elsewhere::
+
+    dtpf ros2 --model m.py:M --twin t --topic /range --ros2-fields range --connect tcp/127.0.0.1:7447
+
+With ``--secure DIR`` it publishes observations in the sensor role and reads the twin in the viewer
+role (two Zenoh sessions). It needs rclpy (the ``[ros2]`` extra); nothing else in dtpf imports it.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import math
+import os
+import queue
+import sys
+import threading
+import time
+from collections import OrderedDict
+
+from dtpf.entity import model_ref, rosbag
+from dtpf.messages import keys
+from dtpf.messages.codec import MessageError, decode_for_key
+from dtpf.messages.config import RunConfig, add_run_arguments, config_from_args
+from dtpf.messages.foxglove import PointCloud
+from dtpf.messages.models import Estimate, Observation, Time
+from dtpf.scripts.console import run_command
+from dtpf.scripts.ros2 import Ros2Error, require_rclpy
+from dtpf.scripts.ros2.convert import TOPICS, Builder, cloud_points_of, parse_pose, pose_set
+from dtpf.scripts.ros2.export import namespace_of
+from dtpf.shell.bus import BusError, add_zenoh_arguments, open_session, zenoh_config, zenoh_config_from_args
+from dtpf.shell.service import ServiceShell
+
+__all__ = ["bridge_arguments", "command_line", "main", "register"]
+
+log = logging.getLogger("dtpf.ros2")
+
+#: How long an estimate waits for its step's particle cloud before its pose goes out without the cloud.
+CLOUD_WAIT = 0.5
+
+
+def message_class(msgtype: str):
+    """The rclpy class of 'pkg/msg/Name'; Ros2Error when it is not a message type or not installed."""
+    parts = msgtype.split("/")
+    if len(parts) == 2:
+        parts = [parts[0], "msg", parts[1]]
+    if len(parts) != 3 or parts[1] != "msg" or not all(parts):
+        raise Ros2Error(f"--ros2-type {msgtype!r}: expected a message type such as sensor_msgs/msg/Range")
+    package, _, name = parts
+    try:
+        module = importlib.import_module(f"{package}.msg")
+    except ImportError:
+        raise Ros2Error(f"message type {msgtype}: its Python package {package} is not installed "
+                        f"(pip install ros-{package.replace('_', '-')})") from None
+    cls = getattr(module, name, None)
+    if cls is None:
+        raise Ros2Error(f"message type {msgtype}: {package}.msg has no {name}")
+    return cls
+
+
+def _types_of(node, topic: str) -> list[str]:
+    return next((types for name, types in node.get_topic_names_and_types() if name == topic), [])
+
+
+def discover_type(node, topic: str, given: str | None, wait: float, stopping) -> str:
+    """The message type of ``topic``: ``given`` (checked against the publishers seen), or the one its
+    publishers announce, waiting up to ``wait`` seconds for one; Ros2Error otherwise."""
+    import rclpy
+
+    deadline = time.monotonic() + wait
+    said = False
+    while True:
+        types = _types_of(node, topic)
+        if given is not None:
+            if types and given not in types:
+                raise Ros2Error(f"topic {topic} carries {', '.join(types)}, not {given} (--ros2-type)")
+            return given
+        if len(types) > 1:
+            raise Ros2Error(f"topic {topic} carries several types ({', '.join(types)}): give one with --ros2-type")
+        if types:
+            return types[0]
+        if time.monotonic() > deadline or stopping():
+            raise Ros2Error(f"no publisher of {topic} seen in {wait:.0f} s: start it, or give its type with "
+                            f"--ros2-type (e.g. sensor_msgs/msg/Range)")
+        if not said:
+            log.info("waiting for a publisher of %s to learn its type", topic)
+            said = True
+        rclpy.spin_once(node, timeout_sec=0.1)
+
+
+def qos(args):
+    from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=args.ros2_depth,
+                      reliability=ReliabilityPolicy.BEST_EFFORT if args.ros2_best_effort else ReliabilityPolicy.RELIABLE,
+                      durability=DurabilityPolicy.VOLATILE)
+
+
+class Outbound:
+    """The twin's estimates and clouds (Zenoh) to ROS 2 publishers: a pose when its step's cloud is in
+    (or CLOUD_WAIT after the estimate; at once while the entity publishes no clouds); the particles on a
+    thread of their own, in order."""
+
+    def __init__(self, node, session, config: RunConfig, dim: int, args, stamps):
+        self.mapping = parse_pose(args.ros2_pose, dim)
+        self.frame = args.ros2_frame
+        self.stamps = stamps
+        ns = namespace_of(args.ros2_namespace, config.twin)
+        self.namespace = ns
+        profile = qos(args)
+        self.pub = {name: node.create_publisher(message_class(msgtype), f"{ns}/{name}", profile)
+                    for name, msgtype in TOPICS.items() if name != "observation"}
+        self.build = Builder(message_class)
+        self.lock = threading.Lock()
+        self.pending: dict[int, tuple[Estimate, float]] = {}
+        self.clouds_seen = False
+        self.published = 0
+        self.particles_out: queue.SimpleQueue = queue.SimpleQueue()
+        self.thread = threading.Thread(target=self._particles, name="ros2-particles", daemon=True)
+        self.thread.start()
+        self.subscribers = [session.declare_subscriber(keys.key(config.twin, "entity", topic), self._on_sample)
+                            for topic in ("estimate", "cloud")]
+
+    def _on_sample(self, sample) -> None:
+        try:
+            message = decode_for_key(str(sample.key_expr), sample.payload.to_bytes())
+        except MessageError as error:
+            log.debug("not a message of the twin: %s", error)
+            return
+        with self.lock:
+            if isinstance(message, Estimate):
+                if self.clouds_seen:
+                    self.pending[message.step] = (message, time.monotonic())
+                else:
+                    self._publish(message, None)
+            elif isinstance(message, PointCloud):
+                self.clouds_seen = True
+                waiting = self.pending.pop(message.step, None)
+                if waiting is not None:
+                    self._publish(waiting[0], cloud_points_of(message))
+            self._expire()
+
+    def _expire(self) -> None:
+        now = time.monotonic()
+        for step in [s for s, (_, at) in self.pending.items() if now - at > CLOUD_WAIT]:
+            self._publish(self.pending.pop(step)[0], None)
+
+    def tick(self) -> None:
+        with self.lock:
+            self._expire()
+
+    def _publish(self, estimate: Estimate, points) -> None:
+        poses = pose_set(estimate, points, self.mapping)
+        stamp = self.stamps.get(tuple(estimate.observation or ()))
+        sec, nsec = stamp if stamp is not None else (estimate.stamp.sec, estimate.stamp.nsec)
+        header = self.build.header(sec, nsec, self.frame)
+        self.pub["pose"].publish(self.build.pose(header, poses))
+        self.pub["ess"].publish(self.build.float64(estimate.ess))
+        if estimate.ps is not None:
+            self.pub["ps"].publish(self.build.float64(estimate.ps))
+        self.pub["degraded"].publish(self.build.bool(estimate.degraded))
+        self.published += 1
+        if poses.particles is not None:
+            self.particles_out.put((header, poses))
+
+    def _particles(self) -> None:
+        while True:
+            item = self.particles_out.get()
+            if item is None:
+                return
+            self.pub["particles"].publish(self.build.particles(*item))
+
+    def close(self) -> None:
+        for subscriber in self.subscribers:
+            subscriber.undeclare()
+        with self.lock:
+            for step in sorted(self.pending):
+                self._publish(self.pending[step][0], None)
+            self.pending.clear()
+        self.particles_out.put(None)
+        self.thread.join(timeout=10)
+
+
+class Inbound:
+    """ROS 2 messages to the twin's live observations: mapped, checked, numbered, stamped."""
+
+    def __init__(self, shell: ServiceShell, mapper, start: int, stamps):
+        self.shell = shell
+        self.mapper = mapper
+        self.sequence = start - 1
+        self.stamps = stamps
+        self.sent = 0
+
+    def __call__(self, message) -> None:
+        shell = self.shell
+        shell.received += 1
+        try:
+            values = self.mapper(message)
+        except (rosbag.FieldPathError, Ros2Error) as error:
+            shell.reject("a ROS 2 message the field paths do not fit", str(error))
+            return
+        except Exception as error:  # the model's observation_from_ros2
+            shell.reject(f"{rosbag.MODEL_HOOK} raised an error", f"{rosbag.MODEL_HOOK}: {type(error).__name__}: {error}")
+            return
+        if not all(math.isfinite(v) for v in values):
+            shell.reject("a ROS 2 message with a NaN or infinite value", f"values {values[:8]} are not all finite")
+            return
+        stamp = rosbag.stamp_of(message)
+        if stamp is None or stamp == (0, 0):
+            now = time.time_ns()
+            stamp = (now // 10**9, now % 10**9)
+        self.sequence += 1
+        key = tuple(values)
+        self.stamps[key] = stamp
+        if len(self.stamps) > 10_000:
+            self.stamps.popitem(last=False)
+        shell.publish(Observation(**shell.header(self.sequence), stamp=Time(sec=stamp[0], nsec=stamp[1]),
+                                  values=values))
+        self.sent += 1
+
+
+def _mapper(args, config: RunConfig, model, cls):
+    if args.ros2_fields or config.ros2_fields:
+        paths = rosbag.parse_fields(args.ros2_fields or config.ros2_fields)
+        rosbag.check_fields(cls(), paths)
+        return lambda message: rosbag.values_of(message, paths)
+    hook = getattr(model, rosbag.MODEL_HOOK, None)
+    if hook is None:
+        raise Ros2Error(f"say how a {rosbag.type_name(cls())} becomes an observation: --ros2-fields (e.g. 'range', "
+                        f"'point.x,point.y', 'ranges[0:8]'), or a method {rosbag.MODEL_HOOK}(message) in the model")
+    return lambda message: [float(v) for v in hook(message)]
+
+
+def main(config: RunConfig, zconf, args: argparse.Namespace) -> int:
+    """Bridge ``args.topic`` (or ``ros2:TOPIC``) into the twin, and the twin out to ROS 2, until stopped."""
+    from dtpf.scripts.sensor import resume_point
+
+    require_rclpy()
+    topic = args.topic or config.ros2_topic
+    if topic is None and args.no_out:
+        raise Ros2Error("nothing to bridge: give --topic (in) or leave the outputs on")
+    if topic is not None and not topic.startswith("/"):
+        topic = "/" + topic
+    model = model_ref.resolve(config.model_ref)
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.signals import SignalHandlerOptions
+
+    rclpy.init(args=[], signal_handler_options=SignalHandlerOptions.NO)
+    viewer = outbound = None
+    try:
+        node = rclpy.create_node(f"dtpf_{namespace_of(None, config.twin).rsplit('/', 1)[1]}")
+        with ServiceShell("sensor", config, zconf) as shell:
+            mapper = cls = None
+            if topic is not None:
+                msgtype = discover_type(node, topic, args.ros2_type, args.type_wait, lambda: shell.stopping)
+                cls = message_class(msgtype)
+                mapper = _mapper(args, config, model, cls)
+            stamps: OrderedDict = OrderedDict()
+            if not args.no_out:
+                if args.secure:  # the viewer role reads the twin; the sensor role only publishes
+                    viewer = open_session(zenoh_config(mode=args.mode, connect=args.connect, listen=args.listen,
+                                                       config_file=args.zenoh_config, cfg=args.cfg,
+                                                       secure=args.secure, role="viewer"))
+                outbound = Outbound(node, viewer or shell.session, config, model.dim, args, stamps)
+            shell.running()
+            if topic is not None:
+                if args.wait_for_entity:
+                    missing = shell.presence.wait_for(["entity"], args.wait_for_entity)
+                    if missing:
+                        shell.log.warning("no entity of twin %s after %.1f s: bridging anyway", config.twin,
+                                          args.wait_for_entity)
+                start = resume_point(shell, args.resume_wait) + 1
+                inbound = Inbound(shell, mapper, start, stamps)
+                node.create_subscription(cls, topic, inbound, qos(args))
+                shell.log.info("bridging %s (%s) to %s from sequence %d%s", topic, msgtype,
+                               config.observation_key() or keys.key(config.twin, "sensor", "observation"), start,
+                               f"; the twin out under {outbound.namespace}/" if outbound else "")
+            elif outbound is not None:
+                shell.log.info("publishing twin %s under %s/", config.twin, outbound.namespace)
+            executor = SingleThreadedExecutor()
+            executor.add_node(node)
+            while not shell.stopping:
+                executor.spin_once(timeout_sec=0.1)
+                if outbound is not None:
+                    outbound.tick()
+            if outbound is not None:
+                outbound.close()
+            shell.log.info("stopped: %s%s", f"{inbound.sent} observations sent" if topic is not None else "",
+                           f", {outbound.published} estimates published" if outbound is not None else "")
+    finally:
+        if viewer is not None:
+            viewer.close()
+        rclpy.try_shutdown()
+    return 130
+
+
+def bridge_arguments(parser: argparse.ArgumentParser) -> None:
+    """The bridge's own options (also those ``dtpf launch`` passes on for ``--observations ros2:TOPIC``)."""
+    group = parser.add_argument_group("ROS 2")
+    group.add_argument("--ros2-type", default=None, metavar="TYPE",
+                       help="the topic's message type, e.g. sensor_msgs/msg/Range (default: learnt from its "
+                            "publishers)")
+    group.add_argument("--ros2-pose", default=None, metavar="MAP",
+                       help="which state components the published pose shows, e.g. 'x=0,y=1,yaw=3' (axes x, y, z, "
+                            "yaw; default: x=0, and y=1 for a state of 2 or more)")
+    group.add_argument("--ros2-namespace", default=None, metavar="NS",
+                       help="namespace of the published topics; '{twin}' is the twin id (default: /dtpf/{twin})")
+    group.add_argument("--ros2-frame", default="map", metavar="FRAME",
+                       help="frame_id of the published headers (default: %(default)s)")
+    group.add_argument("--ros2-depth", type=int, default=100, metavar="N",
+                       help="QoS history depth, in and out (default: %(default)s)")
+    group.add_argument("--ros2-best-effort", action="store_true",
+                       help="QoS best effort instead of reliable (in and out), as sensor drivers often publish")
+
+
+def register(subparsers) -> None:
+    """Add the ``ros2`` command (the bridge) to an argparse subparsers object."""
+    parser = subparsers.add_parser(
+        "ros2", help="bridge a twin and ROS 2: a topic in as observations, the estimate out (needs rclpy)",
+        description="A bridge with an rclpy node: each message of --topic becomes one observation of the twin "
+                    "(dtpf/<twin>/sensor/observation) by --ros2-fields or the model's observation_from_ros2; "
+                    "the twin's estimate (PoseWithCovarianceStamped), particles (PoseArray), ESS, PS and "
+                    "degraded flag are published under /dtpf/<twin>/. Needs the [ros2] extra; see "
+                    "docs/guides/ros2.md.")
+    add_run_arguments(parser)
+    group = parser.add_argument_group("bridge")
+    group.add_argument("--no-out", action="store_true", help="do not publish the twin on ROS 2 (in only)")
+    group.add_argument("--type-wait", type=float, default=30.0, metavar="SECONDS",
+                       help="how long to wait for a publisher of the topic to learn its type (default: %(default)s)")
+    group.add_argument("--resume-wait", type=float, default=1.5, metavar="SECONDS",
+                       help="how long to listen for the entity's status to continue its numbering (default: "
+                            "%(default)s)")
+    group.add_argument("--wait-for-entity", type=float, default=30.0, metavar="SECONDS",
+                       help="wait at most this long for the twin's entity before subscribing (default: %(default)s)")
+    group.add_argument("--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"],
+                       help="logging level on stderr (default: %(default)s)")
+    group.add_argument("--exit-with-parent", action="store_true", help=argparse.SUPPRESS)
+    bridge_arguments(parser)
+    add_zenoh_arguments(parser)
+    parser.set_defaults(handler=cmd_ros2)
+
+
+def cmd_ros2(args: argparse.Namespace) -> int:
+    logging.basicConfig(level=args.log_level, stream=sys.stderr,
+                        format="%(asctime)s ros2        %(levelname)s %(message)s")
+    require_rclpy()
+    config = config_from_args(args)
+    if config.observation_file is not None:
+        raise Ros2Error("the bridge takes a live topic (--topic or --observations ros2:TOPIC), not a file")
+    if args.exit_with_parent:
+        from dtpf.shell.service import _watch_parent
+        _watch_parent()
+    try:
+        code = main(config, zenoh_config_from_args(args, role="sensor"), args)
+    except BusError as error:
+        print(f"dtpf ros2: error: {error}", file=sys.stderr)
+        return 2
+    logging.shutdown()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)  # past rclpy's and Zenoh's threads
+
+
+def command_line(argv: list[str] | None = None) -> int:
+    """``python -m dtpf.scripts.ros2``: the same as ``dtpf ros2``."""
+    parser = argparse.ArgumentParser(prog="python -m dtpf.scripts.ros2")
+    commands = parser.add_subparsers(dest="command", required=True)
+    register(commands)
+    return run_command(parser, parser.parse_args(["ros2", *(sys.argv[1:] if argv is None else argv)]))

@@ -1,0 +1,162 @@
+"""A twin's estimate and particles as ROS 2 messages, the same for rclpy's classes and rosbags'.
+
+Which state components a pose shows is a mapping (``--ros2-pose x=0,y=1,z=2,yaw=3``; default x = x[0]
+and, for a state of 2 or more dimensions, y = x[1]). For each step:
+
+- ``pose``: ``geometry_msgs/msg/PoseWithCovarianceStamped``; the position and yaw are the estimate's
+  weighted means; the covariance (6 x 6, row-major, x y z roll pitch yaw) holds the estimate's weighted
+  variances on the diagonal and, between components the particle cloud carries (x[0], x[1], x[2]), the
+  weighted covariances of the cloud's particles (every particle when N <= the entity's --cloud-points,
+  1000 by default); rows of axes not mapped are zero.
+- ``particles``: ``geometry_msgs/msg/PoseArray`` of the cloud's particles (components beyond x[2] are 0).
+- ``ess``, ``ps``: ``std_msgs/msg/Float64``; ``degraded``: ``std_msgs/msg/Bool``; ``observation``:
+  ``std_msgs/msg/Float64MultiArray`` (the values filtered at that step).
+
+:class:`Builder` makes the messages from a resolver of type names to classes (rclpy's, or a rosbags
+typestore's), so the live bridge and ``dtpf export --ros2`` publish the same numbers.
+"""
+from __future__ import annotations
+
+import base64
+import math
+
+import numpy as np
+
+from dtpf.messages.foxglove import PointCloud
+from dtpf.messages.models import Estimate
+
+__all__ = ["AXES", "TOPICS", "Builder", "PoseSet", "cloud_points_of", "parse_pose", "pose_set"]
+
+#: The pose axes a state component may be mapped to, and their rows in a ROS 2 6 x 6 covariance.
+AXES = {"x": 0, "y": 1, "z": 2, "yaw": 5}
+#: Topic (under the namespace) -> ROS 2 type.
+TOPICS = {"pose": "geometry_msgs/msg/PoseWithCovarianceStamped", "particles": "geometry_msgs/msg/PoseArray",
+          "ess": "std_msgs/msg/Float64", "ps": "std_msgs/msg/Float64", "degraded": "std_msgs/msg/Bool",
+          "observation": "std_msgs/msg/Float64MultiArray"}
+
+
+def parse_pose(spec: str | None, dim: int) -> dict[str, int]:
+    """The axis -> state component mapping of ``spec`` ('x=0,y=1,yaw=3'); ValueError in one line."""
+    if spec is None or not spec.strip():
+        return {"x": 0, "y": 1} if dim >= 2 else {"x": 0}
+    mapping: dict[str, int] = {}
+    for item in spec.split(","):
+        axis, sep, component = item.strip().partition("=")
+        axis = axis.strip()
+        if not sep or axis not in AXES:
+            raise ValueError(f"--ros2-pose: {item.strip()!r} is not AXIS=COMPONENT with AXIS one of "
+                             f"{', '.join(AXES)} (e.g. 'x=0,y=1,yaw=3')")
+        try:
+            index = int(component)
+        except ValueError:
+            raise ValueError(f"--ros2-pose: {item.strip()!r}: the component must be an index of the state") from None
+        if not 0 <= index < dim:
+            raise ValueError(f"--ros2-pose: {item.strip()!r}: the state has components 0 .. {dim - 1}")
+        if axis in mapping:
+            raise ValueError(f"--ros2-pose: {axis} is given twice")
+        mapping[axis] = index
+    return mapping
+
+
+def cloud_points_of(cloud: PointCloud) -> np.ndarray:
+    """(K, 4) float64 points (x, y, z, weight) of an entity's cloud message."""
+    raw = base64.b64decode(cloud.data)
+    return np.frombuffer(raw, dtype=np.float64).reshape(-1, cloud.point_stride // 8)[:, :4]
+
+
+def _cloud_column(component: int, dim: int) -> int | None:
+    """The cloud column that holds state component ``component`` (entity/cloud.py), or None."""
+    if dim == 1:
+        return 0 if component == 0 else None
+    return component if component < 3 else None
+
+
+class PoseSet:
+    """One step's pose: ``position`` (x, y, z), ``yaw``, ``covariance`` (36,) and the particles' poses."""
+
+    __slots__ = ("covariance", "particles", "position", "yaw")
+
+    def __init__(self, position, yaw, covariance, particles):
+        self.position, self.yaw, self.covariance, self.particles = position, yaw, covariance, particles
+
+
+def pose_set(estimate: Estimate, points: np.ndarray | None, mapping: dict[str, int]) -> PoseSet:
+    """The pose of ``estimate`` with its covariance, and (``points``: the step's cloud) the particles' poses."""
+    dim = len(estimate.mean)
+    position = [0.0, 0.0, 0.0]
+    for axis, row in (("x", 0), ("y", 1), ("z", 2)):
+        if axis in mapping:
+            position[row] = float(estimate.mean[mapping[axis]])
+    yaw = float(estimate.mean[mapping["yaw"]]) if "yaw" in mapping else 0.0
+    covariance = np.zeros((6, 6), dtype=np.float64)
+    columns = {axis: _cloud_column(component, dim) for axis, component in mapping.items()}
+    weighted = None
+    if points is not None and len(points):
+        w = points[:, 3]
+        total = w.sum()
+        if total > 0 and np.isfinite(total):
+            w = w / total
+            centred = points[:, :3] - w @ points[:, :3]
+            weighted = (centred * w[:, None]).T @ centred
+    for a, ra in mapping.items():
+        covariance[AXES[a], AXES[a]] = float(estimate.var[ra])
+        for b in mapping:
+            if b == a or weighted is None or columns[a] is None or columns[b] is None:
+                continue
+            ca, cb = columns[a], columns[b]
+            sa, sb = math.sqrt(weighted[ca, ca]), math.sqrt(weighted[cb, cb])
+            if sa > 0 and sb > 0:  # the cloud's correlation, at the estimate's variances
+                correlation = weighted[ca, cb] / (sa * sb)
+                covariance[AXES[a], AXES[b]] = correlation * math.sqrt(estimate.var[ra] * estimate.var[mapping[b]])
+    particles = None
+    if points is not None:
+        particles = np.zeros((len(points), 4), dtype=np.float64)  # x, y, z, yaw
+        for axis, slot in (("x", 0), ("y", 1), ("z", 2), ("yaw", 3)):
+            if axis in mapping and columns[axis] is not None:
+                particles[:, slot] = points[:, columns[axis]]
+    return PoseSet(position, yaw, covariance.reshape(36), particles)
+
+
+class Builder:
+    """ROS 2 messages from a resolver ``types(name) -> class`` (rclpy's or a rosbags typestore's).
+
+    ``array(values)`` converts a float64 sequence for the backend (a list for rclpy, an ndarray for rosbags).
+    """
+
+    def __init__(self, types, array=list):
+        self.T = types
+        self.array = array
+
+    def header(self, sec: int, nsec: int, frame: str):
+        return self.T("std_msgs/msg/Header")(stamp=self.T("builtin_interfaces/msg/Time")(sec=int(sec), nanosec=int(nsec)),
+                                             frame_id=frame)
+
+    def _pose(self, x, y, z, yaw):
+        T = self.T
+        return T("geometry_msgs/msg/Pose")(
+            position=T("geometry_msgs/msg/Point")(x=float(x), y=float(y), z=float(z)),
+            orientation=T("geometry_msgs/msg/Quaternion")(x=0.0, y=0.0, z=math.sin(yaw / 2.0), w=math.cos(yaw / 2.0)))
+
+    def pose(self, header, poses: PoseSet):
+        T = self.T
+        return T("geometry_msgs/msg/PoseWithCovarianceStamped")(
+            header=header, pose=T("geometry_msgs/msg/PoseWithCovariance")(
+                pose=self._pose(*poses.position, poses.yaw), covariance=np.asarray(poses.covariance, dtype=np.float64)))
+
+    def particles(self, header, poses: PoseSet):
+        pose = self._pose
+        return self.T("geometry_msgs/msg/PoseArray")(
+            header=header, poses=[pose(x, y, z, yaw) for x, y, z, yaw in poses.particles.tolist()])
+
+    def float64(self, value: float):
+        return self.T("std_msgs/msg/Float64")(data=float(value))
+
+    def bool(self, value: bool):
+        return self.T("std_msgs/msg/Bool")(data=bool(value))
+
+    def float64_array(self, values, label: str):
+        T = self.T
+        layout = T("std_msgs/msg/MultiArrayLayout")(
+            dim=[T("std_msgs/msg/MultiArrayDimension")(label=label, size=len(values), stride=len(values))],
+            data_offset=0)
+        return T("std_msgs/msg/Float64MultiArray")(layout=layout, data=self.array([float(v) for v in values]))

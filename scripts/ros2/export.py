@@ -1,0 +1,141 @@
+"""``dtpf export --ros2 LOG OUTDIR``: a dtpf log as a rosbag2 folder (MCAP storage, CDR messages).
+
+For every twin of the log, one message per step on each of (namespace ``/dtpf/<twin>/`` unless
+``--ros2-namespace``)::
+
+    pose         geometry_msgs/msg/PoseWithCovarianceStamped   the estimate (dtpf.scripts.ros2.convert)
+    particles    geometry_msgs/msg/PoseArray                   the step's particle cloud
+    observation  std_msgs/msg/Float64MultiArray                the values filtered at the step
+    ess, ps      std_msgs/msg/Float64
+    degraded     std_msgs/msg/Bool
+
+Each at the time the recorder received the estimate (the bag's time), its header stamp the estimate's.
+Written with rosbags (pure Python, the ``[rosbag]`` or ``[ros2]`` extra), so ``ros2 bag play OUTDIR``
+replays the run into a ROS 2 system and Foxglove opens it as a ROS 2 bag. A log holds a twin's messages
+in step order; where a step has competing estimates, the one :func:`in_step_order` chooses is exported.
+"""
+from __future__ import annotations
+
+import argparse
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+
+from dtpf.messages.codec import MessageError
+from dtpf.messages.foxglove import PointCloud
+from dtpf.messages.models import Estimate
+from dtpf.recording.logfile import in_step_order, read_logs
+from dtpf.scripts.ros2 import Ros2Error
+from dtpf.scripts.ros2.convert import TOPICS, Builder, cloud_points_of, parse_pose, pose_set
+
+__all__ = ["export_ros2", "register"]
+
+
+def _rosbags():
+    try:
+        from rosbags.rosbag2 import StoragePlugin, Writer
+        from rosbags.typesys import Stores, get_typestore
+    except ImportError:
+        raise Ros2Error("dtpf export --ros2 needs the rosbags package: pip install 'dtpf[rosbag]' (pure Python) "
+                        "or 'dtpf[ros2]'") from None
+    return Writer, StoragePlugin, get_typestore(Stores.ROS2_KILTED)
+
+
+def namespace_of(template: str | None, twin: str) -> str:
+    """The ROS 2 namespace of ``twin``: ``template`` with '{twin}' filled in (default /dtpf/<twin>),
+    absolute, without a trailing '/'. ROS 2 names allow letters, digits and '_': '-' and '.' become '_'."""
+    ros_twin = "".join(c if c.isalnum() or c == "_" else "_" for c in twin)
+    text = (template or "/dtpf/{twin}").replace("{twin}", ros_twin).rstrip("/")
+    return text if text.startswith("/") else "/" + text
+
+
+def export_ros2(logs: list[Path], out: Path, *, pose: str | None = None, namespace: str | None = None,
+                frame: str = "map") -> dict[str, int]:
+    """Write the rosbag2 folder ``out`` from the dtpf log(s); the number of steps written, by twin."""
+    Writer, StoragePlugin, store = _rosbags()
+    if out.exists():
+        raise Ros2Error(f"{out} exists; rosbag2 writes a new folder (remove it or name another)")
+    log = read_logs(logs)
+    estimates: dict[str, list] = defaultdict(list)
+    clouds: dict[tuple[str, int], np.ndarray] = {}
+    times: dict[int, int] = {}
+    for item, message in log.decoded(lambda topic: topic.endswith(("/entity/estimate", "/entity/cloud"))):
+        if isinstance(message, MessageError):
+            continue
+        if isinstance(message, Estimate):
+            estimates[message.twin_id].append(message)
+            times[id(message)] = item.log_time
+        elif isinstance(message, PointCloud):
+            clouds.setdefault((message.twin_id, message.step), cloud_points_of(message))
+    if not estimates:
+        raise Ros2Error(f"{', '.join(str(p) for p in logs)}: no estimate in the log: nothing to export")
+    build = Builder(lambda name: store.types[name], array=lambda values: np.asarray(values, dtype=np.float64))
+    written: dict[str, int] = {}
+    with Writer(out, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        for twin in sorted(estimates):
+            chosen, _ = in_step_order(estimates[twin])
+            dim = len(next(iter(chosen.values())).mean)
+            try:
+                mapping = parse_pose(pose, dim)
+            except ValueError as error:
+                raise Ros2Error(str(error)) from None
+            ns = namespace_of(namespace, twin)
+            connection = {name: writer.add_connection(f"{ns}/{name}", msgtype, typestore=store)
+                          for name, msgtype in TOPICS.items()}
+
+            def put(name, message, at):
+                writer.write(connection[name], at, store.serialize_cdr(message, TOPICS[name]))
+
+            for step, estimate in chosen.items():
+                at = times[id(estimate)]
+                points = clouds.get((twin, step))
+                poses = pose_set(estimate, points, mapping)
+                header = build.header(estimate.stamp.sec, estimate.stamp.nsec, frame)
+                put("pose", build.pose(header, poses), at)
+                if poses.particles is not None:
+                    put("particles", build.particles(header, poses), at)
+                if estimate.observation is not None:
+                    put("observation", build.float64_array(estimate.observation, "observation"), at)
+                put("ess", build.float64(estimate.ess), at)
+                if estimate.ps is not None:
+                    put("ps", build.float64(estimate.ps), at)
+                put("degraded", build.bool(estimate.degraded), at)
+            written[twin] = len(chosen)
+    return written
+
+
+def cmd_export(args: argparse.Namespace) -> int:
+    if not args.ros2:
+        raise Ros2Error("say what to export to: --ros2 LOG OUTDIR (a rosbag2 folder)")
+    *logs, out = args.ros2
+    if not logs:
+        raise Ros2Error("--ros2 takes the log (one or more files of one run) and then the rosbag2 folder to write")
+    written = export_ros2([Path(p) for p in logs], Path(out), pose=args.ros2_pose, namespace=args.ros2_namespace,
+                          frame=args.ros2_frame)
+    for twin, steps in written.items():
+        print(f"twin {twin}: {steps} steps as ROS 2 messages under {namespace_of(args.ros2_namespace, twin)}/")
+    print(f"wrote {out} (rosbag2, MCAP storage)")
+    return 0
+
+
+def register(subparsers) -> None:
+    """Add the ``export`` command to an argparse subparsers object."""
+    parser = subparsers.add_parser(
+        "export", help="export a recorded run to another format (--ros2: a rosbag2 folder)",
+        description="Write a dtpf log as a rosbag2 folder (MCAP storage, CDR messages, metadata.yaml): each "
+                    "twin's estimate (geometry_msgs/msg/PoseWithCovarianceStamped), particle cloud "
+                    "(geometry_msgs/msg/PoseArray), observation (std_msgs/msg/Float64MultiArray), ESS, PS "
+                    "(std_msgs/msg/Float64) and degraded flag (std_msgs/msg/Bool), one message per step, "
+                    "so ros2 bag play replays the run and Foxglove opens it as a ROS 2 bag. Needs rosbags.")
+    parser.add_argument("--ros2", nargs="+", metavar="LOG OUTDIR",
+                        help="the log (one or more files of one run, e.g. a fleet's per-host logs), then the "
+                             "rosbag2 folder to write (it must not exist)")
+    parser.add_argument("--ros2-pose", default=None, metavar="MAP",
+                        help="which state components a pose shows, e.g. 'x=0,y=1,yaw=3' (axes x, y, z, yaw; "
+                             "default: x=0 and y=1 when the state has 2 or more)")
+    parser.add_argument("--ros2-namespace", default=None, metavar="NS",
+                        help="namespace of the topics; '{twin}' is the twin id (default: /dtpf/{twin})")
+    parser.add_argument("--ros2-frame", default="map", metavar="FRAME",
+                        help="frame_id of the headers (default: %(default)s)")
+    parser.set_defaults(handler=cmd_export)

@@ -1,0 +1,162 @@
+"""rosbag2 logs in and out: a bag written by rosbags (not by dtpf) drives dtpf run and dtpf launch to the
+numbers of the CSV of the same observations; dtpf export --ros2 writes a bag rosbags reads back."""
+from __future__ import annotations
+
+import csv
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from dtpf.messages.config import RunConfig
+from dtpf.scripts import inprocess
+from dtpf.scripts.launch import launch
+
+from conftest import ROOT
+
+pytest.importorskip("rosbags", reason="rosbags is not installed (pip install 'dtpf[rosbag]')")
+
+from rosbags.rosbag2 import Reader, StoragePlugin, Writer
+from rosbags.typesys import Stores, get_typestore
+
+EXAMPLE = "docs/examples/range_bearing.py:RangeBearingTarget"
+EXAMPLE_NO_TRUTH = "docs/examples/range_bearing_no_truth.csv"
+TYPESTORE = get_typestore(Stores.ROS2_KILTED)
+
+
+def dtpf(*args: str, timeout: float = 180) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "dtpf.scripts.cli", *args], cwd=ROOT, capture_output=True,
+                          text=True, timeout=timeout)
+
+
+def write_bag(path, rows, *, nan_at: int | None = None, topic: str = "/target") -> None:
+    """The (range, bearing) rows as geometry_msgs/msg/PointStamped (point.x, point.y) on ``topic``, 20 Hz from
+    t = 1000 s, with a std_msgs/msg/String on another topic between them."""
+    types = TYPESTORE.types
+    point_stamped, header, time, point = (types["geometry_msgs/msg/PointStamped"], types["std_msgs/msg/Header"],
+                                          types["builtin_interfaces/msg/Time"], types["geometry_msgs/msg/Point"])
+    text = types["std_msgs/msg/String"]
+    with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        target = writer.add_connection(topic, point_stamped.__msgtype__, typestore=TYPESTORE)
+        other = writer.add_connection("/chatter", text.__msgtype__, typestore=TYPESTORE)
+        for i, (r, b) in enumerate(rows):
+            ns = 1_000_000_000_000 + i * 50_000_000
+            x = float("nan") if i == nan_at else r
+            message = point_stamped(header=header(stamp=time(sec=ns // 10**9, nanosec=ns % 10**9), frame_id="radar"),
+                                    point=point(x=x, y=b, z=0.0))
+            writer.write(target, ns, TYPESTORE.serialize_cdr(message, point_stamped.__msgtype__))
+            writer.write(other, ns + 1, TYPESTORE.serialize_cdr(text(data=f"row {i}"), text.__msgtype__))
+
+
+def example_rows() -> list[tuple[float, float]]:
+    with open(ROOT / EXAMPLE_NO_TRUTH) as file:
+        return [(float(row["range"]), float(row["bearing"])) for row in csv.DictReader(file)]
+
+
+@pytest.fixture(scope="module")
+def bag(tmp_path_factory):
+    path = tmp_path_factory.mktemp("bag") / "radar"
+    write_bag(path, example_rows())
+    return path
+
+
+def test_a_bag_written_by_rosbags_drives_dtpf_run_to_the_csv_numbers(bag, monkeypatch):
+    monkeypatch.chdir(ROOT)
+    common = dict(model=EXAMPLE, particles=500, steps=40, seed=3, twin="rb-bag")
+    reference = inprocess.run(RunConfig(observations=EXAMPLE_NO_TRUTH, **common))
+    for source in (bag, bag / "radar.mcap"):  # the folder, or its .mcap file
+        result = inprocess.run(RunConfig(observations=str(source), topic="/target", ros2_fields="point.x,point.y",
+                                         **common))
+        np.testing.assert_array_equal(result.means, reference.means)
+        np.testing.assert_array_equal(result.log_predictive, reference.log_predictive)
+    done = dtpf("run", "-q", "--model", EXAMPLE, "--observations", str(bag), "--topic", "/target",
+                "--ros2-fields", "point.x,point.y", "-n", "500", "--seed", "3", "--twin", "rb-bag")
+    csv_done = dtpf("run", "-q", "--model", EXAMPLE, "--observations", EXAMPLE_NO_TRUTH, "-n", "500", "--seed", "3",
+                    "--twin", "rb-bag")
+    assert done.returncode == 0, done.stderr
+    line = [x for x in done.stdout.splitlines() if x.startswith("log predictive")]
+    assert line and line == [x for x in csv_done.stdout.splitlines() if x.startswith("log predictive")]
+    assert "T = 100" in done.stdout  # every message of the topic, one step each; the other topic is not read
+
+
+def test_a_bag_drives_dtpf_launch_to_the_csv_numbers_and_exports_back_to_rosbag2(bag, tmp_path, monkeypatch):
+    monkeypatch.chdir(ROOT)
+    config = RunConfig(model=EXAMPLE, observations=str(bag / "radar.mcap"), topic="/target",
+                       ros2_fields="point.x,point.y", particles=500, steps=30, seed=3, twin="rb-bag")
+    log = tmp_path / "bag-launch.mcap"
+    result = launch(config, log_path=log, timeout=5.0)
+    assert result.exit_codes == {"recorder": 0, "system": 0, "information": 0, "entity": 0}
+    reference = inprocess.run(config.model_copy(update={"observations": EXAMPLE_NO_TRUTH, "topic": None,
+                                                        "ros2_fields": None}))
+    estimates = sorted(result.estimates, key=lambda e: e.step)
+    np.testing.assert_array_equal(np.array([e.mean for e in estimates]), reference.means)
+
+    # dtpf export --ros2: a rosbag2 folder that rosbags (not dtpf) reads back, every estimate equal.
+    out = tmp_path / "exported"
+    done = dtpf("export", "--ros2", str(log), str(out), "--ros2-pose", "x=0,y=1")
+    assert done.returncode == 0, done.stderr
+    assert (out / "metadata.yaml").is_file()
+    with Reader(out) as reader:
+        topics = {c.topic: c.msgtype for c in reader.connections}
+        assert topics["/dtpf/rb_bag/pose"] == "geometry_msgs/msg/PoseWithCovarianceStamped"
+        assert topics["/dtpf/rb_bag/particles"] == "geometry_msgs/msg/PoseArray"
+        assert topics["/dtpf/rb_bag/observation"] == "std_msgs/msg/Float64MultiArray"
+        assert topics["/dtpf/rb_bag/ess"] == "std_msgs/msg/Float64"
+        poses, ess, clouds, observed = [], [], 0, []
+        for connection, _, raw in reader.messages():
+            message = TYPESTORE.deserialize_cdr(raw, connection.msgtype)
+            if connection.topic.endswith("/pose"):
+                poses.append(message)
+            elif connection.topic.endswith("/ess"):
+                ess.append(message.data)
+            elif connection.topic.endswith("/particles"):
+                clouds += 1
+                assert len(message.poses) == 500
+            elif connection.topic.endswith("/observation"):
+                observed.append(list(message.data))
+    assert len(poses) == 30 and clouds == 30
+    for pose, estimate in zip(poses, estimates):
+        assert (pose.pose.pose.position.x, pose.pose.pose.position.y) == (estimate.mean[0], estimate.mean[1])
+        covariance = pose.pose.covariance.reshape(6, 6)
+        assert (covariance[0, 0], covariance[1, 1]) == (estimate.var[0], estimate.var[1])
+        assert pose.header.frame_id == "map"
+    assert ess == [e.ess for e in estimates]
+    assert observed == [e.observation for e in estimates]
+
+
+@pytest.mark.parametrize("case, extra, expected", [
+    ("no such topic", ["--topic", "/nope", "--ros2-fields", "point.x,point.y"],
+     r"no topic '/nope' in the bag \(it has: /chatter \(std_msgs/msg/String\), /target"),
+    ("missing field", ["--topic", "/target", "--ros2-fields", "point.x,point.w"],
+     r"has no field 'point.w' \('w' is not one of x, y, z\)"),
+    ("not a number", ["--topic", "/target", "--ros2-fields", "point"], r"is a geometry_msgs/msg/Point, not a number"),
+    ("wrong length", ["--topic", "/target", "--ros2-fields", "point.x"], r"1 value, the model observes 2"),
+    ("no mapping", ["--topic", "/target"], r"--ros2-fields .* or a method observation_from_ros2"),
+    ("no topic", ["--ros2-fields", "point.x,point.y"], r"name the topic to filter with --topic"),
+    ("bad path", ["--topic", "/target", "--ros2-fields", "point..x"], r"is not a field path"),
+])
+def test_a_bad_bag_option_is_one_line_and_exit_2(bag, case, extra, expected):
+    done = dtpf("run", "-q", "--model", EXAMPLE, "--observations", str(bag), *extra)
+    assert done.returncode == 2, done.stdout + done.stderr
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in done.stderr, done.stderr
+    assert __import__("re").search(expected, lines[0]), lines[0]
+
+
+def test_a_nan_and_a_cut_bag_are_one_line_each(tmp_path):
+    nan_bag = tmp_path / "nan"
+    write_bag(nan_bag, example_rows()[:10], nan_at=6)
+    done = dtpf("run", "-q", "--model", EXAMPLE, "--observations", str(nan_bag), "--topic", "/target",
+                "--ros2-fields", "point.x,point.y")
+    assert done.returncode == 2 and "message 7 on /target: nan (observations must be finite)" in done.stderr, \
+        done.stderr
+    whole = tmp_path / "whole"
+    write_bag(whole, example_rows())
+    data = (whole / "whole.mcap").read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: len(data) // 2])
+    done = dtpf("run", "-q", "--model", EXAMPLE, "--observations", str(cut), "--topic", "/target",
+                "--ros2-fields", "point.x,point.y")
+    assert done.returncode == 2, done.stdout + done.stderr
+    assert len(done.stderr.strip().splitlines()) == 1 and "cannot read the bag" in done.stderr, done.stderr

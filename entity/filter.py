@@ -24,7 +24,8 @@ One step k:
 5. resample with the configured traditional scheme; weights become uniform;
 6. with a ``jitter`` (not the paper's; :mod:`dtpf.entity.jitter`), move every
    resampled particle by roughening or the regularised filter's kernel, with
-   numbers from ``stream(seed, twin, k, "jitter")``.
+   numbers from ``stream(seed, twin, k, "jitter")``; a twin whose answer names
+   a move (the choosing system layer's arm in force at k) sets it for step k.
 
 Random numbers of step k come from ``stream(seed, twin, k, "entity")``:
 propagation first, then resampling. The propagation noise of step k + 1
@@ -95,6 +96,9 @@ class Preprocessed:
     report: object = None
     #: The arrays passed check_particles / check_weights already (a decoded message): not scanned again.
     checked: bool = False
+    #: The move after resampling the twin's chosen arm names (:data:`dtpf.entity.jitter.JITTERS`);
+    #: None: the filter's own ``jitter``.
+    jitter: str | None = None
 
 
 class Preprocessor(Protocol):
@@ -473,6 +477,7 @@ class ParticleFilter:
         degraded = False
         report = None
         target_particles, target_weights = particles, weights
+        move = self.jitter
         if pending.asks:
             if answer is None:
                 degraded = True
@@ -483,6 +488,10 @@ class ParticleFilter:
                     raise ValueError(f"preprocessed particles have shape {target_particles.shape}, "
                                      f"expected {particles.shape}")
                 report = answer.report
+                if answer.jitter is not None:
+                    if answer.jitter not in jitters.JITTERS:
+                        raise ValueError(f"unknown jitter {answer.jitter!r} in the twin's answer")
+                    move = answer.jitter
 
         mean, var = moments(target_particles, target_weights)
         half = Z95 * np.sqrt(var)
@@ -491,8 +500,8 @@ class ParticleFilter:
         if due:
             ancestors = self._ancestors(k, target_weights, rng)
             self.particles = self._gather(target_particles, ancestors)
-            if self.jitter != "none":
-                self.particles = jitters.apply(self.jitter, self.particles, target_particles, target_weights,
+            if move != "none":
+                self.particles = jitters.apply(move, self.particles, target_particles, target_weights,
                                                stream(self.seed, self.twin, k, "jitter"))
             self.log_weights.fill(0.0)
             self._log_total = float(np.log(self.n))

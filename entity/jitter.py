@@ -36,11 +36,17 @@ JITTERS = ("none", "roughening", "regularised")
 ROUGHENING_K = 0.2
 
 
-def roughening(resampled: np.ndarray, rng: np.random.Generator, k: float = ROUGHENING_K) -> np.ndarray:
-    """The resampled set plus N(0, (K E_c N^(-1/d))^2) per component c (E_c: range of component c)."""
-    n, d = resampled.shape
+def roughening(resampled: np.ndarray, rng: np.random.Generator, k: float = ROUGHENING_K,
+               n: int | None = None) -> np.ndarray:
+    """The resampled set plus N(0, (K E_c N^(-1/d))^2) per component c (E_c: range of component c).
+
+    ``n``: the N of the bandwidth when it differs from the set's size (the system layer's copy of M
+    particles moves them as the entity's N would); default the set's size.
+    """
+    m, d = resampled.shape
+    n = m if n is None else int(n)
     sigma = k * np.ptp(resampled, axis=0) * n ** (-1.0 / d)
-    return resampled + rng.standard_normal((n, d)) * sigma
+    return resampled + rng.standard_normal((m, d)) * sigma
 
 
 def bandwidth(n: int, d: int) -> float:
@@ -49,29 +55,32 @@ def bandwidth(n: int, d: int) -> float:
 
 
 def regularised(resampled: np.ndarray, particles: np.ndarray, weights: np.ndarray,
-                rng: np.random.Generator) -> np.ndarray:
+                rng: np.random.Generator, n: int | None = None) -> np.ndarray:
     """The resampled set plus h D eps, D the symmetric root of the weighted covariance of (particles, weights).
 
     D is the symmetric square root of the covariance, from its eigenvalues
     clipped at 0: a set collapsed onto one point in some direction is not
-    jittered in that direction.
+    jittered in that direction. ``n``: the N of the bandwidth (default the set's size), as for
+    :func:`roughening`.
     """
-    n, d = resampled.shape
+    m, d = resampled.shape
+    n = m if n is None else int(n)
     mean = weights @ particles
     centred = particles - mean
     cov = (centred * weights[:, None]).T @ centred
     values, vectors = np.linalg.eigh(cov)
     root = (vectors * np.sqrt(np.clip(values, 0.0, None))) @ vectors.T  # the symmetric root: no sign choice
-    return resampled + bandwidth(n, d) * (rng.standard_normal((n, d)) @ root)
+    return resampled + bandwidth(n, d) * (rng.standard_normal((m, d)) @ root)
 
 
 def apply(name: str, resampled: np.ndarray, particles: np.ndarray, weights: np.ndarray,
-          rng: np.random.Generator) -> np.ndarray:
-    """The move ``name`` (:data:`JITTERS`) of the resampled set; ``particles, weights``: the set before."""
+          rng: np.random.Generator, n: int | None = None) -> np.ndarray:
+    """The move ``name`` (:data:`JITTERS`) of the resampled set; ``particles, weights``: the set before;
+    ``n``: the N of the bandwidth (default the resampled set's size)."""
     if name == "roughening":
-        return roughening(resampled, rng)
+        return roughening(resampled, rng, n=n)
     if name == "regularised":
-        return regularised(resampled, particles, weights, rng)
+        return regularised(resampled, particles, weights, rng, n=n)
     if name == "none":
         return resampled
     raise ValueError(f"unknown jitter {name!r}; expected one of {', '.join(JITTERS)}")

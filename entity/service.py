@@ -106,7 +106,8 @@ class ZenohTwin:
             report = PreprocessReport(answer.threshold, answer.n_large, answer.n_processed,
                                       answer.n_mixed, answer.n_plain, answer.ps)
             try:
-                return Preprocessed(answer.particles, answer.weights, report, checked=True), False
+                return Preprocessed(answer.particles, answer.weights, report, checked=True,
+                                    jitter=answer.jitter), False
             except ValueError as error:  # the shell checked the shape; anything else is counted too
                 shell.reject("preprocessed set the filter cannot take", f"step {step}: {error}",
                              key=self.answers.key_expr)

@@ -12,6 +12,12 @@ drive this object, so both compute the same numbers::
 The system layer may turn the preprocessing off for a step (its decision's
 ``preprocess`` is False): the entity's set then goes back as it came, and the
 entity resamples it plainly.
+
+A choosing system layer names an *arm* instead (:data:`ARMS`): the move in
+force from the step its decision names. The DT arms preprocess here, with the
+arm's own rule, weights and PS; the others send the set back as it came and
+name, in :attr:`InformationOutput.jitter` (on the wire: the preprocessed
+set's ``jitter`` field), the move the entity applies after resampling it.
 """
 from __future__ import annotations
 
@@ -25,7 +31,38 @@ from dtpf.information.mirror import WeightSummary, summarise
 from dtpf.messages.arrays import check_probability
 from dtpf.messages.streams import stream
 
-__all__ = ["InformationLayer", "InformationOutput"]
+__all__ = ["InformationLayer", "InformationOutput", "Arm", "ARMS"]
+
+
+@dataclass(frozen=True)
+class Arm:
+    """One move a choosing system layer can put in force, with its documented parameters.
+
+    ``preprocess``: DT preprocessing (Eq. 28-30) with ``ps``, ``move_rule`` and
+    ``weight_rule`` (:func:`dtpf.information.rules.preprocess`) before the
+    entity resamples; ``jitter``: the entity's move after resampling
+    (:mod:`dtpf.entity.jitter`).
+    """
+
+    name: str
+    preprocess: bool = False
+    ps: float = 0.0
+    move_rule: str = "paper"
+    weight_rule: str = "inherit"
+    jitter: str = "none"
+
+
+#: The arms of the choosing policy, by name (the names are :data:`dtpf.messages.names.ARMS`):
+#: plain resampling; the relative move rule at PS 0 with likelihood weights (the guard's setting);
+#: the paper's Eq. 29-30 at PS 0.81 with inherited weights; roughening (K = 0.2); the regularised
+#: filter's kernel (h_opt).
+ARMS: dict[str, Arm] = {
+    "plain": Arm("plain"),
+    "dt-relative": Arm("dt-relative", True, 0.0, "relative", "likelihood"),
+    "dt-paper": Arm("dt-paper", True, 0.81, "paper", "inherit"),
+    "roughening": Arm("roughening", jitter="roughening"),
+    "regularised": Arm("regularised", jitter="regularised"),
+}
 
 
 @dataclass(frozen=True)
@@ -35,6 +72,8 @@ class InformationOutput:
     step: int
     preprocessed: rules.PreprocessResult
     summary: WeightSummary
+    #: The entity's move after resampling this set, when a chosen arm names one (None: the run's own).
+    jitter: str | None = None
 
 
 #: Most PS commands waiting for their step (the system layer sends one per step, for the next).
@@ -62,16 +101,21 @@ class InformationLayer:
     preprocess : bool
         Whether the preprocessing runs before the system layer's first
         decision (False for a policy that starts off, the guard).
+    arm : str, optional
+        The arm (:data:`ARMS`) in force before the system layer's first
+        decision (the choosing policy starts with "plain").
     """
 
     def __init__(self, model: StateSpaceModel, *, ps: float, threshold_rule: str | float = "neff",
                  weight_rule: str = "inherit", seed: int = 0, twin: str = "twin", move_rule: str = "paper",
-                 preprocess: bool = True):
+                 preprocess: bool = True, arm: str | None = None):
         self.model = model
         self.ps = check_probability(ps, "PS")
         #: Whether the preprocessing runs (the system layer's latest decision in force).
         self.enabled = bool(preprocess)
-        self.pending: list[tuple[int, float, bool]] = []
+        #: The chosen arm in force (None: the run's own preprocessing options).
+        self.arm: Arm | None = None
+        self.pending: list[tuple[int, float, bool, Arm | None]] = []
         self.threshold_rule = threshold_rule
         if weight_rule not in rules.WEIGHT_RULES:
             raise ValueError(f"unknown weight rule {weight_rule!r}; expected one of {', '.join(rules.WEIGHT_RULES)}")
@@ -82,6 +126,9 @@ class InformationLayer:
         self.seed = seed
         self.twin = twin
         self._ahead: tuple[int, np.random.Generator] | None = None
+        if arm is not None:
+            self.set_ps(self.ps, 0, preprocess, arm)
+            self.ps_for(0)
 
     def warm_up(self, particles: int = 8) -> None:
         """Run the rules and the mirror on a throwaway set of the size class of ``particles``, read-only
@@ -109,25 +156,38 @@ class InformationLayer:
         summarise(x, w, self.threshold_rule, size)
         _WARMED.add(key)
 
-    def set_ps(self, ps: float, applies_from_step: int, preprocess: bool = True) -> None:
+    def set_ps(self, ps: float, applies_from_step: int, preprocess: bool = True, arm: str | None = None) -> None:
         """Schedule a new PS from the system layer, in force from ``applies_from_step``;
         ``preprocess=False`` turns the preprocessing off from that step (until a later command turns it on).
+        ``arm`` (:data:`ARMS`): the chosen move from that step on; its own PS and rules replace ``ps``
+        and the run's options (ValueError for an unknown arm).
 
         A later command for the same step replaces the earlier one; at most
         MAX_PENDING steps wait (the farthest is dropped), so a flood of commands
         cannot grow the schedule.
         """
         step, ps = int(applies_from_step), check_probability(ps, "PS")
+        chosen = None
+        if arm is not None:
+            if arm not in ARMS:
+                raise ValueError(f"unknown arm {arm!r}; expected one of {', '.join(ARMS)}")
+            chosen = ARMS[arm]
+            ps, preprocess = chosen.ps, chosen.preprocess
         self.pending = [item for item in self.pending if item[0] != step]
-        self.pending.append((step, ps, bool(preprocess)))
+        self.pending.append((step, ps, bool(preprocess), chosen))
         self.pending.sort(key=lambda item: item[0])
         del self.pending[MAX_PENDING:]
 
     def ps_for(self, step: int) -> float:
         """The PS in force at ``step``: the latest scheduled one that applies by then."""
         while self.pending and self.pending[0][0] <= step:
-            _, self.ps, self.enabled = self.pending.pop(0)
+            _, self.ps, self.enabled, self.arm = self.pending.pop(0)
         return self.ps
+
+    @property
+    def jitter(self) -> str | None:
+        """The entity's move after resampling under the arm in force (None without a chosen arm)."""
+        return None if self.arm is None else self.arm.jitter
 
     def prepare(self, step: int) -> None:
         """Make the random stream of ``step`` now, before its particle set arrives.
@@ -157,13 +217,16 @@ class InformationLayer:
             self._ahead = None  # a stream made ahead for this step is not used
             return rules.unprocessed(particles, weights, ps, threshold_rule=self.threshold_rule, checked=checked)
         z = np.asarray(observation, dtype=np.float64)
+        arm = self.arm
+        weight_rule = self.weight_rule if arm is None else arm.weight_rule
+        move_rule = self.move_rule if arm is None else arm.move_rule
         log_likelihood = None
-        if self.weight_rule == "likelihood":
+        if weight_rule == "likelihood":
             def log_likelihood(x):
                 return self.model.log_likelihood(x, z, step)
         return rules.preprocess(particles, weights, ps, self._stream(step),
-                                threshold_rule=self.threshold_rule, weight_rule=self.weight_rule,
-                                log_likelihood=log_likelihood, checked=checked, move_rule=self.move_rule)
+                                threshold_rule=self.threshold_rule, weight_rule=weight_rule,
+                                log_likelihood=log_likelihood, checked=checked, move_rule=move_rule)
 
     def mirror(self, particles, weights, parents: int | None = None,
                threshold: float | None = None, *, checked: bool = False) -> WeightSummary:
@@ -179,4 +242,4 @@ class InformationLayer:
         :func:`dtpf.information.mirror.summarise`)."""
         result = self.preprocess(step, particles, weights, observation)
         summary = self.mirror(particles, weights, parents, result.report.threshold)
-        return InformationOutput(step, result, summary)
+        return InformationOutput(step, result, summary, self.jitter)

@@ -17,7 +17,7 @@ import argparse
 import zenoh
 
 from dtpf.entity import sources
-from dtpf.information.layer import InformationLayer
+from dtpf.information.layer import ARMS, InformationLayer
 from dtpf.messages import names
 from dtpf.messages.admission import RunShape
 from dtpf.messages.config import RunConfig, add_run_arguments
@@ -30,21 +30,43 @@ __all__ = ["main", "TwinInformation"]
 
 
 class PSInbox:
-    """PS commands of this run, applied to the layer in the order of their steps."""
+    """PS commands of this run, applied to the layer in the order of their steps.
 
-    def __init__(self, shell: ServiceShell, layer: InformationLayer):
+    A command whose arm does not fit the run (an arm from another policy than ``choose``, none from
+    ``choose``, or a PS or preprocessing other than the arm's) is a counted rejection.
+    """
+
+    def __init__(self, shell: ServiceShell, layer: InformationLayer, policy: str | None = None):
         self.shell = shell
         self.layer = layer
+        self.policy = policy
         self.inbox = shell.inbox("system", "ps")
         self.latest_step = 0  # step of the latest decision received
+
+    def problem(self, command: PSCommand) -> str | None:
+        """Why ``command`` does not fit this run's policy, or None."""
+        choosing = self.policy == "choose"
+        if command.arm is None:
+            return "the choose policy names an arm in every decision" if choosing else None
+        if not choosing:
+            return f"an arm ({command.arm}) from a run whose policy is {self.policy}"
+        arm = ARMS[command.arm]
+        if command.policy != "choose" or command.ps != arm.ps or command.preprocess != arm.preprocess:
+            return (f"arm {arm.name} with policy {command.policy}, PS {command.ps:g}, preprocess "
+                    f"{command.preprocess} (the arm's: choose, PS {arm.ps:g}, preprocess {arm.preprocess})")
+        return None
 
     def drain(self) -> bool:
         """Apply every queued command. True if any came."""
         got = False
         while (item := self.inbox.get(timeout=0)) is not None:
             command = self.shell.receive(item, PSCommand)
+            if command is not None and self.policy is not None and (problem := self.problem(command)):
+                self.shell.reject("PS command that does not fit the run", f"step {command.step}: {problem}",
+                                  key=self.inbox.key_expr)
+                command = None
             if command is not None:
-                self.layer.set_ps(command.ps, command.applies_from_step, command.preprocess)
+                self.layer.set_ps(command.ps, command.applies_from_step, command.preprocess, command.arm)
                 self.latest_step = max(self.latest_step, command.step)
                 got = True
         return got
@@ -64,10 +86,11 @@ class TwinInformation:
         self.layer = InformationLayer(model, ps=config.ps, threshold_rule=config.threshold,
                                       weight_rule=config.weight_rule, seed=config.seed, twin=config.twin,
                                       move_rule=config.move_rule,
-                                      preprocess=config.policy not in names.POLICIES_STARTING_OFF)
+                                      preprocess=config.policy not in names.POLICIES_STARTING_OFF,
+                                      arm="plain" if config.policy == "choose" else None)
         shell.expect(RunShape.of(config, model))
         self.particle_sets = shell.inbox("entity", "particles")
-        self.commands = PSInbox(shell, self.layer)
+        self.commands = PSInbox(shell, self.layer, config.policy)
         self.published = 0  # the last step whose weight state this process sent
         self.system_was_alive = True
         #: Whether this twin's system layer has been seen alive, or waited for once. A fleet's service learns
@@ -137,7 +160,7 @@ class TwinInformation:
         shell.publish(ParticleSet.model_validate(dict(
             **shell.header(step), kind=ParticleSetKind.PREPROCESSED, particles=result.particles,
             weights=result.weights, observation=message.observation, ps=report.ps,
-            threshold=min(report.threshold, 1.0), **counts), context=ARRAYS_CHECKED))
+            threshold=min(report.threshold, 1.0), jitter=layer.jitter, **counts), context=ARRAYS_CHECKED))
         summary = layer.mirror(message.particles, message.weights, message.parents, report.threshold,
                                checked=True)
         shell.publish(WeightState(**shell.header(step), **summary.as_dict(), ps=report.ps, **counts))

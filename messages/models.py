@@ -28,7 +28,7 @@ import binascii
 import enum
 import re
 import time
-from typing import Annotated, Any, ClassVar
+from typing import Annotated, Any, ClassVar, Literal
 
 import numpy as np
 from pydantic import (
@@ -43,6 +43,7 @@ from pydantic import (
     model_validator,
 )
 
+from dtpf.messages import names
 from dtpf.messages.arrays import check_particles, check_probability, check_weights, is_plain_float64
 
 UINT32_MAX = 2**32 - 1
@@ -281,6 +282,9 @@ class ParticleSetHeader(Message):
         default=None, ge=1, le=UINT32_MAX, description="Number of distinct particles this set descends from "
                                                         "(distinct ancestors of the last resampling); absent "
                                                         "before the first resampling.")
+    jitter: Literal[names.JITTERS] | None = Field(
+        default=None, description="Preprocessed sets: the move the entity applies after resampling this set, "
+                                  "the arm the system layer chose (absent: the run's own --jitter).")
 
     @classmethod
     def _expected_layer(cls, data: Any) -> Layer | None:
@@ -292,7 +296,7 @@ class ParticleSetHeader(Message):
 
     @model_validator(mode="after")
     def _check_preprocessing(self) -> "ParticleSetHeader":
-        extras = [name for name in ("ps", "threshold", "n_large", "n_processed", "n_mixed", "n_plain")
+        extras = [name for name in ("ps", "threshold", "n_large", "n_processed", "n_mixed", "n_plain", "jitter")
                   if getattr(self, name) is not None]
         if self.kind == ParticleSetKind.PROPAGATED and extras:
             raise ValueError(f"a propagated particle set carries no preprocessing fields, got {', '.join(extras)}")
@@ -419,7 +423,12 @@ class PSCommand(Message):
     evidence: float | None = Field(
         default=None, description="By how much preprocessing predicted the real observations of the last steps "
                                   "better than no preprocessing: the summed difference of predictive "
-                                  "log-likelihoods, in nats (guard-observed policy).")
+                                  "log-likelihoods, in nats (guard-observed policy); the choose policy: the "
+                                  "chosen arm's evidence against plain resampling.")
+    arm: Literal[names.ARMS] | None = Field(
+        default=None, description="The move in force from applies_from_step on, chosen by the choose policy: "
+                                  "plain, dt-relative, dt-paper (preprocessing by the information layer), "
+                                  "roughening or regularised (by the entity after resampling).")
 
     @model_validator(mode="after")
     def _check_step(self) -> "PSCommand":

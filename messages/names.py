@@ -15,11 +15,12 @@ import importlib.metadata
 import sys
 
 __all__ = ["SCENARIOS", "MODEL_ENTRY_POINTS", "CANNOT_SAMPLE", "RESAMPLERS", "THRESHOLD_RULES", "WEIGHT_RULES", "MOVE_RULES", "JITTERS",
-           "POLICIES", "SIMULATING_POLICIES", "POLICIES_STARTING_OFF", "scenario_names"]
+           "POLICIES", "SIMULATING_POLICIES", "POLICIES_STARTING_OFF", "ARMS", "scenario_names"]
 
 #: Built-in scenarios (dtpf.entity.models): Eq. 35 with 25, Eq. 35 as printed (0.25), the tracking video, and a
-#: slowly drifting constant with precise observations (where particles impoverish; not in the paper).
-SCENARIOS = ("ungm", "ungm-printed", "video", "drift")
+#: slowly drifting constant with precise observations (where particles impoverish; not in the paper), and the
+#: same constant seen by a sensor whose noise drops mid-run (the best cure changes).
+SCENARIOS = ("ungm", "ungm-printed", "video", "drift", "switching")
 #: The entry-point group where an installed package registers scenario names of its own.
 MODEL_ENTRY_POINTS = "dtpf.models"
 #: Built-in scenarios whose model cannot draw observations (no simulating policy with them).
@@ -36,10 +37,13 @@ MOVE_RULES = ("paper", "relative")
 #: (Gordon, Salmond and Smith 1993) or the regularised filter's kernel (Musso, Oudjane and Le Gland 2001).
 JITTERS = ("none", "roughening", "regularised")
 #: PS policies of the system layer (dtpf.system.policy), and those that simulate observations (sample_observation).
-POLICIES = ("fixed", "guard", "guard-observed", "predictive", "rule")
+POLICIES = ("choose", "fixed", "guard", "guard-observed", "predictive", "rule")
 SIMULATING_POLICIES = frozenset({"guard", "predictive", "rule"})
 #: Policies whose first step is not preprocessed (the information layer starts with preprocessing off).
-POLICIES_STARTING_OFF = frozenset({"guard", "guard-observed"})
+POLICIES_STARTING_OFF = frozenset({"guard", "guard-observed", "choose"})
+#: The moves the choosing policy picks from (dtpf.information.layer.ARMS): plain resampling, DT preprocessing
+#: with the relative or the paper's rule, roughening, the regularised kernel.
+ARMS = ("plain", "dt-relative", "dt-paper", "roughening", "regularised")
 
 
 def scenario_names() -> list[str]:

@@ -46,9 +46,10 @@ class InProcessTwin:
         result = out.preprocessed
         snapshot = Snapshot.of(result.particles, result.weights, observation) if self.system.needs_particles else None
         decision = self.system.observe(step, out.summary, snapshot)
-        self.information.set_ps(decision.ps, decision.applies_from_step, decision.preprocess)
+        self.information.set_ps(decision.ps, decision.applies_from_step, decision.preprocess, decision.arm)
         self.decisions.append(decision)
-        return Preprocessed(out.preprocessed.particles, out.preprocessed.weights, out.preprocessed.report)
+        return Preprocessed(out.preprocessed.particles, out.preprocessed.weights, out.preprocessed.report,
+                            jitter=out.jitter)
 
 
 @dataclass
@@ -163,7 +164,8 @@ def build(config: RunConfig, observations, model=None, innovation: bool = False)
         system = SystemLayer.from_config(config, model=model)
         information = InformationLayer(model, ps=system.policy.initial_ps, threshold_rule=config.threshold,
                                        weight_rule=config.weight_rule, seed=config.seed, twin=config.twin,
-                                       move_rule=config.move_rule, preprocess=system.policy.initial_preprocess)
+                                       move_rule=config.move_rule, preprocess=system.policy.initial_preprocess,
+                                       arm=getattr(system.policy, "initial_arm", None))
         twin = InProcessTwin(information, system)
     return ParticleFilter(model, observations, config.particles, resampler=config.resampler,
                           resample_below=config.resample_below, seed=config.seed, twin=config.twin,

@@ -72,6 +72,10 @@ class SystemLayer:
             model = model_ref.resolve(config.model_ref)
         options = dict(threshold_rule=config.threshold, weight_rule=config.weight_rule, move_rule=config.move_rule)
         evidence = Evidence(model, config.ps, **options) if policy.uses_evidence else None
+        if isinstance(policy, ps_policy.ChoosePS):
+            from dtpf.system.choose import ArmEvidence
+            evidence = ArmEvidence(model, policy.arms, n=config.particles, threshold_rule=config.threshold,
+                                   particles=policy.particles, window=policy.window)
         predictor = Predictor(model, resampler=config.resampler, **options,
                               scenario_simulation=policy.samples_observations, evidence=evidence) \
             if policy.simulates else Predictor()

@@ -45,6 +45,16 @@ Policies (:data:`POLICIES`):
   at step 3 (each takes two steps), and until 20 are in, the sum is over
   those there are. It needs no ``sample_observation``.
 
+- ``choose``: puts one of several moves in force, the *arms* (:data:`dtpf.information.layer.ARMS`:
+  plain resampling, the relative DT rule at PS 0 with likelihood weights, the paper's DT rule at
+  PS 0.81, roughening, the regularised kernel), from the evidence of the real observations
+  (:mod:`dtpf.system.choose`): each arm's windowed log Bayes factor against plain over the last
+  20 steps. From plain it switches to the arm with the largest evidence only when that exceeds
+  ``enter`` (default log 99, odds of 99 to 1); it keeps a chosen arm while its evidence against
+  plain stays above ``leave`` (default log 3: the hysteresis), moves to another arm whose evidence
+  beats the chosen one's by ``enter``, and goes back to plain when the chosen arm's evidence fades
+  (unless another arm's exceeds ``enter``). It starts plain; the first evidence comes at step 2.
+
 A policy that needs the twin's simulation sets :attr:`PSPolicy.simulates`;
 the system layer then gives its predictor the particle set of each step.
 """
@@ -59,8 +69,8 @@ import numpy as np
 from dtpf.messages.arrays import check_probability
 from dtpf.system.predict import Forecast
 
-__all__ = ["PSDecision", "PSPolicy", "FixedPS", "RulePS", "PredictivePS", "GuardPS", "GuardObservedPS", "POLICIES",
-           "get", "limit"]
+__all__ = ["PSDecision", "PSPolicy", "FixedPS", "RulePS", "PredictivePS", "GuardPS", "GuardObservedPS", "ChoosePS",
+           "POLICIES", "get", "limit"]
 
 #: PS of the paper's experiments (section 4.1).
 PAPER_PS = 0.81
@@ -94,11 +104,13 @@ class PSDecision:
     predicted: dict[str, float] = field(default_factory=dict)
     #: False: no preprocessing from ``applies_from_step`` on (the decision "off"); PS is kept for later.
     preprocess: bool = True
+    #: The chosen arm in force from ``applies_from_step`` on (the choosing policy; None for the others).
+    arm: str | None = None
 
     def command_fields(self) -> dict:
         """The fields of the :class:`~dtpf.messages.models.PSCommand` that carries this decision."""
         fields = dict(ps=self.ps, applies_from_step=self.applies_from_step, policy=self.policy, reason=self.reason,
-                      preprocess=self.preprocess)
+                      preprocess=self.preprocess, arm=self.arm)
         for name, command_field in COMMAND_FIELDS.items():
             fields[command_field] = self.predicted.get(name)
         return fields
@@ -406,9 +418,94 @@ class GuardObservedPS(_Guard):
         return PSDecision(self.ps, step + 1, self.name, reason, figures, preprocess=preprocess)
 
 
+class ChoosePS(PSPolicy):
+    """Puts in force the arm whose moves predict the real observations best (see the module docstring).
+
+    Parameters
+    ----------
+    ps, max_change : optional
+        Accepted and unused: each arm has its own PS (:data:`dtpf.information.layer.ARMS`).
+    arms : sequence of str
+        The arms to choose from (plain is always one); default all of them.
+    enter : float
+        Log odds an arm's evidence must exceed to replace plain, or to beat the arm in force by (nats;
+        default log 99).
+    leave : float
+        The arm in force stays while its evidence against plain exceeds this (default log 3; at most
+        ``enter``).
+    window : int
+        Steps of evidence summed per arm (default 20).
+    particles : int
+        M, the twin's copy of the entity's set (default 1000).
+    """
+
+    name = "choose"
+    simulates = True
+    uses_evidence = True
+    initial_preprocess = False
+    #: The arm in force before the first decision.
+    initial_arm = "plain"
+
+    def __init__(self, ps: float | None = None, *, max_change: float | None = None, arms=None,
+                 enter: float = math.log(99.0), leave: float = math.log(3.0), window: int = 20,
+                 particles: int = 1000):
+        from dtpf.information.layer import ARMS
+        chosen = tuple(ARMS) if arms is None else tuple(arms)
+        unknown = [a for a in chosen if a not in ARMS]
+        if unknown:
+            raise ValueError(f"unknown arm {unknown[0]!r}; expected some of {', '.join(ARMS)}")
+        self.arms = tuple(dict.fromkeys(("plain", *chosen)))
+        self.enter = _non_negative(enter, "enter")
+        self.leave = float(leave)
+        if not self.leave <= self.enter:
+            raise ValueError(f"leave must be at most enter (hysteresis), got {leave!r} > {enter!r}")
+        if int(window) < 1 or int(particles) < 1:
+            raise ValueError(f"window and particles must be at least 1, got {window!r}, {particles!r}")
+        self.window, self.particles = int(window), int(particles)
+        self._table = ARMS
+        #: The arm in force (the latest decision's; the arm the entity applies at the step being decided).
+        self.arm = self.initial_arm
+
+    @property
+    def initial_ps(self) -> float:
+        return self._table[self.initial_arm].ps
+
+    def _decision(self, step: int, arm: str, reason: str, figures: dict) -> PSDecision:
+        self.arm = arm
+        chosen = self._table[arm]
+        return PSDecision(chosen.ps, step + 1, self.name, reason, figures, preprocess=chosen.preprocess, arm=arm)
+
+    def decide(self, step: int, forecast: Forecast) -> PSDecision:
+        evidence = forecast.arm_evidence
+        if not evidence:
+            return self._decision(step, self.arm, f"choose: no evidence yet: {self.arm} kept", {})
+        current = self.arm
+        others = [a for a in self.arms if a != current and a != "plain" and a in evidence]
+        best = max(others, key=lambda a: evidence[a]) if others else None
+        now = evidence.get(current, 0.0)
+        if current == "plain":
+            if best is not None and evidence[best] > self.enter:
+                arm, verdict = best, f"{best} beats plain by {evidence[best]:.3g} > {self.enter:.3g} nats"
+            else:
+                arm, verdict = "plain", f"no arm beats plain by more than {self.enter:.3g} nats"
+        elif best is not None and evidence[best] - now > self.enter:
+            arm, verdict = best, f"{best} beats {current} by {evidence[best] - now:.3g} > {self.enter:.3g} nats"
+        elif now > self.leave:
+            arm, verdict = current, f"{current} still beats plain by {now:.3g} > {self.leave:.3g} nats"
+        elif best is not None and evidence[best] > self.enter:
+            arm, verdict = best, (f"{current} faded ({now:.3g} <= {self.leave:.3g} nats), {best} beats plain by "
+                                  f"{evidence[best]:.3g} > {self.enter:.3g}")
+        else:
+            arm, verdict = "plain", f"{current} faded ({now:.3g} <= {self.leave:.3g} nats against plain)"
+        tried = ", ".join(f"{a} {evidence[a]:.3g}" for a in self.arms if a != "plain" and a in evidence)
+        reason = (f"choose: evidence against plain over the last {forecast.evidence_steps} observations "
+                  f"({tried}); {verdict}: {arm}")
+        return self._decision(step, arm, reason, {"evidence": float(evidence.get(arm, 0.0))})
+
+
 #: Policy classes by name.
 POLICIES: dict[str, type[PSPolicy]] = {"fixed": FixedPS, "rule": RulePS, "predictive": PredictivePS,
-                                       "guard": GuardPS, "guard-observed": GuardObservedPS}
+                                       "guard": GuardPS, "guard-observed": GuardObservedPS, "choose": ChoosePS}
 
 
 def get(name: str, **options) -> PSPolicy:

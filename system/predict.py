@@ -308,6 +308,9 @@ class Forecast:
     simulation: _Simulation | None = field(default=None, repr=False, compare=False)
     evidence: float | None = None
     evidence_steps: int = 0
+    #: With a predictor that gathers :mod:`dtpf.system.choose`: each arm's summed differences of
+    #: predictive log-likelihood against plain resampling over the last ``evidence_steps`` steps (nats).
+    arm_evidence: dict[str, float] | None = field(default=None, compare=False)
 
     @property
     def next_ess_ratio(self) -> float:
@@ -420,7 +423,10 @@ class Predictor:
             figures.update(predicted_ess_ratio=float(simulation.ess.mean()) / simulation.m,
                            predicted_distinct_ratio=float(simulation.distinct.mean()) / simulation.m,
                            predicted_spread=float(simulation.spread.mean()), simulation=simulation)
-        if self.evidence is not None:  # after the simulation's draws, so they do not change
+        if self.evidence is not None and hasattr(self.evidence, "totals"):  # the evidence per arm
+            self.evidence.observe(step, snapshot.particles, snapshot.weights, snapshot.observation, rng)
+            figures.update(arm_evidence=self.evidence.totals(), evidence_steps=self.evidence.steps)
+        elif self.evidence is not None:  # after the simulation's draws, so they do not change
             self.evidence.observe(step, snapshot.particles, snapshot.weights, snapshot.observation, rng)
             figures.update(evidence=self.evidence.total, evidence_steps=len(self.evidence.differences))
         return Forecast(**figures)

@@ -3,8 +3,9 @@
 For every particle set the entity recorded, the information layer's rules and
 mirror and the system layer's predictor and policy run again, in process,
 with the run configuration the information layer recorded in its status;
-every recorded output (preprocessed set, weight state, PS command with its
-reason and predicted figures) must be reproduced exactly. The system layer's
+every recorded output (preprocessed set with the move it names for the
+entity, weight state, PS command with its reason, predicted figures and chosen
+arm) must be reproduced exactly. The system layer's
 simulation draws from its own random stream, so it is reproduced too. The report goes step by step; the first mismatch names the step,
 the topic and the field, and the exit code is 1.
 """
@@ -171,7 +172,8 @@ def verify_twin(by_topic: dict[str, list], twin: str, problem: str | None = None
     system = SystemLayer.from_config(config, twin, model=model)
     information = InformationLayer(model, ps=system.policy.initial_ps, threshold_rule=config.threshold,
                                    weight_rule=config.weight_rule, seed=config.seed, twin=twin,
-                                   move_rule=config.move_rule, preprocess=system.policy.initial_preprocess)
+                                   move_rule=config.move_rule, preprocess=system.policy.initial_preprocess,
+                                   arm=getattr(system.policy, "initial_arm", None))
     for step in sorted(particle_sets):
         source: ParticleSet = particle_sets[step]
         out = information.process(step, source.particles, source.weights, source.observation, source.parents)
@@ -195,7 +197,7 @@ def verify_twin(by_topic: dict[str, list], twin: str, problem: str | None = None
         snapshot = Snapshot.of(out.preprocessed.particles, out.preprocessed.weights, source.observation) \
             if system.needs_particles else None
         decision = system.observe(step, out.summary, snapshot)
-        information.set_ps(decision.ps, decision.applies_from_step, decision.preprocess)
+        information.set_ps(decision.ps, decision.applies_from_step, decision.preprocess, decision.arm)
         if step in commands:
             topic = f"dtpf/{twin}/system/ps"
             mismatch = matching(step, topic, commands[step],
@@ -218,7 +220,8 @@ def _compare_preprocessed(step: int, twin: str, recorded: ParticleSet, out) -> M
     report = rerun.report
     return _compare_fields(step, topic, recorded, {
         "ps": report.ps, "threshold": min(report.threshold, 1.0), "n_large": report.n_large,
-        "n_processed": report.n_processed, "n_mixed": report.n_mixed, "n_plain": report.n_plain})
+        "n_processed": report.n_processed, "n_mixed": report.n_mixed, "n_plain": report.n_plain,
+        "jitter": out.jitter})
 
 
 def _compare_fields(step: int, topic: str, recorded, expected: dict) -> Mismatch | None:

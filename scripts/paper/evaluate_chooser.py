@@ -1,0 +1,312 @@
+"""Does the twin pick the right cure? The choosing policy against every fixed choice.
+
+For each scenario, N and seed (each seed its own simulated data set, shared by every variant, so all
+comparisons are paired by seed) the in-process pipeline runs:
+
+- the four traditional resamplers, no preprocessing;
+- each fixed cure, at every step: DT preprocessing with the paper's rule (Eq. 29-30, PS 0.81, inherit
+  weights), DT preprocessing with the relative rule (PS 0, likelihood weights), roughening (K = 0.2)
+  and the regularised kernel (h_opt), each after systematic resampling;
+- ``guard-observed`` with the relative rule (PS 0, likelihood weights);
+- ``choose``: every step the system layer runs the five arms on its copy of the entity's set and
+  puts in force the one the real observations favour (``--policy choose``, docs/guides/policies.md);
+- the Kalman filter where it is exact (``drift``, ``drift+100``, ``switching``).
+
+Scenarios: ``ungm``, ``drift``, ``drift+100``, ``range-bearing`` and ``video`` as in
+:mod:`dtpf.scripts.paper.evaluate_guard`, and ``switching`` (:class:`dtpf.entity.models.SensorSwitchModel`:
+a drifting constant whose sensor's sd drops from 1 to 0.01 at step 51, so the best cure changes).
+Targets, per cell: ``choose`` never significantly worse than systematic (95% interval of the paired
+difference); where some fixed method is significantly better than systematic, ``choose`` closes at
+least 80% of the gap to the best of them; on ``switching``, significantly better than every fixed
+method::
+
+    python -m dtpf.scripts.paper.evaluate_chooser --csv runs/chooser.csv     # 1000 seeds per cell
+    python -m dtpf.scripts.paper.evaluate_chooser --quick                     # 6 seeds, T = 25
+
+Progress goes to stderr, the tables to stdout; ``--csv`` keeps every run's figures, and
+``--from-csv`` rebuilds the tables from such a file.
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import math
+import sys
+import time
+from dataclasses import dataclass
+from multiprocessing import get_context
+from pathlib import Path
+
+import numpy as np
+
+from dtpf.entity import models
+from dtpf.messages.config import RunConfig
+from dtpf.scripts.console import TaskProgress
+from dtpf.scripts.inprocess import build, simulate
+from dtpf.scripts.paper import evaluate_guard
+from dtpf.scripts.paper.common import mean_ci, significance
+
+TRADITIONAL = ("systematic", "multinomial", "stratified", "residual")
+RELATIVE = dict(move_rule="relative", weight_rule="likelihood", ps=0.0)
+PAPER = dict(move_rule="paper", weight_rule="inherit", ps=0.81)
+#: The fixed cures, by label.
+CURES: dict[str, dict] = {
+    "DT paper rule, PS 0.81": dict(policy="fixed", **PAPER),
+    "DT relative rule, PS 0": dict(policy="fixed", **RELATIVE),
+    "roughening": dict(preprocess=False, jitter="roughening"),
+    "regularised": dict(preprocess=False, jitter="regularised"),
+}
+CHOOSE = "choose"
+VARIANTS: dict[str, dict] = {
+    **{name: dict(preprocess=False, resampler=name) for name in TRADITIONAL},
+    **CURES,
+    "guard-observed, relative rule": dict(policy="guard-observed", **RELATIVE),
+    CHOOSE: dict(policy="choose"),
+}
+KALMAN = "Kalman (exact)"
+#: The fixed methods the chooser is compared with (the traditional resamplers and the cures).
+FIXED = (*TRADITIONAL, *CURES)
+#: (scenario, N) cells of the evaluation.
+CELLS = (("ungm", 100), ("drift", 100), ("drift+100", 100), ("range-bearing", 100), ("video", 100),
+         ("switching", 100), ("range-bearing", 1000))
+SCENARIOS = tuple(dict.fromkeys(sc for sc, _ in CELLS))
+PILOT_SEED = 10_000
+
+
+@dataclass(frozen=True)
+class Task:
+    scenario: str
+    particles: int
+    seed: int
+    steps: int
+
+
+def scenario_model(name: str):
+    """(RunConfig options, model object) of a scenario of this evaluation."""
+    if name == "switching":
+        return dict(scenario="switching"), models.get("switching")
+    return evaluate_guard.scenario_model(name)
+
+
+def task_config(task: Task, options: dict, **variant) -> RunConfig:
+    return RunConfig(particles=task.particles, seed=task.seed, steps=task.steps, twin="choose-1", **options,
+                     **variant)
+
+
+def run_variant(task: Task, label: str, model, options: dict, truth: np.ndarray, observations: np.ndarray) -> dict:
+    """One variant on the task's data set (shared by every variant)."""
+    pf = build(task_config(task, options, **VARIANTS[label]), observations, model)
+    start = time.perf_counter()
+    steps = list(pf)
+    elapsed = time.perf_counter() - start
+    means = np.array([s.mean for s in steps])
+    figures = dict(error=evaluate_guard._errors(task.scenario, means, truth[: len(steps)]),
+                   ms=1e3 * elapsed / len(steps))
+    twin = pf.preprocessor
+    if label == CHOOSE and twin is not None:
+        arms = [d.arm for d in twin.decisions[:-1]]  # the arm in force at steps 2 .. T
+        figures["off_plain"] = float(np.mean([a != "plain" for a in arms])) if arms else 0.0
+    return figures
+
+
+_MODELS: dict[str, tuple[dict, object]] = {}
+
+
+def run_task(task: Task) -> tuple[Task, dict[str, dict]]:
+    if task.scenario not in _MODELS:
+        _MODELS[task.scenario] = scenario_model(task.scenario)
+    options, model = _MODELS[task.scenario]
+    truth, observations = simulate(task_config(task, options), model)
+    results = {label: run_variant(task, label, model, options, truth, observations) for label in VARIANTS}
+    if isinstance(model, models.DriftModel):  # the exact posterior mean
+        results[KALMAN] = dict(error=float(np.mean((model.kalman(observations) - truth) ** 2)))
+    return task, results
+
+
+def _warm_up(scenarios) -> None:
+    for scenario in scenarios:
+        run_task(Task(scenario, 20, 0, 3))
+
+
+def _num(value: float) -> str:
+    return f"{value:.4g}"
+
+
+def cell_rows(by_seed: dict[int, dict[str, dict]]) -> list[dict]:
+    """One row per variant of one (scenario, N) cell: error, difference vs systematic (paired) with CIs."""
+    seeds = sorted(by_seed)
+    labels = [label for label in [*VARIANTS, KALMAN] if label in by_seed[seeds[0]]]
+    error = {label: np.array([by_seed[s][label]["error"] for s in seeds]) for label in labels}
+    rows = []
+    for label in labels:
+        m, h = mean_ci(error[label])
+        d, dh = mean_ci(error[label] - error["systematic"])
+        c, ch = mean_ci(error[label] - error[CHOOSE])
+        ms = [by_seed[s][label].get("ms") for s in seeds]
+        rows.append(dict(variant=label, error=m, error_ci=h, vs_systematic=d, vs_systematic_ci=dh,
+                         significant=significance(d, dh) if label != "systematic" else 0,
+                         vs_choose=c, vs_choose_ci=ch, significant_vs_choose=significance(c, ch) if label != CHOOSE else 0,
+                         ms=float(np.mean(ms)) if ms[0] is not None else math.nan,
+                         off_plain=float(np.mean([by_seed[s][label].get("off_plain", math.nan) for s in seeds]))))
+    return rows
+
+
+def table(scenario: str, n: int, seeds: int, rows: list[dict]) -> str:
+    lines = [f"**{scenario}, N = {n}** ({seeds} seeds)", "",
+             "| variant | error | difference vs systematic | variant - choose | ms / step |", "|---|---|---|---|---|"]
+    marks = {-1: " (better)", 1: " (worse)", 0: ""}
+    for row in rows:
+        vs = "-" if row["variant"] == "systematic" else \
+            f"{_num(row['vs_systematic'])} ± {_num(row['vs_systematic_ci'])}{marks[row['significant']]}"
+        vc = "-" if row["variant"] == CHOOSE else \
+            f"{_num(row['vs_choose'])} ± {_num(row['vs_choose_ci'])}"
+        ms = "-" if math.isnan(row["ms"]) else f"{row['ms']:.2f}"
+        name = row["variant"]
+        if name == CHOOSE and not math.isnan(row["off_plain"]):
+            name += f" (not plain at {100 * row['off_plain']:.0f}% of steps)"
+        lines.append(f"| {name} | {_num(row['error'])} ± {_num(row['error_ci'])} | {vs} | {vc} | {ms} |")
+    return "\n".join(lines)
+
+
+def verdict(scenario: str, n: int, rows: list[dict]) -> tuple[str, dict[str, bool]]:
+    """The targets of the chooser in one cell, in words, and whether each is met."""
+    by = {row["variant"]: row for row in rows}
+    me = by[CHOOSE]
+    met: dict[str, bool] = {}
+    words = [f"{scenario}, N = {n}: choose {_num(me['vs_systematic'])} ± {_num(me['vs_systematic_ci'])} "
+             f"against systematic"]
+    met["not worse"] = me["significant"] <= 0
+    words.append("(significantly worse: target missed)." if not met["not worse"] else
+                 "(significantly better)." if me["significant"] < 0 else "(within the noise).")
+    better = [by[label] for label in FIXED if label in by and by[label]["significant"] < 0]
+    if better:
+        best = min(better, key=lambda row: row["vs_systematic"])
+        gap = -best["vs_systematic"]
+        closed = -me["vs_systematic"] / gap if gap > 0 else math.nan
+        met["80% of the gap"] = closed >= 0.8
+        words.append(f"Best fixed method significantly better than systematic: {best['variant']} "
+                     f"({_num(best['vs_systematic'])}); choose closes {100 * closed:.0f}% of that gap "
+                     f"({'target met' if met['80% of the gap'] else 'short of 80%'}).")
+    else:
+        words.append("No fixed method is significantly better than systematic.")
+    if scenario == "switching":
+        not_beaten = [label for label in FIXED if label in by and by[label]["significant_vs_choose"] <= 0]
+        met["beats every fixed method"] = not not_beaten
+        words.append("Significantly better than every fixed method." if not not_beaten else
+                     f"Not significantly better than: {', '.join(not_beaten)}.")
+    return " ".join(words), met
+
+
+CSV_FIELDS = ("scenario", "particles", "seed", "variant", "error", "ms", "off_plain")
+
+
+def read_csv(path: Path) -> dict[tuple[str, int], dict[int, dict]]:
+    cells: dict[tuple[str, int], dict[int, dict]] = {}
+    with open(path, newline="") as handle:
+        for row in csv.DictReader(handle):
+            figures = {f: float(row[f]) for f in ("error", "ms", "off_plain") if row.get(f) not in (None, "")}
+            cells.setdefault((row["scenario"], int(row["particles"])), {}).setdefault(int(row["seed"]), {})[
+                row["variant"]] = figures
+    return cells
+
+
+def report(cells: dict[tuple[str, int], dict[int, dict]]) -> tuple[str, bool]:
+    """The tables and verdicts of ``cells``, and whether every target is met."""
+    out, verdicts, all_met = [], [], True
+    for (scenario, n), by_seed in cells.items():
+        complete = {s: r for s, r in by_seed.items() if all(label in r for label in VARIANTS)}
+        if len(complete) < 2:
+            continue
+        rows = cell_rows(complete)
+        out.append(table(scenario, n, len(complete), rows) + "\n")
+        words, met = verdict(scenario, n, rows)
+        verdicts.append(words)
+        all_met &= all(met.values())
+    out.append("Verdicts:\n")
+    out.extend(f"- {line}" for line in verdicts)
+    out.append(f"\nEvery target met: {'yes' if all_met else 'no'}.")
+    return "\n".join(out), all_met
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m dtpf.scripts.paper.evaluate_chooser",
+                                     description=__doc__.split("\n\n")[0])
+    parser.add_argument("--seeds", type=int, default=1000, help="data sets per cell (default: %(default)s)")
+    parser.add_argument("--first-seed", type=int, default=0, help="first seed (default: %(default)s; a pilot: "
+                                                                   f"{PILOT_SEED})")
+    parser.add_argument("--cells", nargs="+", default=None, metavar="SCENARIO:N",
+                        help="cells to run (default: " + " ".join(f"{s}:{n}" for s, n in CELLS) + ")")
+    parser.add_argument("--steps", type=int, default=100, help="T (default: %(default)s; the video has 50 frames)")
+    parser.add_argument("--workers", type=int, default=2, help="worker processes (default: %(default)s)")
+    parser.add_argument("--csv", type=Path, default=None, help="write every run's figures to this CSV file")
+    parser.add_argument("--from-csv", type=Path, default=None, help="only rebuild the tables from this CSV file")
+    parser.add_argument("--quick", action="store_true", help="6 seeds, T = 25, N = 50 on every scenario: a smoke run")
+    args = parser.parse_args(argv)
+    if args.from_csv is not None:
+        text, met = report(read_csv(args.from_csv))
+        print(text)
+        return 0
+    cells = list(CELLS)
+    if args.cells:
+        cells = []
+        for item in args.cells:
+            scenario, _, n = item.partition(":")
+            if scenario not in SCENARIOS or not n.isdigit():
+                parser.error(f"--cells takes SCENARIO:N with SCENARIO one of {', '.join(SCENARIOS)}, got {item!r}")
+            cells.append((scenario, int(n)))
+    if args.quick:
+        args.seeds, args.steps = 6, 25
+        cells = [(sc, 50) for sc in SCENARIOS]
+    if args.seeds < 2:
+        parser.error("--seeds must be at least 2 (confidence intervals)")
+    frames = 50
+    # Seeds outermost: a run cut short holds every cell for the seeds done.
+    tasks = [Task(sc, n, seed, min(args.steps, frames) if sc == "video" else args.steps)
+             for seed in range(args.first_seed, args.first_seed + args.seeds) for sc, n in cells]
+    results: dict[tuple[str, int], dict[int, dict]] = {cell: {} for cell in cells}
+    progress = TaskProgress("evaluate_chooser", len(tasks))
+    start = time.perf_counter()
+    writer = handle = None
+    if args.csv is not None:
+        args.csv.parent.mkdir(parents=True, exist_ok=True)
+        handle = open(args.csv, "w", newline="")
+        writer = csv.writer(handle)
+        writer.writerow(CSV_FIELDS)
+
+    def keep(done: Task, figures: dict[str, dict]) -> None:
+        results[(done.scenario, done.particles)][done.seed] = figures
+        if writer is not None:
+            for label, f in figures.items():
+                writer.writerow([done.scenario, done.particles, done.seed, label,
+                                 *(f.get(name, "") for name in ("error", "ms", "off_plain"))])
+            handle.flush()
+
+    scenarios = sorted({sc for sc, _ in cells})
+    try:
+        if args.workers <= 1:
+            _warm_up(scenarios)
+            for i, task in enumerate(tasks, 1):
+                keep(*run_task(task))
+                progress(i)
+        else:
+            with get_context("fork").Pool(args.workers, initializer=_warm_up, initargs=(scenarios,)) as pool:
+                for i, done in enumerate(pool.imap(run_task, tasks, chunksize=2), 1):
+                    keep(*done)
+                    progress(i)
+    finally:
+        if handle is not None:
+            handle.close()
+    elapsed = time.perf_counter() - start
+    given = list(argv if argv is not None else sys.argv[1:])
+    command = " ".join(["python -m dtpf.scripts.paper.evaluate_chooser", *given])
+    print(f"`{command}`: T = {args.steps} (video: its {frames} frames), {args.seeds} seeds per cell (from seed "
+          f"{args.first_seed}), {len(VARIANTS)} variants, {args.workers} worker processes; error mean ± 95% CI "
+          f"over seeds; differences paired by seed ± their 95% CI, marked where the interval excludes 0.\n")
+    text, met = report(results)
+    print(text)
+    print(f"\n({elapsed:.0f} s on {args.workers} workers)")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,180 @@
+"""Evidence per arm from the real observations: which move's filter predicts them best?
+
+The choosing policy (``--policy choose``, :class:`dtpf.system.policy.ChoosePS`)
+puts one of several moves in force (the arms, :data:`dtpf.information.layer.ARMS`):
+plain resampling, DT preprocessing with the relative or the paper's rule,
+roughening, the regularised filter's kernel. :class:`ArmEvidence` scores them
+on the real observations, without truth and without ``sample_observation``:
+
+1. At the first step k0 it copies the entity's weighted set as the system
+   layer received it: one copy per arm, M = min(N, ``particles``) particles.
+2. Every step k, each copy makes its arm's move on its weighted set of k and
+   is resampled and propagated to k + 1: the DT arms preprocess (Eq. 28-30)
+   before resampling, the jitters move after it (with the entity's N in
+   their bandwidth). Common random numbers: the same uniform points resample
+   every copy; the two DT arms draw their partners, r and u from the same
+   generator state; the two jitters the same standard normals; every copy
+   is propagated with the same numbers.
+3. At k + 1 the real z_(k+1) weights each copy; its predictive
+   log-likelihood log mean_j p(z_(k+1) | x_j) scores the arm, and the
+   difference to the plain copy, clipped to +-50 nats, is arm a's d_a(k).
+
+Each copy is thus a filter of M particles running its arm at every step, a
+counterfactual of the entity's: a move whose benefit builds up over many
+steps (diversity kept through a collapse) shows in its copy's scores, which a
+one-step comparison from the entity's own set cannot see. The sum of the last
+W of an arm's differences is a windowed prequential log Bayes factor of that
+arm's filter against the plain one (Dawid 1984); two arms' sums compare them
+with each other (up to the clipping). A copy whose particles all lose the
+observation (log-likelihood -inf everywhere) is copied again from the
+entity's set of that step. Every random number comes from the generator
+passed (the system layer's stream of step k).
+"""
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+
+from dtpf.entity import jitter as jitters
+from dtpf.entity import resampling
+from dtpf.entity.models import StateSpaceModel
+from dtpf.information import rules
+from dtpf.information.layer import ARMS, Arm
+from dtpf.system.evidence import predictive_log_likelihood
+
+__all__ = ["ArmEvidence", "CLIP"]
+
+#: Largest |difference| of one step (nats): one wild observation cannot decide a window.
+CLIP = 50.0
+
+
+def _difference(arm: float, plain: float) -> float:
+    """arm - plain in nats, clipped to +-CLIP; -inf against -inf is 0."""
+    if not np.isfinite(arm) and not np.isfinite(plain):
+        return 0.0
+    if not np.isfinite(plain):
+        return CLIP
+    if not np.isfinite(arm):
+        return -CLIP
+    return float(np.clip(arm - plain, -CLIP, CLIP))
+
+
+class ArmEvidence:
+    """The running evidence of each arm against plain resampling for one twin (see the module docstring).
+
+    Parameters
+    ----------
+    model : StateSpaceModel
+    arms : sequence of str
+        The arms scored (names of :data:`dtpf.information.layer.ARMS`); "plain" is always one.
+    n : int
+        The entity's N (the jitters' bandwidth).
+    threshold_rule :
+        W of Eq. 28 for the DT arms (the run's).
+    particles : int
+        M, at most this many particles per arm.
+    window : int
+        W, the differences kept and summed per arm.
+    """
+
+    def __init__(self, model: StateSpaceModel, arms=tuple(ARMS), *, n: int, threshold_rule="neff",
+                 particles: int = 1000, window: int = 20):
+        if int(window) < 1:
+            raise ValueError(f"window must be at least 1, got {window!r}")
+        unknown = [a for a in arms if a not in ARMS]
+        if unknown:
+            raise ValueError(f"unknown arm {unknown[0]!r}; expected some of {', '.join(ARMS)}")
+        self.model = model
+        self.arms: tuple[Arm, ...] = tuple(ARMS[a] for a in dict.fromkeys(("plain", *arms)))
+        self.n = int(n)
+        self.threshold_rule = threshold_rule
+        self.particles = int(particles)
+        self.differences: deque[dict[str, float]] = deque(maxlen=int(window))
+        #: (k + 1, arm -> M particles of its copy propagated to k + 1)
+        self._copies: tuple[int, dict[str, np.ndarray]] | None = None
+        self._z = np.empty(0)
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return tuple(arm.name for arm in self.arms)
+
+    @property
+    def window(self) -> int:
+        return self.differences.maxlen
+
+    @property
+    def steps(self) -> int:
+        """How many differences each arm's sum holds (at most W)."""
+        return len(self.differences)
+
+    def totals(self) -> dict[str, float]:
+        """Each arm's summed differences against plain (nats; plain's is 0)."""
+        return {arm.name: float(sum(d[arm.name] for d in self.differences)) for arm in self.arms}
+
+    def observe(self, step: int, particles: np.ndarray, weights: np.ndarray, observation: np.ndarray,
+                 rng: np.random.Generator) -> dict[str, float] | None:
+        """Take the set of ``step`` as the system layer received it and its observation z_step.
+
+        Returns the new differences d_a(step - 1) (scored with z_step), or None when the copies had
+        not reached ``step`` (the first step, or after a gap). Call once per step, in order.
+        """
+        model, k = self.model, int(step)
+        z = np.asarray(observation, dtype=np.float64).reshape(-1)
+        self._z = z
+        scored = None
+        copies, self._copies = self._copies, None
+        weighted: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+        if copies is not None and copies[0] == k:
+            values = {}
+            for name, x in copies[1].items():
+                log_w = model.log_likelihood(x, z, k)
+                top = float(np.max(log_w))
+                values[name] = predictive_log_likelihood(model, x, z, k) if np.isfinite(top) else -np.inf
+                if np.isfinite(top):
+                    w = np.exp(log_w - top)
+                    weighted[name] = (x, w / w.sum())
+            scored = {name: _difference(value, values["plain"]) for name, value in values.items()}
+            self.differences.append(scored)
+        for name in self.names:  # a copy that lost the observation (or the first step): the entity's set
+            if name not in weighted:
+                weighted[name] = (particles, weights)
+        self._copies = (k + 1, self._advance(k, weighted, rng))
+        return scored
+
+    def _advance(self, k: int, weighted: dict[str, tuple[np.ndarray, np.ndarray]],
+                 rng: np.random.Generator) -> dict[str, np.ndarray]:
+        """Each arm's move on its weighted copy of step k, resampled to M and propagated to k + 1."""
+        model = self.model
+        m = min(self.particles, min(w.size for _, w in weighted.values()))
+        points = (rng.random() + np.arange(m)) / m          # the same points resample every copy
+        resampled: dict[str, np.ndarray] = {}
+        state = rng.bit_generator.state
+        for arm in self.arms:                                 # the DT arms: the same partners, r and u
+            x, w = weighted[arm.name]
+            if not arm.preprocess:
+                resampled[arm.name] = x[resampling.inverse_cdf(points, w)]
+                continue
+            rng.bit_generator.state = state
+            log_likelihood = None
+            if arm.weight_rule == "likelihood":
+                z = self._z
+                log_likelihood = (lambda y: model.log_likelihood(y, z, k))
+            moved = rules.preprocess(x, w, arm.ps, rng, threshold_rule=self.threshold_rule,
+                                     weight_rule=arm.weight_rule, log_likelihood=log_likelihood,
+                                     move_rule=arm.move_rule)
+            resampled[arm.name] = moved.particles[resampling.inverse_cdf(points, moved.weights)]
+        state = rng.bit_generator.state
+        for arm in self.arms:                                 # the jitters: the same standard normals
+            if arm.jitter == "none":
+                continue
+            rng.bit_generator.state = state
+            x, w = weighted[arm.name]
+            resampled[arm.name] = jitters.apply(arm.jitter, resampled[arm.name], x, w, rng, n=self.n)
+        state = rng.bit_generator.state
+        out: dict[str, np.ndarray] = {}
+        for arm in self.arms:                                 # the same numbers propagate every copy
+            rng.bit_generator.state = state
+            out[arm.name] = model.propagate(resampled[arm.name], k + 1, rng)
+        return out

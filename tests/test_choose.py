@@ -1,0 +1,286 @@
+"""The choosing policy: the twin runs every arm on its copies and puts the best in force."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from dtpf.entity import jitter, models
+from dtpf.entity.filter import ParticleFilter
+from dtpf.information.layer import ARMS, InformationLayer
+from dtpf.messages import names
+from dtpf.messages.config import RunConfig
+from dtpf.messages.models import PSCommand
+from dtpf.scripts.inprocess import InProcessTwin, build, simulate
+from dtpf.system.choose import ArmEvidence
+from dtpf.system.layer import SystemLayer
+from dtpf.system.policy import ChoosePS
+
+#: A drift run that puts three arms in force (plain, dt-paper from step 5, regularised later); found in process.
+CHOSEN = RunConfig(scenario="drift", policy="choose", particles=100, steps=30, seed=11, twin="t-choose")
+
+
+def test_the_arms_the_contract_names_are_the_arms_the_layers_implement():
+    assert names.ARMS == tuple(ARMS)
+    assert "choose" in names.POLICIES and "choose" in names.POLICIES_STARTING_OFF
+    assert "choose" not in names.SIMULATING_POLICIES  # no sample_observation: it runs on the video
+    assert ChoosePS().arms == names.ARMS
+
+
+def _twin(config: RunConfig, model, enter: float | None = None) -> InProcessTwin:
+    system = SystemLayer.from_config(config, model=model)
+    if enter is not None:
+        system.policy.enter = enter
+    information = InformationLayer(model, ps=system.policy.initial_ps, threshold_rule=config.threshold,
+                                   seed=config.seed, twin=config.twin, preprocess=False, arm="plain")
+    return InProcessTwin(information, system)
+
+
+@pytest.mark.parametrize("scenario", ["drift", "ungm"])
+def test_a_run_that_always_chooses_plain_equals_the_plain_filter_number_for_number(scenario):
+    config = RunConfig(scenario=scenario, policy="choose", particles=100, steps=40, seed=11, twin="t-choose")
+    model = models.get(scenario)
+    _, z = simulate(config, model)
+    plain = list(ParticleFilter(model, z, 100, seed=config.seed, twin=config.twin))
+    twin = _twin(config, model, enter=math.inf)  # the evidence is gathered, never enough to leave plain
+    chosen = list(ParticleFilter(model, z, 100, seed=config.seed, twin=config.twin, preprocessor=twin))
+    assert [d.arm for d in twin.decisions] == ["plain"] * 40
+    assert max(abs(d.predicted.get("evidence", 0.0)) for d in twin.decisions) == 0.0  # plain's own: 0
+    assert any(abs(v) > 0 for v in twin.system.forecasts[-1].arm_evidence.values())
+    for a, b in zip(plain, chosen):
+        assert np.array_equal(a.particles, b.particles) and np.array_equal(a.weights, b.weights)
+        assert np.array_equal(a.mean, b.mean) and np.array_equal(a.ancestors, b.ancestors)
+
+
+def test_the_chosen_arm_applies_from_the_next_step_where_its_move_lives():
+    model = models.get("drift")
+    _, z = simulate(CHOSEN, model)
+    pf = build(CHOSEN, z, model)
+    steps = list(pf)
+    decisions = pf.preprocessor.decisions
+    arms = [d.arm for d in decisions]
+    assert {"plain", "dt-paper", "regularised"} <= set(arms)
+    for k in range(2, CHOSEN.steps + 1):
+        arm = ARMS[arms[k - 2]]  # the decision of step k - 1
+        report = steps[k - 1].report
+        assert decisions[k - 2].applies_from_step == k
+        if arm.preprocess:
+            assert report.ps == arm.ps and report.n_processed > 0 or report.n_large == CHOSEN.particles
+        else:
+            assert report.n_processed == 0
+    # A jitter arm moves the resampled particles (the entity); a DT or plain arm leaves them as resampled.
+    k = arms.index("regularised") + 2
+    jittered = pf.preprocessor.information
+    assert jittered is not None and steps[k - 1].report.n_processed == 0
+    assert all(d.reason.startswith("choose: ") for d in decisions)
+
+
+def _evidence_after_one_step(arm: str, n: int = 4000, d: int = 2, seed: int = 5):
+    """The copies of ArmEvidence after its first step on a set from N(0, C), with a model whose
+    propagation adds nothing (process variance 0): each copy is its arm's move of the same resampled set."""
+    model = models.DriftModel(process_var=0.0, dim=d)
+    rng = np.random.default_rng(seed)
+    cov = np.array([[1.0, 0.6], [0.6, 2.0]])
+    particles = rng.standard_normal((n, d)) @ np.linalg.cholesky(cov).T
+    weights = np.full(n, 1.0 / n)
+    evidence = ArmEvidence(model, ("plain", arm), n=n, particles=n)
+    evidence.observe(1, particles, weights, np.zeros(d), np.random.default_rng(seed + 1))
+    copies = evidence._copies[1]
+    return particles, weights, copies["plain"], copies[arm]
+
+
+def test_the_roughening_arm_adds_the_documented_variance():
+    n, d = 4000, 2
+    particles, weights, plain, rough = _evidence_after_one_step("roughening", n, d)
+    added = rough - plain
+    sigma = jitter.ROUGHENING_K * np.ptp(plain, axis=0) * n ** (-1.0 / d)
+    var = added.var(axis=0)
+    se = sigma ** 2 * math.sqrt(2.0 / (n - 1))  # SE of a normal sample variance
+    assert np.all(np.abs(var - sigma ** 2) < 4 * se)
+    assert abs(np.corrcoef(added.T)[0, 1]) < 4 / math.sqrt(n)  # independent components
+
+
+def test_the_regularised_arm_adds_the_documented_covariance():
+    n, d = 4000, 2
+    particles, weights, plain, moved = _evidence_after_one_step("regularised", n, d)
+    added = moved - plain
+    mean = weights @ particles
+    centred = particles - mean
+    expected = jitter.bandwidth(n, d) ** 2 * (centred * weights[:, None]).T @ centred
+    got = np.cov(added.T)
+    for i in range(d):
+        for j in range(d):  # Var of a sample covariance: (s_ii s_jj + s_ij^2) / (n - 1)
+            se = math.sqrt((expected[i, i] * expected[j, j] + expected[i, j] ** 2) / (n - 1))
+            assert abs(got[i, j] - expected[i, j]) < 4 * se, (i, j)
+
+
+def test_the_jitter_arms_use_the_entity_n_in_their_bandwidth():
+    model = models.DriftModel(process_var=0.0, dim=1)
+    rng = np.random.default_rng(3)
+    particles, weights = rng.standard_normal((2000, 1)), np.full(2000, 1 / 2000)
+    evidence = ArmEvidence(model, ("roughening",), n=100_000, particles=500)
+    evidence.observe(1, particles, weights, np.zeros(1), np.random.default_rng(4))
+    copies = evidence._copies[1]
+    assert copies["plain"].shape == (500, 1)  # M copies of N
+    added = copies["roughening"] - copies["plain"]
+    sigma = jitter.ROUGHENING_K * float(np.ptp(copies["plain"])) * 100_000 ** -1.0
+    assert added.std() == pytest.approx(sigma, rel=4 * math.sqrt(1 / (2 * 499)))
+
+
+def test_the_dt_arm_moves_the_copy_by_the_rules_with_its_own_random_numbers():
+    """The DT arm's copy is the information layer's rules on the same weighted set, resampled by the same points."""
+    from dtpf.entity import resampling
+    from dtpf.information import rules
+
+    model = models.DriftModel(process_var=0.0, dim=1)
+    rng = np.random.default_rng(8)
+    particles = rng.standard_normal((400, 1))
+    weights = np.exp(-0.5 * (particles[:, 0] / 0.3) ** 2)
+    weights /= weights.sum()
+    evidence = ArmEvidence(model, ("dt-paper",), n=400, particles=400)
+    draws = np.random.default_rng(9)
+    evidence.observe(1, particles, weights, np.zeros(1), draws)
+    copies = evidence._copies[1]
+    replay = np.random.default_rng(9)
+    points = (replay.random() + np.arange(400)) / 400
+    plain = particles[resampling.inverse_cdf(points, weights)]
+    moved = rules.preprocess(particles, weights, 0.81, replay, move_rule="paper")
+    assert np.array_equal(copies["plain"], plain)
+    assert np.array_equal(copies["dt-paper"], moved.particles[resampling.inverse_cdf(points, moved.weights)])
+    assert not np.array_equal(copies["dt-paper"], plain)
+
+
+def test_the_policy_switches_only_on_strong_evidence_and_back_when_it_fades():
+    from dtpf.system.predict import Forecast
+
+    policy = ChoosePS()
+
+    def decide(step, **evidence):
+        forecast = Forecast(step, 100, 1.0, 0.0, 1.0, arm_evidence={"plain": 0.0, "dt-relative": 0.0, "dt-paper": 0.0,
+                                                                    "roughening": 0.0, "regularised": 0.0, **evidence},
+                            evidence_steps=20)
+        return policy.decide(step, forecast)
+
+    assert decide(1, regularised=math.log(99) - 0.01).arm == "plain"
+    chosen = decide(2, regularised=math.log(99) + 0.01)
+    assert (chosen.arm, chosen.applies_from_step, chosen.preprocess) == ("regularised", 3, False)
+    assert decide(3, regularised=2.0).arm == "regularised"        # hysteresis: above log 3 it stays
+    assert decide(4, regularised=2.0, roughening=6.0).arm == "regularised"  # 4 nats better: not enough
+    assert decide(5, regularised=2.0, roughening=7.0).arm == "roughening"
+    back = decide(6, roughening=1.0)
+    assert back.arm == "plain" and "faded" in back.reason
+    dt = decide(7, **{"dt-paper": 9.0})
+    assert (dt.arm, dt.ps, dt.preprocess) == ("dt-paper", 0.81, True)
+    assert dt.command_fields()["arm"] == "dt-paper" and dt.command_fields()["evidence"] == 9.0
+    with pytest.raises(ValueError):
+        ChoosePS(arms=("plain", "teleport"))
+    with pytest.raises(ValueError):
+        ChoosePS(enter=1.0, leave=2.0)
+
+
+def test_a_decision_message_must_name_a_known_arm_and_fit_it():
+    from types import SimpleNamespace
+
+    from dtpf.information.service import PSInbox
+
+    base = dict(twin_id="t", run_id="r", step=3, applies_from_step=4, policy="choose", reason="")
+    assert PSCommand(**base, ps=0.81, preprocess=True, arm="dt-paper").arm == "dt-paper"
+    with pytest.raises(ValueError):
+        PSCommand(**base, ps=0.0, arm="teleport")
+    inbox = PSInbox.__new__(PSInbox)
+    inbox.policy = "choose"
+    assert inbox.problem(PSCommand(**base, ps=0.81, preprocess=True, arm="dt-paper")) is None
+    assert "the arm's" in inbox.problem(PSCommand(**base, ps=0.3, preprocess=True, arm="dt-paper"))
+    assert "names an arm" in inbox.problem(PSCommand(**base, ps=0.0))
+    inbox.policy = "fixed"
+    assert "from a run whose policy is fixed" in inbox.problem(PSCommand(**base, ps=0.0, preprocess=False, arm="plain"))
+    del SimpleNamespace
+
+
+def test_the_switching_scenario_drops_its_sensor_noise_and_its_kalman_filter_is_exact():
+    model = models.get("switching")
+    truth, z = model.simulate(100, np.random.default_rng(0))
+    residual = z - truth
+    assert 0.7 < residual[:50].std() < 1.3 and residual[50:].std() < 0.02
+    means = model.kalman(z)
+    assert np.mean((means[60:] - truth[60:]) ** 2) < 1e-3
+    assert RunConfig(scenario="switching", policy="choose").scenario == "switching"
+
+
+def test_the_quick_evaluation_prints_every_variant_and_a_verdict_per_cell(capsys):
+    """``python -m dtpf.scripts.paper.evaluate_chooser --quick`` on two cells, in one process."""
+    from dtpf.scripts.paper import evaluate_chooser
+
+    assert evaluate_chooser.main(["--quick", "--workers", "1"]) == 0
+    out = capsys.readouterr().out
+    for scenario in evaluate_chooser.SCENARIOS:
+        block = out.split(f"**{scenario}, N = 50**")[1].split("**")[0]
+        rows = {line.split("|")[1].strip().split(" (")[0]: line for line in block.splitlines() if line.startswith("| ")}
+        assert set(evaluate_chooser.VARIANTS) <= set(rows), scenario
+        assert f"- {scenario}, N = 50: choose " in out
+    assert "Every target met: " in out
+
+
+# --- over Zenoh, in the log, through dtpf verify ----------------------------------
+
+
+@pytest.fixture(scope="module")
+def chosen_log(tmp_path_factory):
+    from dtpf.scripts.launch import launch
+    path = tmp_path_factory.mktemp("choose") / "choose.mcap"
+    result = launch(CHOSEN, log_path=path, timeout=5.0)
+    assert result.exit_codes["entity"] == 0
+    return result, path
+
+
+def test_the_decision_travels_over_zenoh_is_recorded_equals_the_inprocess_run_and_verifies(chosen_log):
+    from dtpf.messages.codec import decode_for_key
+    from dtpf.messages.models import Estimate, ParticleSet
+    from dtpf.recording.logfile import read_log
+    from dtpf.scripts.inprocess import run
+    from dtpf.scripts.logs.verify import verify
+
+    _, path = chosen_log
+    log = read_log(path)
+    messages = [(m.topic, decode_for_key(m.topic, m.data)) for m in log.messages]
+    commands = {m.step: m for _, m in messages if isinstance(m, PSCommand)}
+    preprocessed = {m.step: m for topic, m in messages
+                    if isinstance(m, ParticleSet) and topic.endswith("information/preprocessed")}
+    estimates = {m.step: m for _, m in messages if isinstance(m, Estimate)}
+    reference = run(CHOSEN)
+    assert sorted(commands) == list(range(1, CHOSEN.steps + 1))
+    assert [commands[k].arm for k in sorted(commands)] == [d.arm for d in build_decisions()]
+    for k in range(2, CHOSEN.steps + 1):
+        arm = ARMS[commands[k - 1].arm]
+        assert preprocessed[k].jitter == arm.jitter
+    for k, step in enumerate(reference.steps, 1):
+        assert estimates[k].mean == [float(v) for v in step.mean]
+    result = verify(log)
+    assert result.ok and len(result.checked) == CHOSEN.steps
+
+
+def build_decisions():
+    model = models.get("drift")
+    _, z = simulate(CHOSEN, model)
+    pf = build(CHOSEN, z, model)
+    list(pf)
+    return pf.preprocessor.decisions
+
+
+def test_verify_notices_a_flipped_arm(chosen_log, tmp_path):
+    from dtpf.recording.logfile import read_log
+    from dtpf.scripts.logs.verify import verify
+
+    from conftest import altered_log
+
+    _, path = chosen_log
+    arms = [d.arm for d in build_decisions()]
+    step = arms.index("regularised") + 1
+    flipped = altered_log(path, tmp_path / "flipped.mcap", "system/ps", step, lambda m: {"arm": "plain"})
+    mismatch = verify(read_log(flipped)).mismatch
+    assert (mismatch.step, mismatch.field) == (step, "arm")
+    moved = altered_log(path, tmp_path / "moved.mcap", "information/preprocessed", step + 1,
+                        lambda m: {"jitter": "roughening"})
+    mismatch = verify(read_log(moved)).mismatch
+    assert (mismatch.step, mismatch.field) == (step + 1, "jitter")

@@ -228,6 +228,37 @@ def report(cells: dict[tuple[str, int], dict[int, dict]]) -> tuple[str, bool]:
     return "\n".join(out), all_met
 
 
+def cost(sizes=(1000, 100_000), scenarios=("drift", "ungm"), steps: int = 30) -> list[str]:
+    """The system layer's time per step with ``choose`` against the entity filter's own, median over
+    steps 6 .. ``steps``, one process: lines of text."""
+    from dtpf.information.mirror import summarise
+    from dtpf.entity.filter import ParticleFilter
+    from dtpf.system.layer import SystemLayer
+    from dtpf.system.predict import Snapshot
+
+    lines = []
+    for scenario in scenarios:
+        model = models.get(scenario)
+        for n in sizes:
+            config = RunConfig(scenario=scenario, policy="choose", particles=n, steps=steps, seed=1)
+            _, z = model.simulate(steps, np.random.default_rng(1))
+            pf = ParticleFilter(model, z, n, seed=1)
+            layer = SystemLayer.from_config(config, model=model)
+            system, entity = [], []
+            for k in range(steps):
+                t0 = time.perf_counter()
+                s = next(pf)
+                entity.append(time.perf_counter() - t0)
+                summary = summarise(s.particles, s.weights, "neff", n)
+                t0 = time.perf_counter()
+                layer.observe(s.step, summary, Snapshot.of(s.particles, s.weights, z[k]))
+                system.append(time.perf_counter() - t0)
+            lines.append(f"{scenario}, N = {n}: system layer {1e3 * np.median(system[5:]):.2f} ms / step "
+                         f"(M = {min(n, 1000)} particles per arm), entity filter {1e3 * np.median(entity[5:]):.2f} "
+                         f"ms / step")
+    return lines
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="python -m dtpf.scripts.paper.evaluate_chooser",
                                      description=__doc__.split("\n\n")[0])
@@ -241,7 +272,12 @@ def main(argv=None) -> int:
     parser.add_argument("--csv", type=Path, default=None, help="write every run's figures to this CSV file")
     parser.add_argument("--from-csv", type=Path, default=None, help="only rebuild the tables from this CSV file")
     parser.add_argument("--quick", action="store_true", help="6 seeds, T = 25, N = 50 on every scenario: a smoke run")
+    parser.add_argument("--cost", action="store_true",
+                        help="only time the system layer per step at N = 1e3 and 1e5 against the entity's filter")
     args = parser.parse_args(argv)
+    if args.cost:
+        print("\n".join(cost()))
+        return 0
     if args.from_csv is not None:
         text, met = report(read_csv(args.from_csv))
         print(text)

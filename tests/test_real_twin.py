@@ -191,6 +191,16 @@ def _entity_statuses(router):
     return [m for m in router.messages if isinstance(m, Status) and m.layer.value == "entity"]
 
 
+def _entity_done(steps: int):
+    """Until the entity's final status and the estimates of steps 1..``steps`` have come (a fixed wait for
+    them was too short on a loaded machine)."""
+    def done(messages) -> bool:
+        return (any(isinstance(m, Status) and m.layer.value == "entity" and m.state == ServiceState.FINISHED
+                    for m in messages)
+                and {m.step for m in messages if isinstance(m, Estimate)} >= set(range(1, steps + 1)))
+    return done
+
+
 def test_a_live_twin_follows_its_sensor_waits_when_it_dies_and_continues_when_it_is_back(processes, router,
                                                                                          tmp_path):
     run = ["--particles", "300", "--twin", "t-live", "--seed", "5"]
@@ -221,7 +231,7 @@ def test_a_live_twin_follows_its_sensor_waits_when_it_dies_and_continues_when_it
     assert entity.returncode == 0, processes.output(entity)
     assert restarted.wait(timeout=30) == 0, processes.output(restarted)
     assert "continuing after observation" in processes.output(restarted)
-    router.collect(lambda m: False, timeout=1.0)
+    router.collect(_entity_done(60), timeout=30)
     steps = [e.step for e in estimates()]
     assert steps == list(range(1, 61)), steps  # every observation became exactly one step
     # The restarted sensor went on along the same simulated path: the numbers are dtpf run's.
@@ -279,7 +289,7 @@ def test_hostile_live_observations_are_counted_and_the_run_goes_on(processes, ro
     publisher.put(observation(steps + 1, [], end=True))
     entity.wait(timeout=120)
     assert entity.returncode == 0, processes.output(entity)
-    router.collect(lambda m: False, timeout=1.5)
+    router.collect(_entity_done(steps), timeout=30)
     estimates = sorted((m for m in router.messages if isinstance(m, Estimate)), key=lambda e: e.step)
     assert [e.step for e in estimates] == list(range(1, steps + 1))
     reference = inprocess.run(config)
@@ -309,7 +319,7 @@ def test_a_recorded_sensor_stream_re_drives_a_twin_with_dtpf_play(processes, rou
             process.send_signal(signal.SIGINT)
     for process in processes.started:
         process.wait(timeout=20)
-    router.collect(lambda m: False, timeout=0.5)
+    router.collect(_entity_done(25), timeout=30)
     first = sorted((m for m in router.messages if isinstance(m, Estimate)), key=lambda e: e.step)
     assert [e.step for e in first] == list(range(1, 26)) and all(e.truth is None for e in first)
     router.messages.clear()
@@ -324,7 +334,7 @@ def test_a_recorded_sensor_stream_re_drives_a_twin_with_dtpf_play(processes, rou
     assert played.returncode == 0, played.stderr
     assert "published 26 messages" in played.stderr  # 25 observations and the end
     assert entity.wait(timeout=120) == 0, processes.output(entity)
-    router.collect(lambda m: False, timeout=0.5)
+    router.collect(_entity_done(25), timeout=30)
     again = sorted((m for m in router.messages if isinstance(m, Estimate)), key=lambda e: e.step)
     np.testing.assert_array_equal([e.mean for e in again], [e.mean for e in first])
     np.testing.assert_array_equal([e.log_predictive for e in again], [e.log_predictive for e in first])

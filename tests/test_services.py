@@ -15,7 +15,7 @@ import pytest
 from mcap.reader import make_reader
 
 from dtpf.messages.config import RunConfig
-from dtpf.messages.models import Estimate, ParticleSet, Status
+from dtpf.messages.models import Estimate, ParticleSet, ServiceState, Status
 from dtpf.scripts import inprocess
 from dtpf.scripts.launch import LaunchError, launch
 
@@ -102,7 +102,7 @@ def test_entity_survives_the_information_layer_being_killed_and_restarted(proces
     processes.start("information", service_args("dtpf.information.service", router.endpoint, *run))
     entity.wait(timeout=120)
     assert entity.returncode == 0, processes.output(entity)
-    router.collect(lambda m: False, timeout=1.0)
+    router.collect(lambda m: {e.step for e in m if isinstance(e, Estimate)} >= set(range(1, 151)), timeout=30)
     estimates = sorted((m for m in router.messages if isinstance(m, Estimate)), key=lambda e: e.step)
     assert [e.step for e in estimates] == list(range(1, 151))
     degraded = [e.step for e in estimates if e.degraded]
@@ -155,7 +155,9 @@ def test_every_service_survives_garbage_and_counts_it(processes, router):
         process.send_signal(signal.SIGINT)
         process.wait(timeout=20)
         assert process.returncode == 0, processes.output(process)
-    router.collect(lambda m: False, timeout=1.0)
+    # Every layer's final status (a fixed wait for them was too short on a loaded machine).
+    router.collect(lambda m: {s.layer.value for s in m if isinstance(s, Status) and s.state == ServiceState.FINISHED}
+                   >= {"entity", "information", "system"}, timeout=30)
     final = {}
     for m in router.messages:
         if isinstance(m, Status):

@@ -176,10 +176,14 @@ def test_a_short_filter_run_tracks_the_figure():
 def test_likelihood_of_1000_particles_is_fast():
     particles = MODEL.initial_particles(1000, np.random.default_rng(1))
     MODEL.log_likelihood(particles, [7.0], 7)
-    start = time.perf_counter()
+    # The quickest of ten calls, in this process's CPU time: another job on the machine does not count
+    # (the mean wall time of ten calls was 22 ms beside another suite, a few ms alone).
+    calls = []
     for _ in range(10):
+        start = time.process_time()
         MODEL.log_likelihood(particles, [7.0], 7)
-    assert (time.perf_counter() - start) / 10 < 0.02  # a few ms here; generous for a loaded CI machine
+        calls.append(time.process_time() - start)
+    assert min(calls) < 0.02  # a few ms here
 
 
 # --- the frame message -------------------------------------------------------------------------------

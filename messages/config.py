@@ -22,17 +22,43 @@ __all__ = ["RunConfig", "RunInputError", "ID_PATTERN", "add_run_arguments", "con
 
 
 class RunInputError(DtpfError, ValueError):
-    """What the user gave a run cannot be used: a model, an observation file. A service exits 2 with
-    the one-line message, no traceback (dtpf.entity.model_ref.ModelError, dtpf.entity.observations.ObservationError)."""
+    """What the user gave a run cannot be used: an option, a model, an observation file. A service exits 2
+    with the one-line message, no traceback (dtpf.entity.model_ref.ModelError,
+    dtpf.entity.observations.ObservationError). ``validation``: pydantic's error behind a bad option."""
+
+    def __init__(self, message: str, *, validation: ValidationError | None = None):
+        super().__init__(message)
+        self.validation = validation
 
 #: Run and twin ids: safe inside a Zenoh key expression and a file name.
 ID_PATTERN = r"^[A-Za-z0-9_.-]+$"
 
 
+def _problems(error: ValidationError, flags: bool = False) -> str:
+    """A validation error in one line: each field (as its command-line flag when ``flags``) and what is wrong."""
+    def where(loc) -> str:
+        if not loc:
+            return ""
+        name = "-".join(str(part) for part in loc) if flags else ".".join(str(part) for part in loc)
+        return (f"--{name.replace('_', '-')}" if flags else name) + ": "
+
+    return "; ".join(where(e["loc"]) + e["msg"] for e in error.errors())
+
+
 class RunConfig(BaseModel):
-    """One digital-twin run: scenario, filter, preprocessing and PS policy."""
+    """One digital-twin run: scenario, filter, preprocessing and PS policy.
+
+    A field that does not fit raises :class:`RunInputError` (a :class:`~dtpf.messages.errors.DtpfError`)
+    naming every bad field in one line.
+    """
 
     model_config = ConfigDict(extra="forbid", frozen=True)
+
+    def __init__(self, **values):
+        try:
+            super().__init__(**values)
+        except ValidationError as error:
+            raise RunInputError(_problems(error), validation=error) from None
 
     scenario: str = Field("ungm", description="State-space model by name: 'ungm' (Eq. 35 with 25, the "
                                                 "standard benchmark), 'ungm-printed' (Eq. 35 as printed, "
@@ -316,7 +342,7 @@ def config_from_args(args: argparse.Namespace) -> RunConfig:
         values["steps"] = None  # an observation file's rows, or a live stream's end
     try:
         return RunConfig(**values)
-    except ValidationError as error:
-        problems = "; ".join((f"--{'-'.join(str(p) for p in e['loc'])}: " if e["loc"] else "") + e["msg"]
-                             for e in error.errors())
-        raise ValueError(problems.replace("_", "-")) from None
+    except RunInputError as error:
+        if error.validation is None:
+            raise
+        raise RunInputError(_problems(error.validation, flags=True)) from None

@@ -144,3 +144,10 @@ def test_a_user_folder_with_messages_entity_and_scripts_gives_the_same_numbers(t
     assert runs["hostile", "launch"] == runs["plain", "launch"] and len(runs["plain", "launch"]) >= 4
     assert not (hostile / "scripts-ran").exists()
     assert (hostile / "run.mcap").stat().st_size > 0
+
+
+def test_a_bad_run_configuration_is_a_dtpf_error_naming_every_bad_field():
+    import dtpf
+
+    with pytest.raises(dtpf.DtpfError, match=r"^particles: .*; ps: .*less than or equal to 1$"):
+        dtpf.RunConfig(particles=0, ps=2.0)

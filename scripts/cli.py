@@ -140,6 +140,12 @@ def cmd_launch(args: argparse.Namespace) -> int:
     # SIGINT stops the launch even when it was started in the background of a script (a non-interactive
     # shell starts such a job with SIGINT ignored, and Python then installs no handler of its own).
     signal.signal(signal.SIGINT, signal.default_int_handler)
+    if config.ros2_topic is not None:
+        from dtpf.scripts.ros2 import Ros2Error, require_rclpy
+        if args.twins is not None:
+            raise Ros2Error("--observations ros2:TOPIC feeds one twin; for a fleet, start 'dtpf ros2 --twin NAME "
+                            "--topic TOPIC' per twin with --observations live")
+        require_rclpy()
     source = f", observations from {config.observations}" if config.observations else ""
     how = "embedded Zenoh on 127.0.0.1"
     # The router's port is chosen here, so that a live run can print the sensor's --connect.
@@ -166,6 +172,9 @@ def cmd_launch(args: argparse.Namespace) -> int:
                                endpoint, args.secure)
         print(f"dtpf: each twin filters what arrives on dtpf/{config.twin}-<i>/sensor/observation (start a "
               f"sensor per twin, e.g. {first}); Ctrl-C ends the run", file=sys.stderr)
+    elif config.ros2_topic is not None:
+        print(f"dtpf: the entity filters each message of the ROS 2 topic {config.ros2_topic} (a bridge process, "
+              f"dtpf ros2); its estimate goes out under /dtpf/<twin>/; Ctrl-C ends the run", file=sys.stderr)
     elif config.live:
         print(f"dtpf: the entity filters what arrives on {config.observation_key()}; start a sensor, e.g. in "
               f"another terminal: {sensor_command(config, endpoint, args.secure)}", file=sys.stderr)
@@ -179,11 +188,24 @@ def cmd_launch(args: argparse.Namespace) -> int:
                         observation_timeout=args.observation_timeout,
                         restarts=0 if args.no_restart else args.restarts, keep_estimates=False,
                         notify=lambda text: print(f"\ndtpf launch: {text}", file=sys.stderr, flush=True),
-                        cloud_points=args.cloud_points, foxglove=args.foxglove, secure=args.secure)
+                        cloud_points=args.cloud_points, foxglove=args.foxglove, secure=args.secure,
+                        ros2=_ros2_options(args))
     except LaunchError as error:
         print(f"dtpf launch: error: {error}", file=sys.stderr)
         return 1
     return _finish(result.summary(), result.failure or _log_failure(result.log_problem), result.interrupted)
+
+
+def _ros2_options(args: argparse.Namespace) -> list[str]:
+    """The ROS 2 bridge's options given to dtpf launch, as its command-line words."""
+    words = []
+    for flag in ("ros2_type", "ros2_pose", "ros2_namespace", "ros2_frame", "ros2_depth"):
+        value = getattr(args, flag, None)
+        if value is not None:
+            words += ["--" + flag.replace("_", "-"), str(value)]
+    if getattr(args, "ros2_best_effort", False):
+        words.append("--ros2-best-effort")
+    return words
 
 
 def _note_partial_truth(config, model) -> None:
@@ -322,6 +344,8 @@ def build_parser() -> argparse.ArgumentParser:
     group.add_argument("--no-restart", action="store_true",
                        help="never start a dead service again (the run still goes on without it)")
     group.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
+    from dtpf.scripts.ros2.bridge import bridge_arguments
+    bridge_arguments(launch, defaults=False)
     launch.set_defaults(handler=cmd_launch)
 
     from dtpf.scripts import foxglove_bridge, foxglove_layout, router, secure, sensor

@@ -355,12 +355,30 @@ def service_command(layer: str, config: RunConfig, endpoint: str, *, timeout: fl
     return command
 
 
+def bridge_command(config: RunConfig, endpoint: str, options: list[str], *, log_level: str = "WARNING",
+                   secure: Path | None = None) -> list[str]:
+    """The command line of the ROS 2 bridge (:mod:`dtpf.scripts.ros2.bridge`) of a ``ros2:TOPIC`` run: its
+    topic, field paths, model, twin and run id, and ``options`` (--ros2-type, --ros2-pose, ...)."""
+    command = [sys.executable, "-P", "-m", "dtpf.scripts.ros2", "--observations", config.observations,
+               "--scenario", config.scenario, "--seed", str(config.seed), "--twin", config.twin,
+               "--run-id", config.run_id, "--connect", endpoint, "--exit-with-parent",
+               "--log-level", "INFO" if log_level == "WARNING" else log_level, *options]
+    if config.model is not None:
+        command += ["--model", config.model]
+    if config.ros2_fields is not None:
+        command += ["--ros2-fields", config.ros2_fields]
+    if secure is not None:
+        command += ["--secure", str(secure)]
+    return command
+
+
 def launch(config: RunConfig, *, log_path: Path | None = None, port: int | None = None,
            timeout: float = 2.0, startup_timeout: float = 20.0, log_level: str = "WARNING",
            rate: float | None = None, progress=None, child_output=None,
            observation_timeout: float | None = None, restarts: int = DEFAULT_RESTARTS,
            keep_estimates: bool = True, notify=None, cloud_points: int | None = None,
-           foxglove: tuple[str, int] | None = None, secure=None, record: bool = True) -> LaunchResult:
+           foxglove: tuple[str, int] | None = None, secure=None, record: bool = True,
+           ros2: list[str] | None = None) -> LaunchResult:
     """Run ``config`` as four processes around an embedded Zenoh router.
 
     ``rate`` caps the entity's steps per second (None: as fast as it can).
@@ -381,6 +399,8 @@ def launch(config: RunConfig, *, log_path: Path | None = None, port: int | None 
     listens on its protocol (``tls/`` or ``tcp/`` with passwords) and enforces
     its access control, and each service connects as the role of its layer.
     ``record``: False runs no recorder (the split alone, for benchmarks); nothing is logged.
+    ``ros2``: options of the ROS 2 bridge (``dtpf ros2``), started beside the layers when the observations
+    are ``ros2:TOPIC`` (:func:`bridge_command`); it needs rclpy in this Python.
     Raises LaunchError when the router cannot listen, a service fails to start
     or refuses its configuration; the entity's failure ends the run with
     :attr:`LaunchResult.failure` set.
@@ -437,7 +457,7 @@ def launch(config: RunConfig, *, log_path: Path | None = None, port: int | None 
         result.restarts.append(event)
         notify(event.describe())
 
-    presence = watch = bridge_to_foxglove = None
+    presence = watch = bridge_to_foxglove = ros2_bridge = None
     try:
         if foxglove is not None:
             from dtpf.scripts.foxglove_bridge import FoxgloveBridge
@@ -456,6 +476,11 @@ def launch(config: RunConfig, *, log_path: Path | None = None, port: int | None 
             _wait_for_recorder(children["recorder"], presence, startup_timeout)
         for layer in LAYERS[1:]:
             start_child(layer, log_path)
+        if config.ros2_topic is not None:
+            ros2_bridge = subprocess.Popen(
+                bridge_command(config, endpoint, ros2 or [], log_level=log_level,
+                               secure=secure.path if secure is not None else None),
+                stderr=child_output, start_new_session=True)
         per_step = timeout + (1.0 / rate if rate else 0.0)
         # A live run waits for its sensor as long as it takes; a file or simulation has T steps.
         deadline = float("inf") if config.live else (
@@ -480,6 +505,8 @@ def launch(config: RunConfig, *, log_path: Path | None = None, port: int | None 
                 bridges.pop().close()  # the new recorder listens: it said so
             if children["entity"].poll() is not None:
                 break
+            if ros2_bridge is not None and ros2_bridge.poll() is not None:
+                raise LaunchError(f"the ROS 2 bridge ended: {_describe_code(ros2_bridge.returncode)} (see above)")
             for layer in LAYERS[:-1]:
                 if layer in children and layer not in gone and children[layer].poll() is not None:
                     revive(layer)
@@ -489,6 +516,9 @@ def launch(config: RunConfig, *, log_path: Path | None = None, port: int | None 
                 release_memory()
                 next_trim = time.monotonic() + 10.0
         entity_code = children["entity"].returncode
+        if ros2_bridge is not None:  # what the entity published last is out on ROS 2 before the bridge stops
+            _stop({"ros2": ros2_bridge}, ("ros2",), result)
+            result.exit_codes.pop("ros2", None)
         if entity_code != 0:
             result.failure = f"the entity service ended the run: {_describe_code(entity_code)}"
         # Final statuses of the other services arrive when they stop.
@@ -514,6 +544,9 @@ def launch(config: RunConfig, *, log_path: Path | None = None, port: int | None 
             except LogWriteError as error:
                 result.log_problem = f"{error}; {what_it_holds(error.path)}"
         _stop(children, tuple(reversed(LAYERS)), result)
+        if ros2_bridge is not None:
+            _stop({"ros2": ros2_bridge}, ("ros2",), result)
+            result.exit_codes.pop("ros2", None)
         if bridge_to_foxglove is not None:
             bridge_to_foxglove.close()
         result.elapsed = time.monotonic() - start

@@ -29,7 +29,6 @@ import math
 import os
 import queue
 import sys
-import threading
 import time
 from collections import OrderedDict
 
@@ -112,9 +111,12 @@ def qos(args):
 
 
 class Outbound:
-    """The twin's estimates and clouds (Zenoh) to ROS 2 publishers: a pose when its step's cloud is in
-    (or CLOUD_WAIT after the estimate; at once while the entity publishes no clouds); the particles on a
-    thread of their own, in order."""
+    """The twin's estimates and clouds (Zenoh) to ROS 2 publishers.
+
+    Zenoh's callbacks only queue what arrives and wake the executor (a guard condition); every rclpy call
+    is made on the executor's thread. A step's pose goes out when its estimate and its cloud are both in
+    (in either order), CLOUD_WAIT after the estimate without the cloud, or at once while the entity
+    publishes no clouds; its particles right after it."""
 
     def __init__(self, node, session, config: RunConfig, dim: int, args, stamps):
         self.mapping = parse_pose(args.ros2_pose, dim)
@@ -126,43 +128,56 @@ class Outbound:
         self.pub = {name: node.create_publisher(message_class(msgtype), f"{ns}/{name}", profile)
                     for name, msgtype in TOPICS.items() if name != "observation"}
         self.build = Builder(message_class)
-        self.lock = threading.Lock()
         self.pending: dict[int, tuple[Estimate, float]] = {}
-        self.clouds_seen = False
+        self.clouds: OrderedDict = OrderedDict()  # a step's cloud that came before its estimate
+        #: True once an estimate waited CLOUD_WAIT for its cloud in vain (an entity with --cloud-points 0).
+        self.no_clouds = False
         self.published = 0
-        self.particles_out: queue.SimpleQueue = queue.SimpleQueue()
-        self.thread = threading.Thread(target=self._particles, name="ros2-particles", daemon=True)
-        self.thread.start()
+        self.samples = 0
+        self.arrived: queue.SimpleQueue = queue.SimpleQueue()
+        self.guard = node.create_guard_condition(self.handle)
         self.subscribers = [session.declare_subscriber(keys.key(config.twin, "entity", topic), self._on_sample)
                             for topic in ("estimate", "cloud")]
 
-    def _on_sample(self, sample) -> None:
-        try:
-            message = decode_for_key(str(sample.key_expr), sample.payload.to_bytes())
-        except MessageError as error:
-            log.debug("not a message of the twin: %s", error)
-            return
-        with self.lock:
+    def _on_sample(self, sample) -> None:  # a Zenoh thread: no rclpy here
+        self.arrived.put((str(sample.key_expr), sample.payload.to_bytes()))
+        self.samples += 1
+        self.guard.trigger()
+
+    def handle(self) -> None:
+        """Everything that arrived (the executor's thread)."""
+        while True:
+            try:
+                key, payload = self.arrived.get_nowait()
+            except queue.Empty:
+                break
+            try:
+                message = decode_for_key(key, payload)
+            except MessageError as error:
+                log.debug("not a message of the twin: %s", error)
+                continue
             if isinstance(message, Estimate):
-                if self.clouds_seen:
-                    self.pending[message.step] = (message, time.monotonic())
+                cloud = self.clouds.pop(message.step, None)
+                if cloud is not None or self.no_clouds:
+                    self._publish(message, cloud)
                 else:
-                    self._publish(message, None)
+                    self.pending[message.step] = (message, time.monotonic())
             elif isinstance(message, PointCloud):
-                self.clouds_seen = True
+                self.no_clouds = False
                 waiting = self.pending.pop(message.step, None)
                 if waiting is not None:
                     self._publish(waiting[0], cloud_points_of(message))
-            self._expire()
-
-    def _expire(self) -> None:
-        now = time.monotonic()
-        for step in [s for s, (_, at) in self.pending.items() if now - at > CLOUD_WAIT]:
-            self._publish(self.pending.pop(step)[0], None)
+                else:
+                    self.clouds[message.step] = cloud_points_of(message)
+                    while len(self.clouds) > 100:
+                        self.clouds.popitem(last=False)
+        self.tick()
 
     def tick(self) -> None:
-        with self.lock:
-            self._expire()
+        now = time.monotonic()
+        for step in [s for s, (_, at) in self.pending.items() if now - at > CLOUD_WAIT]:
+            self.no_clouds = True
+            self._publish(self.pending.pop(step)[0], None)
 
     def _publish(self, estimate: Estimate, points) -> None:
         poses = pose_set(estimate, points, self.mapping)
@@ -174,26 +189,35 @@ class Outbound:
         if estimate.ps is not None:
             self.pub["ps"].publish(self.build.float64(estimate.ps))
         self.pub["degraded"].publish(self.build.bool(estimate.degraded))
-        self.published += 1
         if poses.particles is not None:
-            self.particles_out.put((header, poses))
+            self.pub["particles"].publish(self.build.particles(header, poses))
+        self.published += 1
+        log.debug("published step %d (%s)", estimate.step, "with its cloud" if points is not None else "no cloud")
 
-    def _particles(self) -> None:
+    def close(self, executor, progress, quiet: float = 0.3, acked: float = 10.0) -> None:
+        """Take what the twin still sends until ``quiet`` seconds pass without a sample, publish what waits,
+        then wait (at most ``acked`` s) until reliable subscribers have acknowledged everything;
+        ``progress()`` is called while this moves (the shell's exit watchdog)."""
+        from rclpy.duration import Duration
+
         while True:
-            item = self.particles_out.get()
-            if item is None:
-                return
-            self.pub["particles"].publish(self.build.particles(*item))
-
-    def close(self) -> None:
+            seen = self.samples
+            until = time.monotonic() + quiet
+            while time.monotonic() < until:
+                executor.spin_once(timeout_sec=max(0.0, until - time.monotonic()))
+            if self.samples == seen:
+                break
+            progress()
         for subscriber in self.subscribers:
             subscriber.undeclare()
-        with self.lock:
-            for step in sorted(self.pending):
-                self._publish(self.pending[step][0], None)
-            self.pending.clear()
-        self.particles_out.put(None)
-        self.thread.join(timeout=10)
+        self.handle()
+        for step in sorted(self.pending):
+            self._publish(self.pending[step][0], None)
+        self.pending.clear()
+        deadline = time.monotonic() + acked
+        for publisher in self.pub.values():
+            while not publisher.wait_for_all_acked(Duration(seconds=0.5)) and time.monotonic() < deadline:
+                progress()
 
 
 class Inbound:
@@ -212,13 +236,13 @@ class Inbound:
         try:
             values = self.mapper(message)
         except (rosbag.FieldPathError, Ros2Error) as error:
-            shell.reject("a ROS 2 message the field paths do not fit", str(error))
+            shell.reject("a ROS message the field paths do not fit", str(error))
             return
         except Exception as error:  # the model's observation_from_ros2
             shell.reject(f"{rosbag.MODEL_HOOK} raised an error", f"{rosbag.MODEL_HOOK}: {type(error).__name__}: {error}")
             return
         if not all(math.isfinite(v) for v in values):
-            shell.reject("a ROS 2 message with a NaN or infinite value", f"values {values[:8]} are not all finite")
+            shell.reject("a ROS message with a NaN or infinite value", f"values {values[:8]} are not all finite")
             return
         stamp = rosbag.stamp_of(message)
         if stamp is None or stamp == (0, 0):
@@ -261,23 +285,30 @@ def main(config: RunConfig, zconf, args: argparse.Namespace) -> int:
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.signals import SignalHandlerOptions
 
+    # Fast DDS writes a sample in the publishing thread (not a thread of its own): less latency, and what
+    # wait_for_all_acked waits for is on its way when the bridge stops.
+    os.environ.setdefault("RMW_FASTRTPS_PUBLICATION_MODE", "SYNCHRONOUS")
     rclpy.init(args=[], signal_handler_options=SignalHandlerOptions.NO)
     viewer = outbound = None
     try:
         node = rclpy.create_node(f"dtpf_{namespace_of(None, config.twin).rsplit('/', 1)[1]}")
         with ServiceShell("sensor", config, zconf) as shell:
             mapper = cls = None
-            if topic is not None:
-                msgtype = discover_type(node, topic, args.ros2_type, args.type_wait, lambda: shell.stopping)
-                cls = message_class(msgtype)
+            if topic is not None and args.ros2_type is not None:  # a type given: its field paths checked first
+                cls = message_class(args.ros2_type)
                 mapper = _mapper(args, config, model, cls)
             stamps: OrderedDict = OrderedDict()
-            if not args.no_out:
+            if not args.no_out:  # the twin's topics exist before the input's publisher is awaited
                 if args.secure:  # the viewer role reads the twin; the sensor role only publishes
                     viewer = open_session(zenoh_config(mode=args.mode, connect=args.connect, listen=args.listen,
                                                        config_file=args.zenoh_config, cfg=args.cfg,
                                                        secure=args.secure, role="viewer"))
                 outbound = Outbound(node, viewer or shell.session, config, model.dim, args, stamps)
+            if topic is not None:
+                msgtype = discover_type(node, topic, args.ros2_type, args.type_wait, lambda: shell.stopping)
+                if cls is None:
+                    cls = message_class(msgtype)
+                    mapper = _mapper(args, config, model, cls)
             shell.running()
             if topic is not None:
                 if args.wait_for_entity:
@@ -300,7 +331,8 @@ def main(config: RunConfig, zconf, args: argparse.Namespace) -> int:
                 if outbound is not None:
                     outbound.tick()
             if outbound is not None:
-                outbound.close()
+                shell.watchdog.step = "publishing the twin's last messages on ROS 2"
+                outbound.close(executor, shell.watchdog.progress)
             shell.log.info("stopped: %s%s", f"{inbound.sent} observations sent" if topic is not None else "",
                            f", {outbound.published} estimates published" if outbound is not None else "")
     finally:
@@ -310,9 +342,11 @@ def main(config: RunConfig, zconf, args: argparse.Namespace) -> int:
     return 130
 
 
-def bridge_arguments(parser: argparse.ArgumentParser) -> None:
-    """The bridge's own options (also those ``dtpf launch`` passes on for ``--observations ros2:TOPIC``)."""
-    group = parser.add_argument_group("ROS 2")
+def bridge_arguments(parser: argparse.ArgumentParser, defaults: bool = True) -> None:
+    """The bridge's own options (also those ``dtpf launch`` passes on for ``--observations ros2:TOPIC``;
+    ``defaults`` False: every option defaults to None, not given)."""
+    group = parser.add_argument_group("ROS 2 (with --observations ros2:TOPIC)" if not defaults else "ROS 2")
+    frame, depth = ("map", 100) if defaults else (None, None)
     group.add_argument("--ros2-type", default=None, metavar="TYPE",
                        help="the topic's message type, e.g. sensor_msgs/msg/Range (default: learnt from its "
                             "publishers)")
@@ -321,10 +355,10 @@ def bridge_arguments(parser: argparse.ArgumentParser) -> None:
                             "yaw; default: x=0, and y=1 for a state of 2 or more)")
     group.add_argument("--ros2-namespace", default=None, metavar="NS",
                        help="namespace of the published topics; '{twin}' is the twin id (default: /dtpf/{twin})")
-    group.add_argument("--ros2-frame", default="map", metavar="FRAME",
-                       help="frame_id of the published headers (default: %(default)s)")
-    group.add_argument("--ros2-depth", type=int, default=100, metavar="N",
-                       help="QoS history depth, in and out (default: %(default)s)")
+    group.add_argument("--ros2-frame", default=frame, metavar="FRAME",
+                       help="frame_id of the published headers (default: map)")
+    group.add_argument("--ros2-depth", type=int, default=depth, metavar="N",
+                       help="QoS history depth, in and out (default: 100)")
     group.add_argument("--ros2-best-effort", action="store_true",
                        help="QoS best effort instead of reliable (in and out), as sensor drivers often publish")
 

@@ -98,16 +98,17 @@ def pose_set(estimate: Estimate, points: np.ndarray | None, mapping: dict[str, i
             w = w / total
             centred = points[:, :3] - w @ points[:, :3]
             weighted = (centred * w[:, None]).T @ centred
-    for a, ra in mapping.items():
-        covariance[AXES[a], AXES[a]] = float(estimate.var[ra])
-        for b in mapping:
-            if b == a or weighted is None or columns[a] is None or columns[b] is None:
+    axes = list(mapping)
+    for i, a in enumerate(axes):
+        covariance[AXES[a], AXES[a]] = float(estimate.var[mapping[a]])
+        for b in axes[i + 1:]:
+            if weighted is None or columns[a] is None or columns[b] is None:
                 continue
             ca, cb = columns[a], columns[b]
             sa, sb = math.sqrt(weighted[ca, ca]), math.sqrt(weighted[cb, cb])
             if sa > 0 and sb > 0:  # the cloud's correlation, at the estimate's variances
-                correlation = weighted[ca, cb] / (sa * sb)
-                covariance[AXES[a], AXES[b]] = correlation * math.sqrt(estimate.var[ra] * estimate.var[mapping[b]])
+                value = weighted[ca, cb] / (sa * sb) * math.sqrt(estimate.var[mapping[a]] * estimate.var[mapping[b]])
+                covariance[AXES[a], AXES[b]] = covariance[AXES[b], AXES[a]] = value
     particles = None
     if points is not None:
         particles = np.zeros((len(points), 4), dtype=np.float64)  # x, y, z, yaw

@@ -208,15 +208,20 @@ class DriftModel(StateSpaceModel):
         z = x + math.sqrt(self.observation_var) * rng.standard_normal((steps, self.dim))
         return x, z
 
+    def variance_at(self, k: int) -> float:
+        """The observation variance of step k (from 1): the same at every step."""
+        return self.observation_var
+
     def kalman(self, observations) -> np.ndarray:
-        """(T, d) exact posterior means E[x_k | z_1..z_k] (the Kalman filter; the optimum of any filter)."""
+        """(T, d) exact posterior means E[x_k | z_1..z_k] (the Kalman filter; the optimum of any filter),
+        with each step's observation variance (:meth:`variance_at`)."""
         z = np.asarray(observations, dtype=np.float64).reshape(len(observations), self.dim)
         means = np.empty_like(z)
         mean, var = np.full(self.dim, self.prior_mean), self.prior_var
         for k in range(z.shape[0]):
             if k:
                 var = var + self.process_var
-            gain = var / (var + self.observation_var)
+            gain = var / (var + self.variance_at(k + 1))
             mean = mean + gain * (z[k] - mean)
             var = (1.0 - gain) * var
             means[k] = mean
@@ -243,7 +248,7 @@ class SensorSwitchModel(DriftModel):
     switch_step: int = 51
 
     def variance_at(self, k: int) -> float:
-        """The observation variance of step k (from 1)."""
+        """The observation variance of step k (from 1): coarse before ``switch_step``, precise from it."""
         return self.noisy_var if int(k) < self.switch_step else self.observation_var
 
     def log_likelihood(self, particles, observation, k):
@@ -262,17 +267,3 @@ class SensorSwitchModel(DriftModel):
         x, _ = DriftModel.simulate(self, steps, rng)
         sd = np.sqrt([self.variance_at(k) for k in range(1, steps + 1)])[:, None]
         return x, x + sd * rng.standard_normal((steps, self.dim))
-
-    def kalman(self, observations) -> np.ndarray:
-        """(T, d) exact posterior means E[x_k | z_1..z_k] with the step's observation variance."""
-        z = np.asarray(observations, dtype=np.float64).reshape(len(observations), self.dim)
-        means = np.empty_like(z)
-        mean, var = np.full(self.dim, self.prior_mean), self.prior_var
-        for k in range(z.shape[0]):
-            if k:
-                var = var + self.process_var
-            gain = var / (var + self.variance_at(k + 1))
-            mean = mean + gain * (z[k] - mean)
-            var = (1.0 - gain) * var
-            means[k] = mean
-        return means

@@ -22,7 +22,7 @@ from dtpf.messages.codec import MessageError, decode_for_key
 from dtpf.messages.config import RunConfig
 from dtpf.messages.models import Estimate, Layer, Status
 from dtpf.recording.logfile import what_it_holds
-from dtpf.recording.writer import EXIT_LOG_WRITE, LogWriteError
+from dtpf.recording.writer import EXIT_LOG_WRITE
 from dtpf.scripts.launch import (
     DEFAULT_RESTARTS,
     Bridge,
@@ -31,8 +31,10 @@ from dtpf.scripts.launch import (
     _describe_code,
     _stop,
     _wait_for_recorder,
+    close_bridges,
     default_log_path,
     open_router,
+    pump_bridges,
     rejected_by_layer,
     segment_path,
     service_command,
@@ -206,14 +208,7 @@ def launch_fleet(config: RunConfig, count: int, *, log_path: Path | None = None,
                         progress(result.twin_steps, total)
                 taken += 1
                 item = watch.get(timeout=0) if taken < _BATCH else None
-            for bridge in list(bridges):
-                try:
-                    bridge.pump()
-                except LogWriteError as error:
-                    bridges.remove(bridge)
-                    result.log_problem = f"{error}; {what_it_holds(error.path)}"
-                    if notify is not None:
-                        notify(f"{result.log_problem}; the launcher stops recording")
+            pump_bridges(bridges, result, notify)
             if bridges and any(pid == children["recorder"].pid for pid, _ in result.statuses):
                 bridges.pop().close()  # the new recorder listens: it said so
             if all(children[name].poll() is not None for name in entity_names):
@@ -266,11 +261,7 @@ def launch_fleet(config: RunConfig, count: int, *, log_path: Path | None = None,
         result.interrupted = True
     finally:
         _stop(children, tuple(children), result)
-        for bridge in bridges:
-            try:
-                bridge.close()
-            except LogWriteError as error:
-                result.log_problem = f"{error}; {what_it_holds(error.path)}"
+        close_bridges(bridges, result)
         result.elapsed = time.monotonic() - start
         if first_estimate is not None:
             result.stepping = last_estimate - first_estimate

@@ -297,6 +297,28 @@ class Bridge:
         self.recording.close()
 
 
+def pump_bridges(bridges: list[Bridge], result, notify) -> None:
+    """Write what each of the launcher's bridges has received. A bridge whose log cannot be written is
+    dropped, and ``result.log_problem`` says what happened and what the log holds."""
+    for bridge in list(bridges):
+        try:
+            bridge.pump()
+        except LogWriteError as error:
+            bridges.remove(bridge)
+            result.log_problem = f"{error}; {what_it_holds(error.path)}"
+            if notify is not None:
+                notify(f"{result.log_problem}; the launcher stops recording")
+
+
+def close_bridges(bridges: list[Bridge], result) -> None:
+    """Close the launcher's bridges; one whose log cannot be finished sets ``result.log_problem``."""
+    for bridge in bridges:
+        try:
+            bridge.close()
+        except LogWriteError as error:
+            result.log_problem = f"{error}; {what_it_holds(error.path)}"
+
+
 def segment_path(log_path: Path, index: int) -> Path:
     """The file of the log's segment ``index``: the log itself for 0, ``run.<index>.mcap`` after."""
     log_path = Path(log_path)
@@ -494,13 +516,7 @@ def launch(config: RunConfig, *, log_path: Path | None = None, port: int | None 
                 _take(result, item, progress, layer_of_pid)
                 taken += 1
                 item = watch.get(timeout=0) if taken < _BATCH else None
-            for bridge in list(bridges):
-                try:
-                    bridge.pump()
-                except LogWriteError as error:
-                    bridges.remove(bridge)
-                    result.log_problem = f"{error}; {what_it_holds(error.path)}"
-                    notify(f"{result.log_problem}; the launcher stops recording")
+            pump_bridges(bridges, result, notify)
             if bridges and "recorder" not in gone and children["recorder"].pid in result.statuses_by_pid:
                 bridges.pop().close()  # the new recorder listens: it said so
             if children["entity"].poll() is not None:
@@ -538,11 +554,7 @@ def launch(config: RunConfig, *, log_path: Path | None = None, port: int | None 
                 _stop(children, ("information", "system"), result)
         except KeyboardInterrupt:  # a second Ctrl-C: no more waiting for the drain
             pass
-        for bridge in bridges:
-            try:
-                bridge.close()
-            except LogWriteError as error:
-                result.log_problem = f"{error}; {what_it_holds(error.path)}"
+        close_bridges(bridges, result)
         _stop(children, tuple(reversed(LAYERS)), result)
         if ros2_bridge is not None:
             _stop({"ros2": ros2_bridge}, ("ros2",), result)

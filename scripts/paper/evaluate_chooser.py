@@ -46,9 +46,7 @@ from dtpf.scripts.inprocess import build, simulate
 from dtpf.scripts.paper import evaluate_guard
 from dtpf.scripts.paper.common import mean_ci, significance
 
-TRADITIONAL = ("systematic", "multinomial", "stratified", "residual")
-RELATIVE = dict(move_rule="relative", weight_rule="likelihood", ps=0.0)
-PAPER = dict(move_rule="paper", weight_rule="inherit", ps=0.81)
+TRADITIONAL, RELATIVE, PAPER = evaluate_guard.TRADITIONAL, evaluate_guard.RELATIVE, evaluate_guard.PAPER
 #: The fixed cures, by label.
 CURES: dict[str, dict] = {
     "DT paper rule, PS 0.81": dict(policy="fixed", **PAPER),
@@ -231,8 +229,8 @@ def report(cells: dict[tuple[str, int], dict[int, dict]]) -> tuple[str, bool]:
 def cost(sizes=(1000, 100_000), scenarios=("drift", "ungm"), steps: int = 30) -> list[str]:
     """The system layer's time per step with ``choose`` against the entity filter's own, median over
     steps 6 .. ``steps``, one process: lines of text."""
-    from dtpf.information.mirror import summarise
     from dtpf.entity.filter import ParticleFilter
+    from dtpf.information.mirror import summarise
     from dtpf.system.layer import SystemLayer
     from dtpf.system.predict import Snapshot
 

@@ -199,7 +199,7 @@ def cmd_launch(args: argparse.Namespace) -> int:
 def _ros2_options(args: argparse.Namespace) -> list[str]:
     """The ROS 2 bridge's options given to dtpf launch, as its command-line words."""
     words = []
-    for flag in ("ros2_type", "ros2_pose", "ros2_namespace", "ros2_frame", "ros2_depth"):
+    for flag in ("ros2_type", "ros2_pose", "ros2_namespace", "ros2_frame", "ros2_depth", "ros2_covariance"):
         value = getattr(args, flag, None)
         if value is not None:
             words += ["--" + flag.replace("_", "-"), str(value)]

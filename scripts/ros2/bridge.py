@@ -27,8 +27,8 @@ import importlib
 import logging
 import math
 import os
-import queue
 import sys
+import threading
 import time
 from collections import OrderedDict
 
@@ -40,7 +40,8 @@ from dtpf.messages.foxglove import PointCloud
 from dtpf.messages.models import Estimate, Observation, Time
 from dtpf.scripts.console import run_command
 from dtpf.scripts.ros2 import Ros2Error, require_rclpy
-from dtpf.scripts.ros2.convert import TOPICS, Builder, cloud_points_of, parse_pose, pose_set
+from dtpf.scripts.ros2.convert import (TOPICS, Builder, cloud_points_of, parse_pose, pose_array_cdr, pose_set,
+                                      pose_set_particles)
 from dtpf.scripts.ros2.export import namespace_of
 from dtpf.shell.bus import BusError, add_zenoh_arguments, open_session, zenoh_config, zenoh_config_from_args
 from dtpf.shell.service import ServiceShell
@@ -102,6 +103,20 @@ def discover_type(node, topic: str, given: str | None, wait: float, stopping) ->
         rclpy.spin_once(node, timeout_sec=0.1)
 
 
+def _executor():
+    """rclpy's EventsExecutor (its event queue in C++: a callback costs a fraction of the wait-set executor's),
+    else the SingleThreadedExecutor; DTPF_ROS2_EXECUTOR=single chooses the latter."""
+    from rclpy.executors import SingleThreadedExecutor
+
+    if os.environ.get("DTPF_ROS2_EXECUTOR", "events") != "single":
+        try:
+            from rclpy.experimental import EventsExecutor
+            return EventsExecutor()
+        except ImportError:
+            pass
+    return SingleThreadedExecutor()
+
+
 def qos(args):
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
@@ -113,13 +128,15 @@ def qos(args):
 class Outbound:
     """The twin's estimates and clouds (Zenoh) to ROS 2 publishers.
 
-    Zenoh's callbacks only queue what arrives and wake the executor (a guard condition); every rclpy call
-    is made on the executor's thread. A step's pose goes out when its estimate and its cloud are both in
+    Zenoh's callbacks publish, one at a time (a lock); the executor's thread serves the input, and looks
+    for estimates that waited too long. A step's pose goes out when its estimate and its cloud are both in
     (in either order), CLOUD_WAIT after the estimate without the cloud, or at once while the entity
     publishes no clouds; its particles right after it."""
 
     def __init__(self, node, session, config: RunConfig, dim: int, args, stamps):
         self.mapping = parse_pose(args.ros2_pose, dim)
+        self.dim = dim
+        self.cloud_stamps: OrderedDict = OrderedDict()
         self.frame = args.ros2_frame
         self.stamps = stamps
         ns = namespace_of(args.ros2_namespace, config.twin)
@@ -132,48 +149,55 @@ class Outbound:
         self.clouds: OrderedDict = OrderedDict()  # a step's cloud that came before its estimate
         #: True once an estimate waited CLOUD_WAIT for its cloud in vain (an entity with --cloud-points 0).
         self.no_clouds = False
+        #: --ros2-covariance diagonal: the pose goes out with its estimate, the particles with their cloud.
+        self.wait_for_cloud = args.ros2_covariance != "diagonal"
         self.published = 0
         self.samples = 0
-        self.arrived: queue.SimpleQueue = queue.SimpleQueue()
-        self.guard = node.create_guard_condition(self.handle)
+        self.closed = False
+        self.lock = threading.Lock()
         self.subscribers = [session.declare_subscriber(keys.key(config.twin, "entity", topic), self._on_sample)
                             for topic in ("estimate", "cloud")]
 
-    def _on_sample(self, sample) -> None:  # a Zenoh thread: no rclpy here
-        self.arrived.put((str(sample.key_expr), sample.payload.to_bytes()))
+    def _on_sample(self, sample) -> None:  # a Zenoh thread
         self.samples += 1
-        self.guard.trigger()
+        with self.lock:
+            if not self.closed:
+                self.handle(str(sample.key_expr), sample.payload.to_bytes())
 
-    def handle(self) -> None:
-        """Everything that arrived (the executor's thread)."""
-        while True:
-            try:
-                key, payload = self.arrived.get_nowait()
-            except queue.Empty:
-                break
-            try:
-                message = decode_for_key(key, payload)
-            except MessageError as error:
-                log.debug("not a message of the twin: %s", error)
-                continue
-            if isinstance(message, Estimate):
-                cloud = self.clouds.pop(message.step, None)
-                if cloud is not None or self.no_clouds:
-                    self._publish(message, cloud)
-                else:
-                    self.pending[message.step] = (message, time.monotonic())
-            elif isinstance(message, PointCloud):
-                self.no_clouds = False
-                waiting = self.pending.pop(message.step, None)
-                if waiting is not None:
-                    self._publish(waiting[0], cloud_points_of(message))
-                else:
-                    self.clouds[message.step] = cloud_points_of(message)
-                    while len(self.clouds) > 100:
-                        self.clouds.popitem(last=False)
-        self.tick()
+    def handle(self, key: str, payload: bytes) -> None:
+        """One sample that arrived."""
+        try:
+            message = decode_for_key(key, payload)
+        except MessageError as error:
+            log.debug("not a message of the twin: %s", error)
+            return
+        if isinstance(message, Estimate):
+            cloud = self.clouds.pop(message.step, None)
+            if cloud is not None or self.no_clouds or not self.wait_for_cloud:
+                self._publish(message, cloud)
+            else:
+                self.pending[message.step] = (message, time.monotonic())
+        elif isinstance(message, PointCloud):
+            self.no_clouds = False
+            waiting = self.pending.pop(message.step, None)
+            if waiting is not None:
+                self._publish(waiting[0], cloud_points_of(message))
+            elif not self.wait_for_cloud:  # the pose went out already
+                points = cloud_points_of(message)
+                stamp = self.cloud_stamps.pop(message.step, (message.stamp.sec, message.stamp.nsec))
+                self.pub["particles"].publish(pose_array_cdr(*stamp, self.frame,
+                                                             pose_set_particles(points, self.mapping, self.dim)))
+            else:
+                self.clouds[message.step] = cloud_points_of(message)
+                while len(self.clouds) > 100:
+                    self.clouds.popitem(last=False)
+        self._expire()
 
     def tick(self) -> None:
+        with self.lock:
+            self._expire()
+
+    def _expire(self) -> None:
         now = time.monotonic()
         for step in [s for s, (_, at) in self.pending.items() if now - at > CLOUD_WAIT]:
             self.no_clouds = True
@@ -189,12 +213,16 @@ class Outbound:
         if estimate.ps is not None:
             self.pub["ps"].publish(self.build.float64(estimate.ps))
         self.pub["degraded"].publish(self.build.bool(estimate.degraded))
-        if poses.particles is not None:
-            self.pub["particles"].publish(self.build.particles(header, poses))
+        if poses.particles is not None:  # its CDR bytes, made with NumPy, published raw
+            self.pub["particles"].publish(pose_array_cdr(sec, nsec, self.frame, poses.particles))
+        elif not self.wait_for_cloud:
+            self.cloud_stamps[estimate.step] = (sec, nsec)
+            while len(self.cloud_stamps) > 100:
+                self.cloud_stamps.popitem(last=False)
         self.published += 1
         log.debug("published step %d (%s)", estimate.step, "with its cloud" if points is not None else "no cloud")
 
-    def close(self, executor, progress, quiet: float = 0.3, acked: float = 10.0) -> None:
+    def close(self, progress, quiet: float = 0.3, acked: float = 10.0) -> None:
         """Take what the twin still sends until ``quiet`` seconds pass without a sample, publish what waits,
         then wait (at most ``acked`` s) until reliable subscribers have acknowledged everything;
         ``progress()`` is called while this moves (the shell's exit watchdog)."""
@@ -202,18 +230,17 @@ class Outbound:
 
         while True:
             seen = self.samples
-            until = time.monotonic() + quiet
-            while time.monotonic() < until:
-                executor.spin_once(timeout_sec=max(0.0, until - time.monotonic()))
+            time.sleep(quiet)
             if self.samples == seen:
                 break
             progress()
+        with self.lock:
+            self.closed = True
+            for step in sorted(self.pending):
+                self._publish(self.pending[step][0], None)
+            self.pending.clear()
         for subscriber in self.subscribers:
             subscriber.undeclare()
-        self.handle()
-        for step in sorted(self.pending):
-            self._publish(self.pending[step][0], None)
-        self.pending.clear()
         deadline = time.monotonic() + acked
         for publisher in self.pub.values():
             while not publisher.wait_for_all_acked(Duration(seconds=0.5)) and time.monotonic() < deadline:
@@ -282,7 +309,6 @@ def main(config: RunConfig, zconf, args: argparse.Namespace) -> int:
         topic = "/" + topic
     model = model_ref.resolve(config.model_ref)
     import rclpy
-    from rclpy.executors import SingleThreadedExecutor
     from rclpy.signals import SignalHandlerOptions
 
     # Fast DDS writes a sample in the publishing thread (not a thread of its own): less latency, and what
@@ -324,7 +350,7 @@ def main(config: RunConfig, zconf, args: argparse.Namespace) -> int:
                                f"; the twin out under {outbound.namespace}/" if outbound else "")
             elif outbound is not None:
                 shell.log.info("publishing twin %s under %s/", config.twin, outbound.namespace)
-            executor = SingleThreadedExecutor()
+            executor = _executor()
             executor.add_node(node)
             while not shell.stopping:
                 executor.spin_once(timeout_sec=0.1)
@@ -332,7 +358,7 @@ def main(config: RunConfig, zconf, args: argparse.Namespace) -> int:
                     outbound.tick()
             if outbound is not None:
                 shell.watchdog.step = "publishing the twin's last messages on ROS 2"
-                outbound.close(executor, shell.watchdog.progress)
+                outbound.close(shell.watchdog.progress)
             shell.log.info("stopped: %s%s", f"{inbound.sent} observations sent" if topic is not None else "",
                            f", {outbound.published} estimates published" if outbound is not None else "")
     finally:
@@ -359,6 +385,10 @@ def bridge_arguments(parser: argparse.ArgumentParser, defaults: bool = True) -> 
                        help="frame_id of the published headers (default: map)")
     group.add_argument("--ros2-depth", type=int, default=depth, metavar="N",
                        help="QoS history depth, in and out (default: 100)")
+    group.add_argument("--ros2-covariance", choices=("cloud", "diagonal"), default=None,
+                       help="the pose's covariance: 'cloud' waits for the step's particle cloud for the covariances "
+                            "between components; 'diagonal' publishes the pose with its estimate, variances only "
+                            "(default: cloud)")
     group.add_argument("--ros2-best-effort", action="store_true",
                        help="QoS best effort instead of reliable (in and out), as sensor drivers often publish")
 

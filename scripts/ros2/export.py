@@ -27,7 +27,7 @@ from dtpf.messages.foxglove import PointCloud
 from dtpf.messages.models import Estimate
 from dtpf.recording.logfile import in_step_order, read_logs
 from dtpf.scripts.ros2 import Ros2Error
-from dtpf.scripts.ros2.convert import TOPICS, Builder, cloud_points_of, parse_pose, pose_set
+from dtpf.scripts.ros2.convert import TOPICS, Builder, cloud_points_of, parse_pose, pose_array_cdr, pose_set
 
 __all__ = ["export_ros2", "register"]
 
@@ -94,7 +94,8 @@ def export_ros2(logs: list[Path], out: Path, *, pose: str | None = None, namespa
                 header = build.header(estimate.stamp.sec, estimate.stamp.nsec, frame)
                 put("pose", build.pose(header, poses), at)
                 if poses.particles is not None:
-                    put("particles", build.particles(header, poses), at)
+                    writer.write(connection["particles"], at, pose_array_cdr(estimate.stamp.sec, estimate.stamp.nsec,
+                                                                             frame, poses.particles))
                 if estimate.observation is not None:
                     put("observation", build.float64_array(estimate.observation, "observation"), at)
                 put("ess", build.float64(estimate.ess), at)

@@ -1,0 +1,254 @@
+"""Latency through the ROS 2 bridge, beside the native live path, measured in the same run.
+
+Each run is a ``dtpf launch`` of its own (embedded router, recorder, system, information and entity,
+lockstep with DT preprocessing) on the UNGM scenario's simulated observations, and this process plays
+both ends:
+
+- **ros2**: ``--observations ros2:/dtpf_bench/z`` (the bridge, ``dtpf ros2``, as a child of the launch);
+  this process publishes z_k as a ``geometry_msgs/msg/PointStamped`` (``point.x``) with an rclpy node and
+  takes the time until its rclpy subscriber receives the step's ``PoseWithCovarianceStamped`` from the
+  bridge (``ros2``: the default, whose pose waits for the step's particle cloud for its covariances;
+  ``ros2-diagonal``: ``--ros2-covariance diagonal``, the pose with its estimate);
+- **native**: ``--observations live``; this process puts z_k as a dtpf Observation on Zenoh and takes the
+  time until its Zenoh subscriber receives the step's Estimate.
+
+So both latencies run from the observation's publication to the estimate's arrival at a subscriber of
+the same middleware, on one clock. One observation at a time: the next goes out ``--gap`` after the
+estimate, so none queues behind another; the first ``--warm-up`` steps are left out. Runs alternate
+(native, ros2, ros2-diagonal, native, ...); the table gives the median over runs of each run's p50 and p99, and the
+bridge's cost is the difference of the p50s. Needs rclpy (run it with the ROS 2 environment's Python)::
+
+    .venv-ros2/bin/python -m dtpf.scripts.bench.ros2                 # N = 1e3, 2 runs each, about a minute
+    .venv-ros2/bin/python -m dtpf.scripts.bench.ros2 --steps 500 --repeats 3
+
+ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST and a random ROS_DOMAIN_ID are set unless given.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import random
+import signal
+import statistics
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+from dtpf.entity import sources
+from dtpf.messages import keys
+from dtpf.messages.codec import MessageError, decode_for_key, encode
+from dtpf.messages.config import RunConfig
+from dtpf.messages.models import Estimate, Observation, ServiceState, Status, Time
+from dtpf.scripts.bench.pipeline import fmt_n
+from dtpf.shell.bus import BusError, Inbox, free_port, open_session, publisher, zenoh_config
+
+#: The bridge may add at most this much to the p50 latency at N = 1e3 (ms).
+TARGET_ADDED_P50_MS = 1.0
+TOPIC = "/dtpf_bench/z"
+
+
+def _launch(n: int, twin: str, seed: int, observations: list[str], log_dir: Path, port: int) -> subprocess.Popen:
+    return subprocess.Popen(
+        [sys.executable, "-P", "-m", "dtpf.scripts.cli", "launch", *observations, "--particles", str(n),
+         "--seed", str(seed), "--twin", twin, "--port", str(port), "--quiet", "-o", str(log_dir / f"{twin}.mcap")],
+        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+
+
+def _stop(launcher: subprocess.Popen) -> None:
+    if launcher.poll() is None:
+        os.killpg(launcher.pid, signal.SIGINT)
+        try:
+            launcher.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            os.killpg(launcher.pid, signal.SIGKILL)
+            launcher.wait()
+
+
+def _session(port: int, launcher: subprocess.Popen):
+    deadline = time.monotonic() + 60
+    while True:  # the launcher's router takes a moment to listen
+        try:
+            return open_session(zenoh_config(mode="client", connect=[f"tcp/127.0.0.1:{port}"],
+                                             cfg=["connect/timeout_ms:1000", "connect/exit_on_failure:true"]))
+        except BusError:
+            if time.monotonic() > deadline or launcher.poll() is not None:
+                raise RuntimeError("dtpf launch did not come up") from None
+            time.sleep(0.2)
+
+
+def _wait_running(inbox: Inbox) -> None:
+    while True:  # until the entity is running (it has subscribed to the sensor key)
+        item = inbox.get(timeout=60)
+        if item is None:
+            raise RuntimeError("the entity never said it was running")
+        try:
+            message = decode_for_key(item.key, item.payload)
+        except MessageError:
+            continue
+        if isinstance(message, Status) and message.layer == "entity" and message.state == ServiceState.RUNNING:
+            return
+
+
+def native_run(n, z, warm_up, gap, seed, log_dir) -> np.ndarray:
+    twin = f"bench-native-{n}"
+    port = free_port()
+    launcher = _launch(n, twin, seed, ["--observations", "live"], log_dir, port)
+    session = None
+    try:
+        session = _session(port, launcher)
+        inbox = Inbox(session, keys.key(twin, "entity", "estimate"), keys.key(twin, "entity", "status"))
+        out = publisher(session, keys.key(twin, "sensor", "observation"))
+        _wait_running(inbox)
+        latencies = []
+        for k in range(1, len(z) + 1):
+            message = Observation(run_id="run", twin_id=twin, step=k, values=[float(z[k - 1])], stamp=Time.now())
+            payload = encode(message)
+            sent = time.perf_counter_ns()
+            out.put(payload)
+            while True:
+                item = inbox.get(timeout=30)
+                got = time.perf_counter_ns()
+                if item is None:
+                    raise RuntimeError(f"no estimate of step {k}")
+                try:
+                    estimate = decode_for_key(item.key, item.payload)
+                except MessageError:
+                    continue
+                if isinstance(estimate, Estimate) and estimate.step == k:
+                    break
+            if k > warm_up:
+                latencies.append((got - sent) / 1e6)
+            time.sleep(gap)
+        return np.array(latencies)
+    finally:
+        if session is not None:
+            session.close()
+        _stop(launcher)
+
+
+def ros2_run(n, z, warm_up, gap, seed, log_dir, covariance: str = "cloud") -> np.ndarray:
+    import rclpy
+    from geometry_msgs.msg import PointStamped, PoseWithCovarianceStamped
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+    twin = f"bench_ros2_{n}"
+    port = free_port()
+    launcher = _launch(n, twin, seed, ["--observations", f"ros2:{TOPIC}", "--ros2-fields", "point.x",
+                                       "--ros2-type", "geometry_msgs/msg/PointStamped",
+                                       "--ros2-covariance", covariance], log_dir, port)
+    qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.RELIABLE)
+    node = rclpy.create_node(f"dtpf_bench_{os.getpid()}")
+    arrived: dict[int, int] = {}
+    event = threading.Event()
+
+    def on_pose(message) -> None:
+        arrived[message.header.stamp.sec] = time.perf_counter_ns()
+        event.set()
+
+    pub = node.create_publisher(PointStamped, TOPIC, qos)
+    sub = node.create_subscription(PoseWithCovarianceStamped, f"/dtpf/{twin}/pose", on_pose, qos)
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    spinning = threading.Thread(target=executor.spin, daemon=True)
+    spinning.start()
+    try:
+        deadline = time.monotonic() + 120
+        while pub.get_subscription_count() < 1 or sub.get_publisher_count() < 1:
+            if time.monotonic() > deadline or launcher.poll() is not None:
+                raise RuntimeError("the bridge did not come up")
+            time.sleep(0.05)
+        latencies = []
+        for k in range(1, len(z) + 1):
+            message = PointStamped()
+            message.header.stamp.sec = k  # the bridge gives the pose the observation's stamp
+            message.point.x = float(z[k - 1])
+            event.clear()
+            sent = time.perf_counter_ns()
+            pub.publish(message)
+            while k not in arrived:
+                if not event.wait(timeout=30):
+                    raise RuntimeError(f"no pose of step {k}")
+                event.clear()
+            if k > warm_up:
+                latencies.append((arrived[k] - sent) / 1e6)
+            time.sleep(gap)
+        return np.array(latencies)
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+        _stop(launcher)
+
+
+#: The paths measured, in the order of each round, and their rows in the table.
+PATHS = (("native", native_run), ("ros2", ros2_run),
+         ("ros2-diagonal", lambda *a: ros2_run(*a, covariance="diagonal")))
+LABELS = {"native": "native live (Zenoh)", "ros2": "ROS 2 bridge (default)",
+          "ros2-diagonal": "ROS 2 bridge, --ros2-covariance diagonal"}
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m dtpf.scripts.bench.ros2", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--particles", "-n", default="1e3", help="N (default: %(default)s)")
+    parser.add_argument("--steps", type=int, default=300, help="observations per run (default: %(default)s)")
+    parser.add_argument("--warm-up", type=int, default=20, help="first steps left out (default: %(default)s)")
+    parser.add_argument("--repeats", type=int, default=2, help="runs of each path, alternating (default: %(default)s)")
+    parser.add_argument("--gap", type=float, default=0.005, metavar="SECONDS",
+                        help="pause between an estimate and the next observation (default: %(default)s)")
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args(argv)
+    try:
+        import rclpy
+    except ImportError:
+        sys.exit("this benchmark needs rclpy: run it with the Python of the ROS 2 environment "
+                 "(pip install 'dtpf[ros2]')")
+    os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    os.environ.setdefault("ROS_DOMAIN_ID", str(random.randint(1, 100)))
+    n = int(float(args.particles))
+    config = RunConfig(particles=n, steps=args.steps, seed=args.seed)
+    z = sources.observations_of(config, sources.load_model(config)).observations[:, 0]
+    load = os.getloadavg()[0]
+    print(f"observation publication -> estimate received by a subscriber (ROS 2: rclpy, Fast DDS; native: "
+          f"Zenoh); N = {fmt_n(n)}, {os.cpu_count()} cores, load {load:.2f}; {args.steps} observations per run "
+          f"({args.warm_up} warm-up), {args.repeats} runs of each, lockstep with DT preprocessing and the recorder",
+          flush=True)
+    rclpy.init()
+    runs: dict[str, list[np.ndarray]] = {path: [] for path, _ in PATHS}
+    start = time.monotonic()
+    try:
+        with tempfile.TemporaryDirectory() as tmp:
+            for i in range(args.repeats):
+                for path, run in PATHS:
+                    latencies = run(n, z, args.warm_up, args.gap, args.seed, Path(tmp))
+                    runs[path].append(latencies)
+                    print(f"  run {i + 1}/{args.repeats} {path:6}: p50 {np.percentile(latencies, 50):.3f} ms, "
+                          f"p99 {np.percentile(latencies, 99):.3f} ms", flush=True)
+    finally:
+        rclpy.try_shutdown()
+    print(f"\n{time.monotonic() - start:.0f} s")
+    print("\n| path | N | p50 ms | p99 ms | max ms | p50 range over runs |")
+    print("|---|---|---|---|---|---|")
+    p50s = {}
+    for path, label in LABELS.items():
+        p50 = [float(np.percentile(r, 50)) for r in runs[path]]
+        p99 = [float(np.percentile(r, 99)) for r in runs[path]]
+        p50s[path] = statistics.median(p50)
+        print(f"| {label} | {fmt_n(n)} | {p50s[path]:.3f} | {statistics.median(p99):.3f} | "
+              f"{max(float(r.max()) for r in runs[path]):.2f} | {min(p50):.3f}-{max(p50):.3f} |")
+    print()
+    ok = True
+    for path in ("ros2", "ros2-diagonal"):
+        added = p50s[path] - p50s["native"]
+        ok = ok and added <= TARGET_ADDED_P50_MS if path == "ros2" else ok
+        print(f"{LABELS[path]} adds {added:.3f} ms at p50; target <= {TARGET_ADDED_P50_MS} ms: "
+              f"{'PASS' if added <= TARGET_ADDED_P50_MS else 'FAIL'}")
+    return 0 if ok else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

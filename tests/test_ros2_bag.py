@@ -160,3 +160,18 @@ def test_a_nan_and_a_cut_bag_are_one_line_each(tmp_path):
                 "--ros2-fields", "point.x,point.y")
     assert done.returncode == 2, done.stdout + done.stderr
     assert len(done.stderr.strip().splitlines()) == 1 and "cannot read the bag" in done.stderr, done.stderr
+
+
+def test_the_model_may_map_a_message_itself(bag, tmp_path, monkeypatch):
+    """Without --ros2-fields, the model's observation_from_ros2(message) makes the values."""
+    monkeypatch.chdir(ROOT)
+    model = tmp_path / "mapped.py"
+    model.write_text("import sys\nsys.path.insert(0, 'docs/examples')\n"
+                     "from range_bearing import RangeBearingTarget\n\n"
+                     "class Mapped(RangeBearingTarget):\n"
+                     "    def observation_from_ros2(self, message):\n"
+                     "        return [message.point.x, message.point.y]\n")
+    common = {"particles": 300, "steps": 20, "seed": 1, "twin": "rb-map"}
+    mapped = inprocess.run(RunConfig(model=f"{model}:Mapped", observations=str(bag), topic="/target", **common))
+    reference = inprocess.run(RunConfig(model=EXAMPLE, observations=EXAMPLE_NO_TRUTH, **common))
+    np.testing.assert_array_equal(mapped.means, reference.means)

@@ -150,10 +150,17 @@ def wait_for_line(processes, process, text: str, timeout: float, watch=None) -> 
 
 
 @needs_ros2
+@pytest.mark.parametrize("secure", [False, True], ids=["plain", "secured"])
 def test_a_ros2_publisher_drives_the_twin_to_dtpf_run_numbers_and_a_subscriber_gets_every_estimate(
-        processes, tmp_path):
-    steps, n = 60, 500
+        processes, tmp_path, secure):
+    steps, n = (20, 300) if secure else (60, 500)
     env = ros_env()
+    extra = []
+    if secure:  # the bridge publishes in the sensor role, reads the twin in the viewer role
+        done = subprocess.run([sys.executable, "-m", "dtpf.scripts.cli", "secure", "init", str(tmp_path / "sec")],
+                              cwd=ROOT, capture_output=True, text=True, timeout=120)
+        assert done.returncode == 0, done.stderr
+        extra = ["--secure", str(tmp_path / "sec" / "tls")]
     (tmp_path / "pub.py").write_text(PUBLISHER)
     (tmp_path / "sub.py").write_text(SUBSCRIBER)
     received = tmp_path / "received.jsonl"
@@ -163,14 +170,14 @@ def test_a_ros2_publisher_drives_the_twin_to_dtpf_run_numbers_and_a_subscriber_g
     launcher = start(processes, "launch", ["-m", "dtpf.scripts.cli", "launch", "-q", "--model", EXAMPLE,
                                            "--observations", "ros2:/target", "--ros2-fields", "point.x,point.y",
                                            "-n", str(n), "--steps", str(steps), "--twin", "rb-ros",
-                                           "--port", str(free_port()), "-o", str(log)], env)
+                                           "--port", str(free_port()), "-o", str(log), *extra], env)
     wait_for_line(processes, subscriber, "ready", 240, watch=launcher)  # the bridge's publishers are matched
     publisher = start(processes, "publisher", [str(tmp_path / "pub.py"), EXAMPLE_NO_TRUTH, "/target", "50",
                                                str(steps), "10"], env)
-    wait_for_line(processes, publisher, "published 61", 240, watch=launcher)
+    wait_for_line(processes, publisher, f"published {steps + 1}", 240, watch=launcher)
     assert launcher.wait(timeout=240) == 0, processes.output(launcher)
     assert subscriber.wait(timeout=120) == 0, processes.output(subscriber)
-    assert 'received {"pose": 60, "particles": 60, "ess": 60}' in processes.output(subscriber)
+    assert f'received {{"pose": {steps}, "particles": {steps}, "ess": {steps}}}' in processes.output(subscriber)
 
     # The twin's estimates equal dtpf run on the same observations from the file, number for number.
     estimates, observations, statuses = {}, [], []

@@ -146,6 +146,9 @@ def cmd_launch(args: argparse.Namespace) -> int:
             raise Ros2Error("--observations ros2:TOPIC feeds one twin; for a fleet, start 'dtpf ros2 --twin NAME "
                             "--topic TOPIC' per twin with --observations live")
         require_rclpy()
+        if config.ros2_fields is not None:  # a path that does not parse: one line now, not from the bridge
+            from dtpf.entity.rosbag import parse_fields
+            parse_fields(config.ros2_fields)
     source = f", observations from {config.observations}" if config.observations else ""
     how = "embedded Zenoh on 127.0.0.1"
     # The router's port is chosen here, so that a live run can print the sensor's --connect.

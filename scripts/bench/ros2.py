@@ -21,7 +21,8 @@ bridge's cost is the difference of the p50s. Needs rclpy (run it with the ROS 2 
     .venv-ros2/bin/python -m dtpf.scripts.bench.ros2                 # N = 1e3, 2 runs each, about a minute
     .venv-ros2/bin/python -m dtpf.scripts.bench.ros2 --steps 500 --repeats 3
 
-ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST and a random ROS_DOMAIN_ID are set unless given.
+ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST, a random ROS_DOMAIN_ID and RMW_FASTRTPS_PUBLICATION_MODE=SYNCHRONOUS
+(the bridge's mode) are set unless given.
 """
 from __future__ import annotations
 
@@ -153,7 +154,7 @@ def ros2_run(n, z, warm_up, gap, seed, log_dir, covariance: str = "cloud") -> np
 
     pub = node.create_publisher(PointStamped, TOPIC, qos)
     sub = node.create_subscription(PoseWithCovarianceStamped, f"/dtpf/{twin}/pose", on_pose, qos)
-    executor = SingleThreadedExecutor()
+    executor = SingleThreadedExecutor()  # spinning on a thread of its own (EventsExecutor's spin there holds the GIL)
     executor.add_node(node)
     spinning = threading.Thread(target=executor.spin, daemon=True)
     spinning.start()
@@ -208,6 +209,9 @@ def main(argv=None) -> int:
         sys.exit("this benchmark needs rclpy: run it with the Python of the ROS 2 environment "
                  "(pip install 'dtpf[ros2]')")
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    # This process's publisher writes in its own thread, as the bridge's do (Fast DDS's default hands the
+    # sample to a thread of its own, which would count against the bridge).
+    os.environ.setdefault("RMW_FASTRTPS_PUBLICATION_MODE", "SYNCHRONOUS")
     os.environ.setdefault("ROS_DOMAIN_ID", str(random.randint(1, 100)))
     n = int(float(args.particles))
     config = RunConfig(particles=n, steps=args.steps, seed=args.seed)

@@ -240,3 +240,18 @@ def test_without_rclpy_a_ros2_option_says_what_to_install():
     assert done.stderr.strip().splitlines() == ["dtpf launch: error: live ROS 2 topics need rclpy: pip install "
                                                 "'dtpf[ros2]' (the ROS 2 Kilted wheels, about 150 MB; best in a "
                                                 "virtual environment of its own, see docs/guides/ros2.md)"]
+
+
+@needs_ros2
+def test_a_publisher_of_another_type_on_the_topic_is_named_and_counted(processes, router, tmp_path):
+    env = ros_env()
+    bridge = start(processes, "bridge", ["-m", "dtpf.scripts.cli", "ros2", "--model", EXAMPLE, "--topic", "/target",
+                                         "--ros2-type", "sensor_msgs/msg/Range", "--ros2-fields", "range",
+                                         "--wait-for-entity", "0", "--resume-wait", "0", "--no-out",
+                                         "--connect", router.endpoint], env)
+    wait_for_line(processes, bridge, "bridging /target (sensor_msgs/msg/Range)", 120)
+    (tmp_path / "pub.py").write_text(PUBLISHER)  # geometry_msgs/msg/PointStamped, waiting for a subscriber
+    start(processes, "publisher", [str(tmp_path / "pub.py"), EXAMPLE_NO_TRUTH, "/target", "50", "5", "0"], env)
+    wait_for_line(processes, bridge, "/target has a publisher of geometry_msgs/msg/PointStamped; the bridge takes "
+                                     "sensor_msgs/msg/Range", 120)
+    assert bridge.poll() is None  # counted, not a crash

@@ -352,10 +352,18 @@ def main(config: RunConfig, zconf, args: argparse.Namespace) -> int:
                 shell.log.info("publishing twin %s under %s/", config.twin, outbound.namespace)
             executor = _executor()
             executor.add_node(node)
+            next_look, foreign = time.monotonic() + 1.0, set()
             while not shell.stopping:
                 executor.spin_once(timeout_sec=0.1)
                 if outbound is not None:
                     outbound.tick()
+                if topic is not None and time.monotonic() > next_look:  # a publisher of another type never matches
+                    next_look = time.monotonic() + 1.0
+                    for other in set(_types_of(node, topic)) - {msgtype} - foreign:
+                        foreign.add(other)
+                        shell.reject("a publisher of another message type on the topic",
+                                     f"{topic} has a publisher of {other}; the bridge takes {msgtype}: its messages "
+                                     f"are not received")
             if outbound is not None:
                 shell.watchdog.step = "publishing the twin's last messages on ROS 2"
                 outbound.close(shell.watchdog.progress)

@@ -13,7 +13,11 @@ both ends:
   time until its Zenoh subscriber receives the step's Estimate.
 
 So both latencies run from the observation's publication to the estimate's arrival at a subscriber of
-the same middleware, on one clock. One observation at a time: the next goes out ``--gap`` after the
+the same middleware, on one clock. The floor of what the bridge adds is measured in the same run: the
+same two hops with a relay process that does nothing but answer (**floor-ros2**: an rclpy node that
+republishes each PointStamped as a PoseWithCovarianceStamped; **floor-zenoh**: a Zenoh session that puts
+each payload back), so floor-ros2 minus floor-zenoh is what ROS 2's two hops cost over Zenoh's before
+the bridge does any work. One observation at a time: the next goes out ``--gap`` after the
 estimate, so none queues behind another; the first ``--warm-up`` steps are left out. Runs alternate
 (native, ros2, ros2-diagonal, native, ...); the table gives the median over runs of each run's p50 and p99, and the
 bridge's cost is the difference of the p50s. Needs rclpy (run it with the ROS 2 environment's Python)::
@@ -186,11 +190,133 @@ def ros2_run(n, z, warm_up, gap, seed, log_dir, covariance: str = "cloud") -> np
         _stop(launcher)
 
 
+_ECHO = "/dtpf_bench/echo"
+
+
+def _relay(kind: str, where: str) -> None:
+    """The floor's relay process: answer each message at once, nothing else (``where``: the Zenoh endpoint)."""
+    if kind == "zenoh":
+        session = open_session(zenoh_config(mode="client", connect=[where]))
+        back = publisher(session, "dtpf_bench/echo")
+        inbox = Inbox(session, "dtpf_bench/z")
+        while (item := inbox.get(timeout=60)) is not None:
+            back.put(item.payload)
+        return
+    import rclpy
+    from geometry_msgs.msg import PointStamped, PoseWithCovarianceStamped
+    from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+    rclpy.init()
+    qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.RELIABLE)
+    node = rclpy.create_node(f"dtpf_bench_relay_{os.getpid()}")
+    back = node.create_publisher(PoseWithCovarianceStamped, _ECHO, qos)
+
+    def answer(message) -> None:
+        pose = PoseWithCovarianceStamped()
+        pose.header.stamp = message.header.stamp
+        pose.pose.pose.position.x = message.point.x
+        back.publish(pose)
+
+    node.create_subscription(PointStamped, TOPIC, answer, qos)
+    from dtpf.scripts.ros2.bridge import ros2_executor  # the bridge's own, so that the floor is its floor
+
+    executor = ros2_executor()
+    executor.add_node(node)
+    while True:  # as the bridge serves its input
+        executor.spin_once(timeout_sec=0.1)
+
+
+def _relay_process(kind: str, where: str = "") -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-P", "-m", "dtpf.scripts.bench.ros2", "--relay", kind, where],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+
+
+def floor_zenoh_run(n, z, warm_up, gap, seed, log_dir) -> np.ndarray:
+    port = free_port()
+    session = open_session(zenoh_config(mode="router", listen=[f"tcp/127.0.0.1:{port}"]))
+    relay = _relay_process("zenoh", f"tcp/127.0.0.1:{port}")
+    try:
+        inbox = Inbox(session, "dtpf_bench/echo")
+        out = publisher(session, "dtpf_bench/z")
+        latencies, deadline = [], time.monotonic() + 60
+        while inbox.get(timeout=0.05) is None:  # until the relay answers
+            assert time.monotonic() < deadline and relay.poll() is None, "the Zenoh relay did not come up"
+            out.put(b"ping")
+        while inbox.get(timeout=0.2) is not None:
+            pass
+        for k in range(1, len(z) + 1):
+            payload = encode(Observation(run_id="run", twin_id="floor", step=k, values=[float(z[k - 1])],
+                                         stamp=Time.now()))
+            sent = time.perf_counter_ns()
+            out.put(payload)
+            if inbox.get(timeout=30) is None:
+                raise RuntimeError(f"the Zenoh relay did not answer {k}")
+            if k > warm_up:
+                latencies.append((time.perf_counter_ns() - sent) / 1e6)
+            time.sleep(gap)
+        return np.array(latencies)
+    finally:
+        _stop(relay)
+        session.close()
+
+
+def floor_ros2_run(n, z, warm_up, gap, seed, log_dir) -> np.ndarray:
+    import rclpy
+    from geometry_msgs.msg import PointStamped, PoseWithCovarianceStamped
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+    relay = _relay_process("ros2")
+    qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.RELIABLE)
+    node = rclpy.create_node(f"dtpf_bench_floor_{os.getpid()}")
+    arrived: dict[int, int] = {}
+    event = threading.Event()
+
+    def on_pose(message) -> None:
+        arrived[message.header.stamp.sec] = time.perf_counter_ns()
+        event.set()
+
+    pub = node.create_publisher(PointStamped, TOPIC, qos)
+    sub = node.create_subscription(PoseWithCovarianceStamped, _ECHO, on_pose, qos)
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    threading.Thread(target=executor.spin, daemon=True).start()
+    try:
+        deadline = time.monotonic() + 120
+        while pub.get_subscription_count() < 1 or sub.get_publisher_count() < 1:
+            if time.monotonic() > deadline or relay.poll() is not None:
+                raise RuntimeError("the rclpy relay did not come up")
+            time.sleep(0.05)
+        latencies = []
+        for k in range(1, len(z) + 1):
+            message = PointStamped()
+            message.header.stamp.sec = k
+            message.point.x = float(z[k - 1])
+            event.clear()
+            sent = time.perf_counter_ns()
+            pub.publish(message)
+            while k not in arrived:
+                if not event.wait(timeout=30):
+                    raise RuntimeError(f"the rclpy relay did not answer {k}")
+                event.clear()
+            if k > warm_up:
+                latencies.append((arrived[k] - sent) / 1e6)
+            time.sleep(gap)
+        return np.array(latencies)
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+        _stop(relay)
+
+
 #: The paths measured, in the order of each round, and their rows in the table.
 PATHS = (("native", native_run), ("ros2", ros2_run),
-         ("ros2-diagonal", lambda *a: ros2_run(*a, covariance="diagonal")))
+         ("ros2-diagonal", lambda *a: ros2_run(*a, covariance="diagonal")),
+         ("floor-zenoh", floor_zenoh_run), ("floor-ros2", floor_ros2_run))
 LABELS = {"native": "native live (Zenoh)", "ros2": "ROS 2 bridge (default)",
-          "ros2-diagonal": "ROS 2 bridge, --ros2-covariance diagonal"}
+          "ros2-diagonal": "ROS 2 bridge, --ros2-covariance diagonal",
+          "floor-zenoh": "floor: Zenoh there and back, a relay that does nothing",
+          "floor-ros2": "floor: rclpy there and back, a relay that does nothing"}
 
 
 def main(argv=None) -> int:
@@ -202,7 +328,11 @@ def main(argv=None) -> int:
     parser.add_argument("--gap", type=float, default=0.005, metavar="SECONDS",
                         help="pause between an estimate and the next observation (default: %(default)s)")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--relay", nargs="+", metavar=("KIND", "ENDPOINT"), help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
+    if args.relay:  # a floor's relay process
+        _relay(args.relay[0], args.relay[1] if len(args.relay) > 1 else "")
+        return 0
     try:
         import rclpy
     except ImportError:
@@ -244,7 +374,9 @@ def main(argv=None) -> int:
         p50s[path] = statistics.median(p50)
         print(f"| {label} | {fmt_n(n)} | {p50s[path]:.3f} | {statistics.median(p99):.3f} | "
               f"{max(float(r.max()) for r in runs[path]):.2f} | {min(p50):.3f}-{max(p50):.3f} |")
-    print()
+    floor = p50s["floor-ros2"] - p50s["floor-zenoh"]
+    print(f"\nfloor of what the bridge adds: ROS 2's two hops over Zenoh's, with relays that do nothing: "
+          f"{floor:.3f} ms at p50")
     ok = True
     for path in ("ros2", "ros2-diagonal"):
         added = p50s[path] - p50s["native"]

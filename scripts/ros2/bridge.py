@@ -103,7 +103,7 @@ def discover_type(node, topic: str, given: str | None, wait: float, stopping) ->
         rclpy.spin_once(node, timeout_sec=0.1)
 
 
-def _executor():
+def ros2_executor():
     """rclpy's EventsExecutor (its event queue in C++: a callback costs a fraction of the wait-set executor's),
     else the SingleThreadedExecutor; DTPF_ROS2_EXECUTOR=single chooses the latter."""
     from rclpy.executors import SingleThreadedExecutor
@@ -350,7 +350,7 @@ def main(config: RunConfig, zconf, args: argparse.Namespace) -> int:
                                f"; the twin out under {outbound.namespace}/" if outbound else "")
             elif outbound is not None:
                 shell.log.info("publishing twin %s under %s/", config.twin, outbound.namespace)
-            executor = _executor()
+            executor = ros2_executor()
             executor.add_node(node)
             next_look, foreign = time.monotonic() + 1.0, set()
             while not shell.stopping:

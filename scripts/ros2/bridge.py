@@ -40,8 +40,15 @@ from dtpf.messages.foxglove import PointCloud
 from dtpf.messages.models import Estimate, Observation, Time
 from dtpf.scripts.console import run_command
 from dtpf.scripts.ros2 import Ros2Error, require_rclpy
-from dtpf.scripts.ros2.convert import (TOPICS, Builder, cloud_points_of, parse_pose, pose_array_cdr, pose_set,
-                                      pose_set_particles)
+from dtpf.scripts.ros2.convert import (
+    TOPICS,
+    Builder,
+    cloud_points_of,
+    parse_pose,
+    pose_array_cdr,
+    pose_set,
+    pose_set_particles,
+)
 from dtpf.scripts.ros2.export import namespace_of
 from dtpf.shell.bus import BusError, add_zenoh_arguments, open_session, zenoh_config, zenoh_config_from_args
 from dtpf.shell.service import ServiceShell

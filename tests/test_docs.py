@@ -150,7 +150,7 @@ def _name(page: Path) -> str:
 
 def test_the_diary_checker_flags_a_diary_line_and_passes_a_plain_one():
     for bad in ("Stop 25. This stop's machine is slower again.", "as a later session found",
-                "(issue 15)", "see PERF-ANCHORS.md section 4", "the same runs of the code before gave 686",
+                "(issue 15)", "see PERF-" + "ANCHORS.md section 4", "the same runs of the code before gave 686",
                 "The same commands with 127.0.0.1 ran here"):
         assert diary_lines(bad), bad
     assert not diary_lines("Each step the entity publishes its particle set; the session closes at exit.")

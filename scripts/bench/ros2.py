@@ -136,6 +136,30 @@ def native_run(n, z, warm_up, gap, seed, log_dir) -> np.ndarray:
         _stop(launcher)
 
 
+def _pose_latencies(pub, arrived: dict[int, int], event: threading.Event, z, warm_up: int, gap: float,
+                    missing: str) -> np.ndarray:
+    """Publish z_k as a PointStamped stamped k, wait for the pose stamped k (``arrived``, set by the
+    subscriber with ``event``), and return the milliseconds in between after the warm-up."""
+    from geometry_msgs.msg import PointStamped
+
+    latencies = []
+    for k in range(1, len(z) + 1):
+        message = PointStamped()
+        message.header.stamp.sec = k  # the answer carries the observation's stamp
+        message.point.x = float(z[k - 1])
+        event.clear()
+        sent = time.perf_counter_ns()
+        pub.publish(message)
+        while k not in arrived:
+            if not event.wait(timeout=30):
+                raise RuntimeError(f"{missing} {k}")
+            event.clear()
+        if k > warm_up:
+            latencies.append((arrived[k] - sent) / 1e6)
+        time.sleep(gap)
+    return np.array(latencies)
+
+
 def ros2_run(n, z, warm_up, gap, seed, log_dir, covariance: str = "cloud") -> np.ndarray:
     import rclpy
     from geometry_msgs.msg import PointStamped, PoseWithCovarianceStamped
@@ -168,22 +192,7 @@ def ros2_run(n, z, warm_up, gap, seed, log_dir, covariance: str = "cloud") -> np
             if time.monotonic() > deadline or launcher.poll() is not None:
                 raise RuntimeError("the bridge did not come up")
             time.sleep(0.05)
-        latencies = []
-        for k in range(1, len(z) + 1):
-            message = PointStamped()
-            message.header.stamp.sec = k  # the bridge gives the pose the observation's stamp
-            message.point.x = float(z[k - 1])
-            event.clear()
-            sent = time.perf_counter_ns()
-            pub.publish(message)
-            while k not in arrived:
-                if not event.wait(timeout=30):
-                    raise RuntimeError(f"no pose of step {k}")
-                event.clear()
-            if k > warm_up:
-                latencies.append((arrived[k] - sent) / 1e6)
-            time.sleep(gap)
-        return np.array(latencies)
+        return _pose_latencies(pub, arrived, event, z, warm_up, gap, "no pose of step")
     finally:
         executor.shutdown()
         node.destroy_node()
@@ -287,22 +296,7 @@ def floor_ros2_run(n, z, warm_up, gap, seed, log_dir) -> np.ndarray:
             if time.monotonic() > deadline or relay.poll() is not None:
                 raise RuntimeError("the rclpy relay did not come up")
             time.sleep(0.05)
-        latencies = []
-        for k in range(1, len(z) + 1):
-            message = PointStamped()
-            message.header.stamp.sec = k
-            message.point.x = float(z[k - 1])
-            event.clear()
-            sent = time.perf_counter_ns()
-            pub.publish(message)
-            while k not in arrived:
-                if not event.wait(timeout=30):
-                    raise RuntimeError(f"the rclpy relay did not answer {k}")
-                event.clear()
-            if k > warm_up:
-                latencies.append((arrived[k] - sent) / 1e6)
-            time.sleep(gap)
-        return np.array(latencies)
+        return _pose_latencies(pub, arrived, event, z, warm_up, gap, "the rclpy relay did not answer")
     finally:
         executor.shutdown()
         node.destroy_node()

@@ -105,12 +105,22 @@ def _record(shell: ServiceShell, recording: McapRecording, pattern: str, compres
         admission.record(recording, item)
         shell.watchdog.progress()
     shell.watchdog.step = "writing the messages in flight"
-    inbox_deadline = time.monotonic() + args.drain
-    while time.monotonic() < inbox_deadline:
-        item = inbox.get(timeout=0.05)
-        if item is None:
+    # In flight: what arrives within --drain seconds and, while a twin heard from has not yet said its run
+    # ended, for up to --drain-finished seconds: an entity's final status is its last message, so what it
+    # published before has arrived once that status has (a recorder behind on a loaded machine would
+    # otherwise close its session on the run's last steps).
+    start = time.monotonic()
+    while True:
+        waiting = silences.waiting()
+        if time.monotonic() - start >= (max(args.drain, args.drain_finished) if waiting else args.drain):
+            if waiting:
+                shell.log.warning("stopped before %s said their run ended", ", ".join(sorted(waiting)[:10]))
             break
-        admission.record(recording, item)
+        item = inbox.get(timeout=0.05)
+        if item is not None:
+            admission.record(recording, item)
+        elif not waiting:
+            break
     shell.watchdog.step = "finishing the log"
     inbox.close()
     # The recorder's own last word goes into its log too (its published one would arrive too late).
@@ -169,6 +179,10 @@ class Silences:
             del self.last[next(iter(self.last))]
         self.last.pop(twin, None)
         self.last[twin] = (now, message.step)
+
+    def waiting(self) -> list[str]:
+        """The twins heard from that have not said their run ended and have not fallen silent."""
+        return [twin for twin in self.last if twin not in self.silent]
 
     def check(self) -> None:
         """Name the twins that have just gone silent."""
@@ -261,6 +275,9 @@ def build_parser() -> argparse.ArgumentParser:
                         help="on SIGINT/SIGTERM, after writing every message already received, keep writing "
                              "the ones still arriving for at most this long; it stops as soon as none comes "
                              "for 50 ms (default: %(default)s)")
+    parser.add_argument("--drain-finished", type=float, default=5.0, metavar="SECONDS",
+                        help="... and while a twin it heard from has not said its run ended, keep writing for "
+                             "at most this long (default: %(default)s)")
     add_run_arguments(parser)
     add_service_arguments(parser)
     add_zenoh_arguments(parser)

@@ -30,7 +30,7 @@ from dtpf.messages import keys
 from dtpf.messages.codec import MessageError, decode_for_key
 from dtpf.messages.config import RunConfig
 from dtpf.messages.errors import DtpfError
-from dtpf.messages.models import Estimate, Layer, Status
+from dtpf.messages.models import Estimate, Layer, ServiceState, Status
 from dtpf.recording.logfile import what_it_holds
 from dtpf.recording.writer import EXIT_LOG_WRITE, LogWriteError
 from dtpf.shell.bus import BusError, Inbox, Presence, free_port, open_session, zenoh_config
@@ -539,7 +539,7 @@ def launch(config: RunConfig, *, log_path: Path | None = None, port: int | None 
             result.failure = f"the entity service ended the run: {_describe_code(entity_code)}"
         # Final statuses of the other services arrive when they stop.
         _stop(children, ("information", "system"), result)
-        _drain(watch, result, progress, layer_of_pid, quiet=0.3)
+        _drain(watch, result, progress, layer_of_pid, quiet=0.3, entity_pid=children["entity"].pid)
         _stop(children, ("recorder",), result)
     except KeyboardInterrupt:
         result.interrupted = True
@@ -631,13 +631,22 @@ def _take(result: LaunchResult, item, progress, layer_of_pid: dict[int, str]) ->
     return False
 
 
-def _drain(watch: Inbox, result: LaunchResult, progress, layer_of_pid, quiet: float) -> None:
+def _drain(watch: Inbox, result: LaunchResult, progress, layer_of_pid, quiet: float, entity_pid=None) -> None:
     """Take what is still in flight until none of the run's own messages came for ``quiet`` seconds (what
-    others publish meanwhile, a flood of statuses say, does not hold the launcher), at most 5 s."""
+    others publish meanwhile, a flood of statuses say, does not hold the launcher), at most 5 s; with
+    ``entity_pid``, not before that entity's final status (its last message: what it published before has
+    arrived by then, however far behind a loaded machine left this process)."""
     deadline = time.monotonic() + 5.0
     last_taken = time.monotonic()
-    while (now := time.monotonic()) < deadline and now - last_taken < quiet:
-        item = watch.get(timeout=max(0.0, quiet - (now - last_taken)))
+
+    def entity_done() -> bool:
+        status = result.statuses_by_pid.get(entity_pid)
+        return status is not None and status.state in (ServiceState.FINISHED, ServiceState.FAILED)
+
+    while (now := time.monotonic()) < deadline:
+        if now - last_taken >= quiet and (entity_pid is None or entity_done()):
+            break
+        item = watch.get(timeout=max(0.01, quiet - (now - last_taken)))
         if item is not None and _take(result, item, progress, layer_of_pid):
             last_taken = time.monotonic()
 

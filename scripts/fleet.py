@@ -33,6 +33,7 @@ from dtpf.scripts.launch import (
     _wait_for_recorder,
     close_bridges,
     default_log_path,
+    interrupts_held,
     open_router,
     pump_bridges,
     rejected_by_layer,
@@ -198,16 +199,17 @@ def launch_fleet(config: RunConfig, count: int, *, log_path: Path | None = None,
         restarted = {"information": 0, "system": 0, "recorder": 0}
         gone: set[str] = set()  # a recorder that could not write the log is not started again
         while True:
-            item = watch.get(timeout=0.1)
-            taken = 0
-            while item is not None:
-                if isinstance(_take(result, item, layer_of_pid), Estimate):
-                    last_estimate = time.monotonic()
-                    first_estimate = first_estimate or last_estimate
-                    if progress is not None:
-                        progress(result.twin_steps, total)
-                taken += 1
-                item = watch.get(timeout=0) if taken < _BATCH else None
+            with interrupts_held():  # a message taken off the inbox is folded in, whatever signal comes
+                item = watch.get(timeout=0.1)
+                taken = 0
+                while item is not None:
+                    if isinstance(_take(result, item, layer_of_pid), Estimate):
+                        last_estimate = time.monotonic()
+                        first_estimate = first_estimate or last_estimate
+                        if progress is not None:
+                            progress(result.twin_steps, total)
+                    taken += 1
+                    item = watch.get(timeout=0) if taken < _BATCH else None
             pump_bridges(bridges, result, notify)
             if bridges and any(pid == children["recorder"].pid for pid, _ in result.statuses):
                 bridges.pop().close()  # the new recorder listens: it said so

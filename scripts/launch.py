@@ -20,6 +20,7 @@ import datetime as dt
 import signal
 import subprocess
 import sys
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -377,6 +378,39 @@ def service_command(layer: str, config: RunConfig, endpoint: str, *, timeout: fl
     return command
 
 
+class interrupts_held:
+    """Ctrl-C and SIGTERM, arriving inside this block, take effect when it ends.
+
+    A KeyboardInterrupt raised between taking a message off the inbox and folding it into the tally lost
+    that estimate (the summary then counted the next one as out of order). Inside the block such a signal
+    is noted; at its end the handler that was installed runs (it raises KeyboardInterrupt). Outside the
+    main thread, where handlers cannot be set, the block does nothing.
+    """
+
+    _SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+    def __enter__(self):
+        self._noted: list[int] = []
+        self._handlers = {}
+        if threading.current_thread() is threading.main_thread():
+            for signum in self._SIGNALS:
+                self._handlers[signum] = signal.signal(signum, lambda signum, _frame: self._noted.append(signum))
+        return self
+
+    def __exit__(self, *exc_info):
+        for signum, handler in self._handlers.items():
+            signal.signal(signum, handler)
+        if self._noted and exc_info[0] is None:
+            handler = self._handlers[self._noted[0]]
+            if callable(handler):
+                handler(self._noted[0], None)
+            elif handler == signal.SIG_DFL and self._noted[0] == signal.SIGINT:
+                raise KeyboardInterrupt
+            elif handler == signal.SIG_DFL:
+                signal.raise_signal(self._noted[0])
+        return False
+
+
 def bridge_command(config: RunConfig, endpoint: str, options: list[str], *, log_level: str = "WARNING",
                    secure: Path | None = None) -> list[str]:
     """The command line of the ROS 2 bridge (:mod:`dtpf.scripts.ros2.bridge`) of a ``ros2:TOPIC`` run: its
@@ -510,12 +544,13 @@ def launch(config: RunConfig, *, log_path: Path | None = None, port: int | None 
         next_trim = time.monotonic() + 10.0
         while True:
             # Every turn looks at the children and the deadline, whatever arrives (a flood cannot hold it).
-            item = watch.get(timeout=0.1)
-            taken = 0
-            while item is not None:
-                _take(result, item, progress, layer_of_pid)
-                taken += 1
-                item = watch.get(timeout=0) if taken < _BATCH else None
+            with interrupts_held():  # a message taken off the inbox is folded in, whatever signal comes
+                item = watch.get(timeout=0.1)
+                taken = 0
+                while item is not None:
+                    _take(result, item, progress, layer_of_pid)
+                    taken += 1
+                    item = watch.get(timeout=0) if taken < _BATCH else None
             pump_bridges(bridges, result, notify)
             if bridges and "recorder" not in gone and children["recorder"].pid in result.statuses_by_pid:
                 bridges.pop().close()  # the new recorder listens: it said so
@@ -646,9 +681,10 @@ def _drain(watch: Inbox, result: LaunchResult, progress, layer_of_pid, quiet: fl
     while (now := time.monotonic()) < deadline:
         if now - last_taken >= quiet and (entity_pid is None or entity_done()):
             break
-        item = watch.get(timeout=max(0.01, quiet - (now - last_taken)))
-        if item is not None and _take(result, item, progress, layer_of_pid):
-            last_taken = time.monotonic()
+        with interrupts_held():
+            item = watch.get(timeout=max(0.01, quiet - (now - last_taken)))
+            if item is not None and _take(result, item, progress, layer_of_pid):
+                last_taken = time.monotonic()
 
 
 def _stop(children: dict[str, subprocess.Popen], layers, result: LaunchResult, grace: float = 10.0) -> None:

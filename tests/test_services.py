@@ -263,3 +263,31 @@ def test_recorder_that_cannot_write_its_log_says_so_and_exits_2(tmp_path):
     assert done.returncode == 2, done.stderr
     assert f"cannot write the log {output}" in done.stderr
     assert "Traceback" not in done.stderr
+
+
+def test_a_signal_inside_interrupts_held_takes_effect_when_the_block_ends():
+    """The launcher folds a message it took off its inbox before Ctrl-C stops it (else that estimate was lost
+    and the next one counted as out of order)."""
+    from dtpf.scripts.launch import interrupts_held
+
+    folded = []
+    with pytest.raises(KeyboardInterrupt):
+        with interrupts_held():
+            os.kill(os.getpid(), signal.SIGINT)
+            folded.append("after the signal")  # still runs: the signal waits for the block's end
+    assert folded == ["after the signal"]
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # the handler is put back
+
+
+def test_sigterm_inside_interrupts_held_runs_the_installed_handler_at_the_end():
+    from dtpf.scripts.launch import interrupts_held
+
+    seen = []
+    previous = signal.signal(signal.SIGTERM, lambda signum, frame: seen.append(signum))
+    try:
+        with interrupts_held():
+            os.kill(os.getpid(), signal.SIGTERM)
+            assert seen == []
+        assert seen == [signal.SIGTERM]
+    finally:
+        signal.signal(signal.SIGTERM, previous)

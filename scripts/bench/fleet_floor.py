@@ -7,8 +7,13 @@ weight state (to the system layer and the recorder), the PS command (to the
 information layer and the recorder) and the estimate (to the recorder and the
 launcher's progress), besides about 0.76 statuses per twin-step at K = 100.
 This benchmark sends the same messages, of the sizes a real fleet's log holds
-at N = 1e3 (``--scale`` for others), between stand-in processes that do
-nothing else: no filter, no rules, no pydantic, no MCAP writing. Each stand-in
+at N = 1e3 (``--scale`` for others; :func:`plan_of_launch` reads them from a
+short launch's log instead), between stand-in processes that do nothing else:
+no filter, no rules, no pydantic, no MCAP writing. The hops are the lockstep's:
+the entity stand-in sends step k + 1's set once step k's answer is in, the
+information stand-in answers step k once the PS of step k - 1 is in (as the
+information layer waits for it), the system stand-in answers each weight
+state. Each stand-in
 receives as the product does (``dtpf.shell.bus.Inbox``: a Zenoh subscriber whose
 Python callback copies the payload into a queue that rings a doorbell) and
 publishes with the product's publishers (congestion control BLOCK); the
@@ -35,6 +40,8 @@ repository root::
 from __future__ import annotations
 
 import argparse
+import collections
+import json
 import os
 import platform
 import random
@@ -54,12 +61,58 @@ SIZES = {"entity/particles": 16_368, "information/preprocessed": 16_464, "inform
          "system/ps": 212, "entity/estimate": 421}
 #: Topics whose size grows with N (the particle sets).
 SCALED = ("entity/particles", "information/preprocessed")
+#: The topics that carry the lockstep (a plan must have them): the set out, the answer back, the weight state
+#: to the system layer, its PS decision back, and the estimate the launcher counts.
+LOCKSTEP = ("entity/particles", "information/preprocessed", "information/weight_state", "system/ps",
+            "entity/estimate")
 _STEP = struct.Struct("<q")
 PREFIX = "floor"
 
 
-def _payload(topic: str, step: int, scale: float) -> bytes:
-    size = int(SIZES[topic] * (scale if topic in SCALED else 1.0))
+def scaled_plan(scale: float = 1.0) -> dict[str, int]:
+    """:data:`SIZES` with the particle sets ``scale`` times as large: bytes of each message of a twin-step."""
+    return {topic: int(size * (scale if topic in SCALED else 1.0)) for topic, size in SIZES.items()}
+
+
+def plan_of_log(path, steps: int) -> dict[str, int]:
+    """Bytes of each message of a twin-step by topic (``layer/name``), from a dtpf log of one twin's run of
+    ``steps`` steps: the topics with at least one message every other step, statuses left out (a few a run
+    and more at its start and end: not step messages), each at its mean size, in the order of their first
+    message."""
+    from dtpf.recording.logfile import read_log
+
+    counts, sizes = collections.Counter(), collections.Counter()
+    for message in read_log(path).messages:
+        topic = message.topic.split("/", 2)[2]
+        counts[topic] += 1
+        sizes[topic] += len(message.data)
+    plan = {topic: round(sizes[topic] / counts[topic]) for topic in counts
+            if counts[topic] >= steps / 2 and not topic.endswith("/status")}
+    missing = [topic for topic in LOCKSTEP if topic not in plan]
+    if missing:
+        raise RuntimeError(f"the log {path} has no step messages on {', '.join(missing)}: the floor's stand-ins "
+                           f"pass those; its step topics are {', '.join(plan) or 'none'}")
+    return plan
+
+
+def plan_of_launch(config, folder, steps: int = 12, **launch_options) -> dict[str, int]:
+    """:func:`plan_of_log` of a short ``dtpf launch`` of ``config`` (``steps`` steps, the recorder on;
+    ``launch_options`` go to :func:`dtpf.scripts.launch.launch`, e.g. ``cloud_points``)."""
+    from pathlib import Path
+
+    from dtpf.scripts.launch import launch
+
+    path = Path(folder) / f"plan-{config.particles}-{time.monotonic_ns()}.mcap"
+    config = config.model_copy(update={"steps": steps})
+    try:
+        launch(config, log_path=path, timeout=10.0, child_output=None, notify=lambda text: None,
+               **launch_options)
+        return plan_of_log(path, steps)
+    finally:
+        path.unlink(missing_ok=True)
+
+
+def _payload(size: int, step: int) -> bytes:
     return _STEP.pack(step) + bytes(max(0, size - _STEP.size))
 
 
@@ -101,12 +154,18 @@ class Publishers:
 
 
 def _serve(role: str, router: str, how: str, k: int, processes: int, process: int, steps: int,
-           scale: float) -> int:
-    """One stand-in process, until 10 s pass without input (or, for an entity, its twins are done)."""
+           plan: dict[str, int]) -> int:
+    """One stand-in process, until 10 s pass without input (or, for an entity, its twins are done).
+
+    Each layer stand-in publishes its layer's topics of ``plan`` (``layer/name``: bytes) in the plan's order,
+    the lockstep's message first: the entity its set, then (once the answer is in) the rest of its step's
+    messages before the next set; the information layer its answer, then the weight state and the rest.
+    """
     session = open_session(zenoh_config(mode="client", connect=[router]))
     doorbell = Doorbell()
     out = Publishers(session)
     all_twins = [twin for p in range(processes) for twin in _twins_of(p, processes, k)]
+    mine = [(topic, size) for topic, size in plan.items() if topic.split("/", 1)[0] == role]
     if role == "recorder":
         inbox = Inbox(session, f"{PREFIX}/**")
         while inbox.get(timeout=10) is not None:
@@ -116,31 +175,46 @@ def _serve(role: str, router: str, how: str, k: int, processes: int, process: in
         weights = Receiver(session, "information/weight_state", all_twins, "*", how, doorbell)
         while doorbell.wait(10):
             for twin, payload in weights.drain():
-                out.put(twin, "system/ps", _payload("system/ps", _STEP.unpack_from(payload)[0], scale))
+                step = _STEP.unpack_from(payload)[0]
+                for topic, size in mine:
+                    out.put(twin, topic, _payload(size, step))
         os._exit(0)
     if role == "information":
+        answer = sorted(mine, key=lambda item: item[0] != "information/preprocessed")
         sets = Receiver(session, "entity/particles", all_twins, "*", how, doorbell)
         commands = Receiver(session, "system/ps", all_twins, "*", how, doorbell)
+        decided = dict.fromkeys(all_twins, 0)  # the step of each twin's latest PS decision
+        held: dict[str, list[int]] = {twin: [] for twin in all_twins}  # steps waiting for the decision before
         while doorbell.wait(10):
-            for _ in commands.drain():
-                pass
+            touched = set()
+            for twin, payload in commands.drain():
+                decided[twin] = max(decided[twin], _STEP.unpack_from(payload)[0])
+                touched.add(twin)
             for twin, payload in sets.drain():
-                step = _STEP.unpack_from(payload)[0]
-                out.put(twin, "information/preprocessed", _payload("information/preprocessed", step, scale))
-                out.put(twin, "information/weight_state", _payload("information/weight_state", step, scale))
+                held[twin].append(_STEP.unpack_from(payload)[0])
+                touched.add(twin)
+            for twin in touched:
+                steps_held = held[twin]
+                while steps_held and steps_held[0] - 1 <= decided[twin]:
+                    step = steps_held.pop(0)
+                    for topic, size in answer:
+                        out.put(twin, topic, _payload(size, step))
         os._exit(0)
     twins = _twins_of(process, processes, k)
+    particles = plan["entity/particles"]
+    after = [(topic, size) for topic, size in mine if topic != "entity/particles"]
     answers = Receiver(session, "information/preprocessed", twins, f"e{process}-$*", how, doorbell)
     time.sleep(2.0)  # every stand-in subscribed
     done = 0
     for twin in twins:
-        out.put(twin, "entity/particles", _payload("entity/particles", 1, scale))
+        out.put(twin, "entity/particles", _payload(particles, 1))
     while done < len(twins) and doorbell.wait(10):
         for twin, payload in answers.drain():
             step = _STEP.unpack_from(payload)[0]
-            out.put(twin, "entity/estimate", _payload("entity/estimate", step, scale))
+            for topic, size in after:
+                out.put(twin, topic, _payload(size, step))
             if step < steps:
-                out.put(twin, "entity/particles", _payload("entity/particles", step + 1, scale))
+                out.put(twin, "entity/particles", _payload(particles, step + 1))
             else:
                 done += 1
     time.sleep(0.5)
@@ -155,8 +229,11 @@ def _kind(command: list[bytes]) -> str:
     return "other"
 
 
-def one_run(k: int, how: str, steps: int, processes: int, scale: float) -> dict:
-    """Twin-steps per second and CPU ms per twin-step by kind of process, of one fleet of stand-ins."""
+def one_run(k: int, how: str, steps: int, processes: int, scale: float = 1.0,
+            plan: dict[str, int] | None = None) -> dict:
+    """Twin-steps per second, seconds per step of one twin (``step_s``) and CPU ms per twin-step by kind of
+    process, of one fleet of stand-ins sending ``plan`` (default: :func:`scaled_plan` of ``scale``)."""
+    plan = plan or scaled_plan(scale)
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     router = open_session(zenoh_config(mode="router", listen=[endpoint]))
     children = []
@@ -168,9 +245,10 @@ def one_run(k: int, how: str, steps: int, processes: int, scale: float) -> dict:
                 for process in range(processes if role == "entity" else 1):
                     children.append(subprocess.Popen(
                         [sys.executable, "-P", "-m", "dtpf.scripts.bench.fleet_floor", "--serve", role, endpoint, how, str(k),
-                         str(processes), str(process), str(steps), str(scale)]))
+                         str(processes), str(process), str(steps), json.dumps(plan, separators=(",", ":"))]))
             first = last = None
             count = 0
+            ends: dict[str, list[float]] = {}
             while count < k * steps:
                 item = estimates.get(timeout=30)
                 if item is None:  # a twin's message was lost (seen in the inbox variant): this run counts as stalled
@@ -178,10 +256,15 @@ def one_run(k: int, how: str, steps: int, processes: int, scale: float) -> dict:
                 last = time.time()
                 first = first or last
                 count += 1
+                ends.setdefault(item.key.split("/", 2)[1], []).append(time.perf_counter())
         session.close()
         cpu = sampler.cpu_between(first, last)
         window = count - 1
-        return {"rate": window / (last - first), "cpu_ms": {kind: 1e3 * s / window for kind, s in cpu.items()}}
+        # One twin's step: the time between its consecutive estimates, from its 10th on, median over the twins.
+        step_s = statistics.median((e[-1] - e[min(9, len(e) - 2)]) / (len(e) - 1 - min(9, len(e) - 2))
+                                   for e in ends.values())
+        return {"rate": window / (last - first), "step_s": step_s,
+                "cpu_ms": {kind: 1e3 * s / window for kind, s in cpu.items()}}
     finally:
         for child in children:
             child.kill()
@@ -205,8 +288,8 @@ def main(argv=None) -> int:
     parser.add_argument("--serve", nargs=8, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.serve:
-        role, router, how, k, processes, process, steps, scale = args.serve
-        return _serve(role, router, how, int(k), int(processes), int(process), int(steps), float(scale))
+        role, router, how, k, processes, process, steps, plan = args.serve
+        return _serve(role, router, how, int(k), int(processes), int(process), int(steps), json.loads(plan))
     variants = [(k, how) for k in args.twins for how in args.receivers]
     order = variants * args.repeats
     random.Random(args.seed).shuffle(order)

@@ -21,17 +21,38 @@ where it fits (``--solo-max``), (k) K solo ``dtpf.scripts.launch.launch`` at onc
   and the sampler). Less moved by other load than twin-steps/s, and it says
   which process to make cheaper.
 
+Beside each fleet, in the same run (``--no-floor`` leaves them out):
+
+- (f) the floor: ``dtpf.scripts.bench.fleet_floor`` with the same K, steps and
+  entity processes: the fleet's messages (topics and sizes from the log of a
+  short solo launch at the same N with the fleet's point clouds) between
+  stand-in processes that do no work, its CPU per twin-step counted the same
+  way;
+- (a) the in-process step's CPU: ``dtpf.scripts.bench.pipeline``'s in-process
+  pipeline at the same N and steps, CPU time (``time.process_time``) per step
+  over steps 10..T after a warm-up run, in a child process with the layers'
+  settings (one BLAS thread, large blocks kept).
+
+The message path's target: at K = 100, N = 1e3, CPU per twin-step at most
+2 x ((a) + (f)'s CPU per twin-step); the ratio CPU / ((a) + (f)) is printed
+for every fleet (PASS/FAIL where it is the target's case).
+
 Run from the repository root::
 
     python -m dtpf.scripts.bench.fleet                              # K = 1, 10, 100 at 1e3; 1, 10 at 1e5
+    python -m dtpf.scripts.bench.fleet --quick                      # K = 100 at 1e3 and its floor: about 1 min
     python -m dtpf.scripts.bench.fleet --cases 1e3:1,10 --steps 100
 """
 from __future__ import annotations
 
 import argparse
 import functools
+import json
 import os
 import platform
+import random
+import statistics
+import subprocess
 import sys
 import tempfile
 import threading
@@ -50,6 +71,10 @@ DEFAULT_STEPS = {1_000: 200, 100_000: 60}
 FIRST_TIMED = 10
 TARGET_K, TARGET_N, TARGET_RATE = 100, 1_000, 1_000.0
 TARGET_SHARED_MB_PER_TWIN = 2.0
+#: CPU per twin-step at (TARGET_N, TARGET_K) at most this many times (in-process step CPU + the floor's).
+FLOOR_FACTOR = 2.0
+#: --quick: the target's case alone, no solo launches, these steps per twin.
+QUICK_STEPS = 100
 
 
 class RssSampler:
@@ -213,6 +238,48 @@ def run_solo(n: int, k: int, steps: int, folder: Path) -> dict:
             "rejected": sum(sum(r.rejected.values()) for r in results.values())}
 
 
+#: The floor's messages at each N, from the first floor run's launch.
+_plans: dict[int, dict[str, int]] = {}
+
+
+def run_floor(n: int, k: int, steps: int, folder: Path, entities: int | None = None) -> dict:
+    """The floor of a fleet of K twins at N (``dtpf.scripts.bench.fleet_floor``, the product's receivers),
+    with the messages of a short solo launch at N with the fleet's point clouds."""
+    from dtpf.scripts.bench import fleet_floor  # it imports this module
+    from dtpf.scripts.fleet import FLEET_CLOUD_POINTS
+
+    plan = _plans.get(n)
+    if plan is None:
+        config = RunConfig(particles=n, steps=steps, twin=f"p{n}", run_id="bench")
+        plan = _plans[n] = fleet_floor.plan_of_launch(config, folder, cloud_points=FLEET_CLOUD_POINTS)
+    result = fleet_floor.one_run(k, "inbox", steps, entities or os.cpu_count() or 1, plan=plan)
+    if "stalled" in result:
+        raise RuntimeError(f"floor N={n} K={k} stalled after {result['stalled']} of {k * steps} twin-steps")
+    return {**result, "plan": plan}
+
+
+def inprocess_cpu(n: int, steps: int) -> float:
+    """CPU seconds per step of the in-process pipeline at N, measured in a child process (see ``--inprocess``)."""
+    out = subprocess.run([sys.executable, "-P", "-m", "dtpf.scripts.bench.fleet", "--inprocess", str(n), str(steps)],
+                         check=True, capture_output=True, text=True).stdout
+    return json.loads(out.strip().splitlines()[-1])["cpu_s"]
+
+
+def _inprocess(n: int, steps: int) -> int:
+    """Print the in-process pipeline's CPU seconds per step at N (steps 10..T, after a warm-up) as JSON."""
+    from threadpoolctl import threadpool_limits
+
+    from dtpf.scripts.bench.pipeline import run_inprocess
+    from dtpf.shell.service import keep_large_blocks
+
+    keep_large_blocks()  # the layer processes' settings, as the pipeline benchmark's (a)
+    threadpool_limits(limits=1, user_api="blas")
+    config = RunConfig(particles=n, steps=steps, preprocess=True, run_id="bench")
+    run_inprocess(config.model_copy(update={"steps": FIRST_TIMED + 2}))
+    print(json.dumps({"cpu_s": run_inprocess(config, clock=time.process_time)}))
+    return 0
+
+
 def parse_cases(texts: list[str]) -> dict[int, tuple[int, ...]]:
     cases = {}
     for text in texts:
@@ -221,38 +288,89 @@ def parse_cases(texts: list[str]) -> dict[int, tuple[int, ...]]:
     return cases
 
 
+def _median_run(runs: list[dict]) -> dict:
+    """One run's figures of several: the run of median rate, its CPU per kind the median of each kind's
+    (``cpu_all``: the median of the runs' sums)."""
+    if len(runs) == 1:
+        return {**runs[0], "cpu_all": sum(runs[0].get("cpu_ms", {}).values())}
+    chosen = sorted(runs, key=lambda r: r["rate"])[len(runs) // 2]
+    result = dict(chosen)
+    if "cpu_ms" in chosen:
+        kinds = {kind for r in runs for kind in r["cpu_ms"]}
+        result["cpu_ms"] = {kind: statistics.median(r["cpu_ms"].get(kind, 0.0) for r in runs) for kind in kinds}
+        result["cpu_all"] = statistics.median(sum(r["cpu_ms"].values()) for r in runs)
+    return result
+
+
 def _mb(values) -> str:
     return f"{sum(values) / 2**20:.0f}" if values else "-"
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m dtpf.scripts.bench.fleet", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m dtpf.scripts.bench.fleet", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--cases", nargs="+", default=None, metavar="N:K,K",
                         help="the (N, K) to measure, e.g. 1e3:1,10,100 1e5:1,10 (the default)")
     parser.add_argument("--steps", type=int, default=None, help="steps per twin (default: 200 at 1e3, 60 at 1e5)")
-    parser.add_argument("--solo-max", type=int, default=10,
-                        help="run K solo launches for comparison when K is at most this (default: %(default)s)")
+    parser.add_argument("--solo-max", type=int, default=None,
+                        help="run K solo launches for comparison when K is at most this (default: 10; 0 with "
+                             "--quick)")
     parser.add_argument("--entities", type=int, default=None, metavar="E",
                         help="entity processes hosting a fleet's twins, as dtpf launch --entities (default: one "
                              "per CPU)")
+    parser.add_argument("--no-floor", dest="floor", action="store_false",
+                        help="leave out, beside each fleet, (f) its floor (dtpf.scripts.bench.fleet_floor: the same "
+                             "K, steps and messages between stand-ins that do no work) and (a) the in-process step's "
+                             "CPU, and the target CPU per twin-step <= 2 x ((a) + (f))")
+    parser.add_argument("--repeats", type=int, default=1,
+                        help="runs of each fleet and of its floor, interleaved in random order; the tables give "
+                             "medians (default: %(default)s)")
+    parser.add_argument("--quick", action="store_true",
+                        help=f"a short run: the target's case alone (K = {TARGET_K}, N = 1e3), "
+                             f"{QUICK_STEPS} steps, no solo launches (options given as well override these)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the run order (default: %(default)s)")
+    parser.add_argument("--inprocess", nargs=2, type=int, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
+    if args.inprocess:
+        return _inprocess(*args.inprocess)
     if args.entities is not None and args.entities < 1:
         parser.error(f"--entities must be at least 1, got {args.entities}")
+    if args.repeats < 1:
+        parser.error("--repeats must be at least 1")
+    if args.quick:
+        args.cases = args.cases or [f"{TARGET_N}:{TARGET_K}"]
+        args.steps = args.steps or QUICK_STEPS
+        args.solo_max = 0 if args.solo_max is None else args.solo_max
+    args.solo_max = 10 if args.solo_max is None else args.solo_max
     cases = parse_cases(args.cases) if args.cases else DEFAULT_CASES
     rows = []
+    floors: dict[tuple[int, int], dict] = {}
     load_before = os.getloadavg()[0]
     start = time.perf_counter()
+    order = random.Random(args.seed)
     with tempfile.TemporaryDirectory(prefix="dtpf-bench-fleet-") as folder:
         for n, ks in cases.items():
             steps = args.steps or DEFAULT_STEPS.get(n, 100)
             for k in ks:
-                for mode, run in (("fleet", functools.partial(run_fleet, entities=args.entities)), ("solo", run_solo)):
-                    if mode == "solo" and k > args.solo_max:
-                        continue
-                    print(f"N={n} K={k} {mode} ({steps} steps)", file=sys.stderr)
-                    rows.append((n, k, mode, run(n, k, steps, Path(folder))))
-                    for path in Path(folder).glob("*.mcap"):
-                        path.unlink()
+                runs: dict[str, list[dict]] = {"fleet": [], "floor": [], "solo": []}
+                for repeat in range(args.repeats):
+                    modes = ["fleet"] + (["floor"] if args.floor else []) + (["solo"] if k <= args.solo_max else [])
+                    order.shuffle(modes)
+                    for mode in modes:
+                        run = {"fleet": functools.partial(run_fleet, entities=args.entities), "solo": run_solo,
+                               "floor": functools.partial(run_floor, entities=args.entities)}[mode]
+                        print(f"N={n} K={k} {mode} ({steps} steps), run {repeat + 1}/{args.repeats}", file=sys.stderr)
+                        runs[mode].append(run(n, k, steps, Path(folder)))
+                        for path in Path(folder).glob("*.mcap"):
+                            path.unlink()
+                for mode in ("fleet", "solo"):
+                    if runs[mode]:
+                        rows.append((n, k, mode, _median_run(runs[mode])))
+                if args.floor:
+                    print(f"N={n} in-process step CPU ({steps} steps)", file=sys.stderr)
+                    floors[n, k] = {"floor": _median_run(runs["floor"]), "runs": runs,
+                                    "a_ms": 1e3 * statistics.median(inprocess_cpu(n, steps)
+                                                                    for _ in range(args.repeats))}
     print(f"`python -m dtpf.scripts.bench.fleet{' ' + ' '.join(sys.argv[1:]) if sys.argv[1:] else ''}`: Python "
           f"{platform.python_version()}, {os.cpu_count()} CPUs, {time.perf_counter() - start:.0f} s in all, "
           f"1-min load {load_before:.2f} before.\n")
@@ -276,9 +394,33 @@ def main(argv=None) -> int:
         if "cpu_ms" in r:
             cpu = r["cpu_ms"]
             print(f"| {n:.0e} | {k} | " + " | ".join(f"{cpu.get(kind, 0.0):.3f}" for kind in kinds)
-                  + f" | {sum(cpu.values()):.3f} |")
+                  + f" | {r['cpu_all']:.3f} |")
     print("\nCPU: utime + stime from /proc between the fleet's first and last estimate, by kind of process "
-          "(launcher: this process, the router in it), per twin-step of that window.")
+          "(launcher: this process, the router in it), per twin-step of that window"
+          + (f"; medians over {args.repeats} runs." if args.repeats > 1 else "."))
+    target_ratio = None
+    if floors:
+        print("\n| N | K | fleet CPU ms per twin-step | (a) in-process step CPU ms | (f) floor CPU ms per twin-step "
+              "| (f) floor twin-steps/s | fleet twin-steps/s | CPU / ((a) + (f)) (range) |\n" + "|---" * 8 + "|")
+        for n, k, mode, r in rows:
+            if mode != "fleet" or (n, k) not in floors:
+                continue
+            f, a_ms = floors[n, k]["floor"], floors[n, k]["a_ms"]
+            pairs = zip(floors[n, k]["runs"]["fleet"], floors[n, k]["runs"]["floor"])
+            ratios = [sum(x["cpu_ms"].values()) / (a_ms + sum(y["cpu_ms"].values())) for x, y in pairs]
+            ratio = statistics.median(ratios)
+            if (n, k) == (TARGET_N, TARGET_K):
+                target_ratio = (r["cpu_all"], a_ms, f["cpu_all"], ratio)
+            print(f"| {n:.0e} | {k} | {r['cpu_all']:.3f} | {a_ms:.3f} | {f['cpu_all']:.3f} | {f['rate']:.0f} | "
+                  f"{r['rate']:.0f} | {ratio:.2f} ({min(ratios):.2f}-{max(ratios):.2f}) |")
+        plans = {n: floor["floor"]["plan"] for (n, k), floor in floors.items()}
+        print("\n(f): dtpf.scripts.bench.fleet_floor with the same K, steps and entity processes, receivers as the "
+              "product's (one subscriber per twin and topic), CPU counted as the fleet's; its messages per twin-step, "
+              "from a 12-step solo launch at N with the fleet's point clouds: "
+              + "; ".join(f"{n:.0e}: " + ", ".join(f"{topic} {size:,}" for topic, size in plan.items())
+                          for n, plan in plans.items())
+              + " bytes. (a): the in-process pipeline's CPU time per step (steps 10..T, one BLAS thread). "
+              "The ratio is the median of the runs' (fleet, floor) pairs.")
     failed = False
     for (n, k), shared in sorted(shared_at.items()):
         if k > 1 and (n, 1) in shared_at:
@@ -295,6 +437,13 @@ def main(argv=None) -> int:
             failed |= not ok
             print(f"- N = {n:.0e}, K = {k}: {r['rate']:.0f} twin-steps/s (target at least {TARGET_RATE:.0f}: "
                   f"{'PASS' if ok else 'FAIL'})")
+    if target_ratio is not None:
+        cpu, a_ms, f_ms, ratio = target_ratio
+        ok = ratio <= FLOOR_FACTOR
+        print(f"- N = 1e3, K = {TARGET_K}: CPU per twin-step at most {FLOOR_FACTOR:g} x (in-process step "
+              f"CPU + floor CPU per twin-step): {cpu:.3f} ms against {FLOOR_FACTOR:g} x ({a_ms:.3f} + {f_ms:.3f}) = "
+              f"{FLOOR_FACTOR * (a_ms + f_ms):.3f} ms; CPU / ((a) + (f)) {ratio:.2f} (at most {FLOOR_FACTOR:g}): "
+              f"{'PASS' if ok else 'FAIL'} (reported, not in the exit code)")
     return 1 if failed else 0
 
 

@@ -47,12 +47,10 @@ from __future__ import annotations
 
 import argparse
 import functools
-import json
 import os
 import platform
 import random
 import statistics
-import subprocess
 import sys
 import tempfile
 import threading
@@ -258,28 +256,6 @@ def run_floor(n: int, k: int, steps: int, folder: Path, entities: int | None = N
     return {**result, "plan": plan}
 
 
-def inprocess_cpu(n: int, steps: int) -> float:
-    """CPU seconds per step of the in-process pipeline at N, measured in a child process (see ``--inprocess``)."""
-    out = subprocess.run([sys.executable, "-P", "-m", "dtpf.scripts.bench.fleet", "--inprocess", str(n), str(steps)],
-                         check=True, capture_output=True, text=True).stdout
-    return json.loads(out.strip().splitlines()[-1])["cpu_s"]
-
-
-def _inprocess(n: int, steps: int) -> int:
-    """Print the in-process pipeline's CPU seconds per step at N (steps 10..T, after a warm-up) as JSON."""
-    from threadpoolctl import threadpool_limits
-
-    from dtpf.scripts.bench.pipeline import run_inprocess
-    from dtpf.shell.service import keep_large_blocks
-
-    keep_large_blocks()  # the layer processes' settings, as the pipeline benchmark's (a)
-    threadpool_limits(limits=1, user_api="blas")
-    config = RunConfig(particles=n, steps=steps, preprocess=True, run_id="bench")
-    run_inprocess(config.model_copy(update={"steps": FIRST_TIMED + 2}))
-    print(json.dumps({"cpu_s": run_inprocess(config, clock=time.process_time)}))
-    return 0
-
-
 def parse_cases(texts: list[str]) -> dict[int, tuple[int, ...]]:
     cases = {}
     for text in texts:
@@ -329,10 +305,7 @@ def main(argv=None) -> int:
                         help=f"a short run: the target's case alone (K = {TARGET_K}, N = 1e3), "
                              f"{QUICK_STEPS} steps, no solo launches (options given as well override these)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the run order (default: %(default)s)")
-    parser.add_argument("--inprocess", nargs=2, type=int, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
-    if args.inprocess:
-        return _inprocess(*args.inprocess)
     if args.entities is not None and args.entities < 1:
         parser.error(f"--entities must be at least 1, got {args.entities}")
     if args.repeats < 1:
@@ -367,9 +340,11 @@ def main(argv=None) -> int:
                     if runs[mode]:
                         rows.append((n, k, mode, _median_run(runs[mode])))
                 if args.floor:
+                    from dtpf.scripts.bench.pipeline import inprocess_step  # it imports this module
+
                     print(f"N={n} in-process step CPU ({steps} steps)", file=sys.stderr)
                     floors[n, k] = {"floor": _median_run(runs["floor"]), "runs": runs,
-                                    "a_ms": 1e3 * statistics.median(inprocess_cpu(n, steps)
+                                    "a_ms": 1e3 * statistics.median(inprocess_step(n, steps)["cpu_s"]
                                                                     for _ in range(args.repeats))}
     print(f"`python -m dtpf.scripts.bench.fleet{' ' + ' '.join(sys.argv[1:]) if sys.argv[1:] else ''}`: Python "
           f"{platform.python_version()}, {os.cpu_count()} CPUs, {time.perf_counter() - start:.0f} s in all, "

@@ -8,12 +8,29 @@ for the estimate of that step before it sends the next, so no observation
 queues behind another. The latency of step k is the estimate's ``stamp`` minus
 the observation's ``stamp`` (both wall-clock times of the same machine, taken
 just before each message is published). The first ``--warm-up`` steps are left
-out (discovery, first calls). Repetitions are interleaved over N in random
+out (discovery, first calls).
+
+Beside each live run, in the same run (``--no-floor`` leaves them out):
+
+- the floor: ``dtpf.scripts.bench.live_floor`` in the launch's topology (every
+  process a client of the router in this process, ``dtpf.shell.bus.Inbox``
+  receivers, the recorder stand-in): the same three hops with stand-ins that
+  do no work, the same observations, warm-up and gap, latency measured the
+  same way;
+- (a) the in-process step: ``dtpf.scripts.bench.pipeline``'s in-process
+  pipeline at the same N (wall time per step over steps 10..T after a
+  warm-up run, a child process with the layers' settings).
+
+Every (N, mode) is repeated ``--repeats`` times, all interleaved in random
 order; the table gives the median over repetitions of each run's p50 and p99.
+The message path's target at N = 1e3: p50 at most the floor's p50 + the
+in-process step + 0.3 ms (printed with the figures and the ratio of the two
+sides, PASS/FAIL), beside the absolute targets p50 <= 1 ms and p99 <= 3 ms.
 
 Run from the repository root::
 
-    python -m dtpf.scripts.bench.live                        # N = 1e3, 1e4, 1e5; about 2 minutes
+    python -m dtpf.scripts.bench.live                        # N = 1e3, 1e4, 1e5; about 3 minutes
+    python -m dtpf.scripts.bench.live --quick                # N = 1e3, 150 observations, 2 repetitions
     python -m dtpf.scripts.bench.live --sizes 1e3 --steps 500 --repeats 3
 """
 from __future__ import annotations
@@ -36,12 +53,16 @@ from dtpf.messages import keys
 from dtpf.messages.codec import MessageError, decode_for_key, encode
 from dtpf.messages.config import RunConfig
 from dtpf.messages.models import Estimate, Observation, ServiceState, Status, Time
-from dtpf.scripts.bench.pipeline import fmt_n
+from dtpf.scripts.bench import live_floor
+from dtpf.scripts.bench.pipeline import fmt_n, inprocess_step
 from dtpf.shell.bus import BusError, Inbox, free_port, open_session, publisher, zenoh_config
 
 #: Targets at N = 1e3 on 2 cores: p50 and p99 latency in ms.
 TARGET_N, TARGET_P50_MS, TARGET_P99_MS = 1_000, 1.0, 3.0
+#: The message path's target at TARGET_N: p50 at most the floor's p50 + the in-process step + this many ms.
+FLOOR_MARGIN_MS = 0.3
 BUSY_LOAD = 1.0
+MODES = ("twin", "floor", "inprocess")
 
 
 def one_run(n: int, steps: int, warm_up: int, gap: float, seed: int, log_dir: Path) -> np.ndarray:
@@ -108,47 +129,96 @@ def one_run(n: int, steps: int, warm_up: int, gap: float, seed: int, log_dir: Pa
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m dtpf.scripts.bench.live", description=__doc__.split("\n\n")[0])
-    parser.add_argument("--sizes", nargs="+", default=["1e3", "1e4", "1e5"], help="particle counts N")
-    parser.add_argument("--steps", type=int, default=300, help="observations per run (default: %(default)s)")
+    parser = argparse.ArgumentParser(prog="python -m dtpf.scripts.bench.live", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--quick", action="store_true",
+                        help="a short run: N = 1e3, 150 observations, 2 repetitions (options given as well override "
+                             "these)")
+    parser.add_argument("--sizes", nargs="+", default=None, help="particle counts N (default: 1e3 1e4 1e5)")
+    parser.add_argument("--steps", type=int, default=None, help="observations per run (default: 300)")
     parser.add_argument("--warm-up", type=int, default=20, help="first steps left out (default: %(default)s)")
-    parser.add_argument("--repeats", type=int, default=3, help="runs per N, interleaved (default: %(default)s)")
+    parser.add_argument("--repeats", type=int, default=None, help="runs per N and mode, interleaved (default: 3)")
     parser.add_argument("--gap", type=float, default=0.005, metavar="SECONDS",
                         help="pause between an estimate and the next observation (default: %(default)s)")
+    parser.add_argument("--no-floor", dest="floor", action="store_false",
+                        help="leave out the floor (dtpf.scripts.bench.live_floor: the same hops between stand-ins "
+                             "that do no work) and (a) the in-process step, and the target against them")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
+    quick = {"sizes": ["1e3"], "steps": 150, "repeats": 2} if args.quick else {}
+    normal = {"sizes": ["1e3", "1e4", "1e5"], "steps": 300, "repeats": 3}
+    for name, value in normal.items():
+        if getattr(args, name) is None:
+            setattr(args, name, quick.get(name, value))
+    if args.steps <= args.warm_up:
+        parser.error(f"--steps ({args.steps}) must be more than --warm-up ({args.warm_up})")
     sizes = [int(float(s)) for s in args.sizes]
+    modes = MODES if args.floor else MODES[:1]
     load = os.getloadavg()[0]
     print(f"live latency, sensor publish -> estimate publish; {os.cpu_count()} cores, load {load:.2f}; "
           f"{args.steps} observations per run ({args.warm_up} warm-up), {args.repeats} repetitions, "
-          f"lockstep with DT preprocessing and the recorder", flush=True)
-    runs: dict[int, list[np.ndarray]] = {n: [] for n in sizes}
-    order = [n for n in sizes for _ in range(args.repeats)]
+          f"lockstep with DT preprocessing and the recorder"
+          + ("; beside it the floor (the same hops, stand-ins) and (a) the in-process step" if args.floor else ""),
+          flush=True)
+    runs: dict[tuple[int, str], list] = {(n, mode): [] for n in sizes for mode in modes}
+    order = [(n, mode) for n in sizes for mode in modes for _ in range(args.repeats)]
     random.Random(args.seed).shuffle(order)
     start = time.monotonic()
     with tempfile.TemporaryDirectory() as tmp:
-        for i, n in enumerate(order, 1):
-            latencies = one_run(n, args.steps, args.warm_up, args.gap, args.seed, Path(tmp))
-            runs[n].append(latencies)
-            print(f"  run {i}/{len(order)}: N = {fmt_n(n)}, p50 {np.percentile(latencies, 50):.3f} ms, "
+        for i, (n, mode) in enumerate(order, 1):
+            if mode == "inprocess":
+                seconds = inprocess_step(n, args.steps, args.seed)["wall_s"]
+                runs[n, mode].append(1e3 * seconds)
+                print(f"  run {i}/{len(order)}: N = {fmt_n(n)}, (a) in-process {1e3 * seconds:.3f} ms/step",
+                      flush=True)
+                continue
+            if mode == "twin":
+                latencies = one_run(n, args.steps, args.warm_up, args.gap, args.seed, Path(tmp))
+            else:
+                latencies = live_floor.one_run(n, "router", "callback", args.steps, args.warm_up, args.gap)
+            runs[n, mode].append(latencies)
+            print(f"  run {i}/{len(order)}: N = {fmt_n(n)}, {mode}: p50 {np.percentile(latencies, 50):.3f} ms, "
                   f"p99 {np.percentile(latencies, 99):.3f} ms", flush=True)
-    print(f"\n{time.monotonic() - start:.0f} s (the runs themselves load the machine)"
-          + (f"; busy before the first run (load {load:.2f}): figures are pessimistic" if load > BUSY_LOAD else ""))
-    print("\n| N | p50 ms | p99 ms | max ms | p50 range over runs |")
-    print("|---|---|---|---|---|")
+    print(f"\n{time.monotonic() - start:.0f} s (the runs themselves load the machine); 1-min load {load:.2f} before"
+          + (", busy: figures are pessimistic" if load > BUSY_LOAD else ""))
+    header = "| N | p50 ms | p99 ms | max ms | p50 range over runs |"
+    if args.floor:
+        header += (" floor p50 ms | floor p99 ms | (a) in-process ms/step | p50 - floor p50 - (a) ms | "
+                   f"p50 / (floor p50 + (a) + {FLOOR_MARGIN_MS}) (range) |")
+    print("\n" + header + "\n" + "|---" * header.count(" | ") + "|---|")
     verdict, lines = 0, []
     for n in sizes:
-        p50 = [float(np.percentile(r, 50)) for r in runs[n]]
-        p99 = [float(np.percentile(r, 99)) for r in runs[n]]
-        worst = max(float(r.max()) for r in runs[n])
-        print(f"| {fmt_n(n)} | {statistics.median(p50):.3f} | {statistics.median(p99):.3f} | {worst:.2f} | "
-              f"{min(p50):.3f}-{max(p50):.3f} |")
+        p50 = [float(np.percentile(r, 50)) for r in runs[n, "twin"]]
+        p99 = [float(np.percentile(r, 99)) for r in runs[n, "twin"]]
+        worst = max(float(r.max()) for r in runs[n, "twin"])
+        row = (f"| {fmt_n(n)} | {statistics.median(p50):.3f} | {statistics.median(p99):.3f} | {worst:.2f} | "
+               f"{min(p50):.3f}-{max(p50):.3f} |")
+        if args.floor:
+            floor50 = [float(np.percentile(r, 50)) for r in runs[n, "floor"]]
+            floor99 = [float(np.percentile(r, 99)) for r in runs[n, "floor"]]
+            step = runs[n, "inprocess"]
+            ratios = [x / (f + a + FLOOR_MARGIN_MS) for x, f, a in zip(p50, floor50, step)]
+            m50, mf, ma = statistics.median(p50), statistics.median(floor50), statistics.median(step)
+            row += (f" {mf:.3f} | {statistics.median(floor99):.3f} | {ma:.3f} | {m50 - mf - ma:.3f} | "
+                    f"{statistics.median(ratios):.2f} ({min(ratios):.2f}-{max(ratios):.2f}) |")
+            if n == TARGET_N:
+                bound = mf + ma + FLOOR_MARGIN_MS
+                lines.append(f"- N = {fmt_n(n)}: p50 at most the floor's p50 + the in-process step + "
+                             f"{FLOOR_MARGIN_MS} ms: {m50:.3f} ms against {mf:.3f} + {ma:.3f} + {FLOOR_MARGIN_MS} = "
+                             f"{bound:.3f} ms; p50 / bound {statistics.median(ratios):.2f} (at most 1): "
+                             f"{'PASS' if m50 <= bound else 'FAIL'} (reported, not in the exit code)")
+        print(row)
         if n == TARGET_N:
             ok = statistics.median(p50) <= TARGET_P50_MS and statistics.median(p99) <= TARGET_P99_MS
             verdict = 0 if ok else 1
-            lines.append(f"target at N = {fmt_n(n)}: p50 <= {TARGET_P50_MS} ms and p99 <= {TARGET_P99_MS} ms: "
-                         f"{'PASS' if ok else 'FAIL'}")
-    print("\n" + "\n".join(lines) if lines else "")
+            lines.insert(0, f"- N = {fmt_n(n)}: p50 <= {TARGET_P50_MS} ms and p99 <= {TARGET_P99_MS} ms: "
+                            f"{'PASS' if ok else 'FAIL'}")
+    if args.floor:
+        print("\nfloor: dtpf.scripts.bench.live_floor in the launch's topology (router in this process, callback "
+              "inboxes, recorder stand-in), the same observations, warm-up and gap; (a): the in-process pipeline's "
+              "wall time per step (steps 10..T). Medians over repetitions; the ratio is the median of the "
+              "repetitions' ratios (the i-th run of each mode together).")
+    print("\nTargets:\n" + "\n".join(lines) if lines else "")
     return verdict
 
 

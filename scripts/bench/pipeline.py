@@ -59,10 +59,12 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import json
 import os
 import platform
 import random
 import statistics
+import subprocess
 import sys
 import tempfile
 import time
@@ -126,18 +128,42 @@ def window_time(times: list[float]) -> float:
 # --- (a) in-process -----------------------------------------------------------
 
 def run_inprocess(config: RunConfig, clock=time.perf_counter) -> float:
-    """Seconds per step of the in-process pipeline over the timed window (``clock``: time.process_time
-    for CPU seconds).
+    """Seconds per step of the in-process pipeline over the timed window.
 
     The same code as ``dtpf.scripts.inprocess.run`` (``simulate`` + ``build``), but
     the steps are not kept: the entity service does not keep them either.
     """
+    return inprocess_times(config)[0]
+
+
+def inprocess_times(config: RunConfig) -> tuple[float, float]:
+    """(wall seconds, CPU seconds of this process) per step of the in-process pipeline over the timed window."""
     _, observations = simulate(config)
     pf = build(config, observations)
-    ends = []
+    walls, cpus = [], []
     for _ in pf:
-        ends.append(clock())
-    return window_time(ends)
+        walls.append(time.perf_counter())
+        cpus.append(time.process_time())
+    return window_time(walls), window_time(cpus)
+
+
+def inprocess_step(n: int, steps: int, seed: int = 0) -> dict[str, float]:
+    """(a) at N in a child process with the layers' settings (one BLAS thread, large blocks kept), after
+    a warm-up run: ``{"wall_s": ..., "cpu_s": ...}`` per step. For the benchmarks whose own process must
+    keep its allocator (the fleet's launcher, the live benchmark's sensor)."""
+    out = subprocess.run([sys.executable, "-P", "-m", "dtpf.scripts.bench.pipeline", "--inprocess", str(n),
+                          str(steps), str(seed)], check=True, capture_output=True, text=True).stdout
+    return json.loads(out.strip().splitlines()[-1])
+
+
+def _inprocess_child(n: int, steps: int, seed: int) -> int:
+    keep_large_blocks()
+    threadpool_limits(limits=1, user_api="blas")
+    config = RunConfig(particles=n, steps=steps, preprocess=True, seed=seed, run_id="bench")
+    run_inprocess(config.model_copy(update={"steps": FIRST_TIMED + 2}))
+    wall, cpu = inprocess_times(config)
+    print(json.dumps({"wall_s": wall, "cpu_s": cpu}))
+    return 0
 
 
 # --- (f) the floor: the same hops, stand-ins that do no work -----------------
@@ -231,7 +257,10 @@ def main(argv=None) -> int:
                         help="leave out (f), the floor: the same hops and messages as (b) between stand-in "
                              "processes that do no work (dtpf.scripts.bench.fleet_floor with one twin), whose "
                              "time per step is the round trip the (b) <= 2 x ((a) + (f)) target adds to (a)")
+    parser.add_argument("--inprocess", nargs=3, type=int, metavar=("N", "T", "SEED"), help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
+    if args.inprocess:
+        return _inprocess_child(*args.inprocess)
     if args.quick:
         if args.sizes is None:
             args.sizes = list(QUICK_SIZES)

@@ -60,7 +60,10 @@ from pathlib import Path
 import numpy as np
 
 from dtpf.messages.config import RunConfig
-from dtpf.scripts.fleet import launch_fleet
+from dtpf.scripts.bench import fleet_floor
+from dtpf.scripts.bench.cpu import RssSampler, _descendants  # noqa: F401 (_descendants: imported from here too)
+from dtpf.scripts.bench.pipeline import inprocess_step
+from dtpf.scripts.fleet import FLEET_CLOUD_POINTS, launch_fleet
 from dtpf.scripts.launch import launch
 
 #: (N, K) measured by default, and the steps of each run.
@@ -73,117 +76,6 @@ TARGET_SHARED_MB_PER_TWIN = 2.0
 FLOOR_FACTOR = 2.0
 #: --quick: the target's case alone, no solo launches, these steps per twin.
 QUICK_STEPS = 100
-
-
-class RssSampler:
-    """The largest RSS of every child process of this process (and their children), by kind, and
-    every process's CPU time, this one's included, at each sample (wall time, CPU seconds)."""
-
-    def __init__(self, interval: float = 0.25, kind=None):
-        self.interval = interval
-        #: The kind of a process from its command line (its arguments as bytes); the layers' by default.
-        self.kind = kind or _kind
-        self.peak: dict[int, tuple[str, int]] = {}
-        self.cpu: dict[int, tuple[str, list[tuple[float, float]]]] = {}
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
-
-    def __enter__(self):
-        self._thread.start()
-        return self
-
-    def __exit__(self, *exc):
-        self._stop.set()
-        self._thread.join()
-
-    def _run(self) -> None:
-        me = os.getpid()
-        while not self._stop.wait(self.interval):
-            self.record(time.time(), _descendants(me, self.kind), me)
-
-    def record(self, now: float, processes, me: int | None = None) -> None:
-        """Fold in one sample, (pid, kind, RSS bytes, CPU seconds) per process (``me``: the launcher).
-
-        A process's kind is the last one other than "other" that its samples gave: a child sampled
-        between its fork and its exec still shows this process's command line (kind "other"), and a
-        sampler that kept the first kind lost that layer's CPU for good (it read no time at all for the
-        information service, or half the entities' time). Some samples of a running layer read an
-        empty command line too (seen for a fleet's one entity process); they keep the kind it had. A
-        process never seen as a layer stays "other", counted in "all". Its peak RSS starts again when its
-        kind changes.
-        """
-        for pid, kind, rss, cpu in processes:
-            if pid == me:
-                kind = "launcher"
-            else:
-                if kind == "other" and pid in self.cpu:
-                    kind = self.cpu[pid][0]
-                old = self.peak.get(pid)
-                if old is None or old[0] != kind or rss > old[1]:
-                    self.peak[pid] = (kind, rss)
-            samples = self.cpu[pid][1] if pid in self.cpu else []
-            samples.append((now, cpu))
-            self.cpu[pid] = (kind, samples)
-
-    def cpu_between(self, start: float, end: float) -> dict[str, float]:
-        """CPU seconds of each kind of process between wall times ``start`` and ``end`` (time.time()),
-        each process's samples interpolated linearly (a process that ended in the window counts to its
-        last sample)."""
-        kinds: dict[str, float] = {}
-        for kind, samples in self.cpu.values():
-            times, cpus = zip(*samples)
-            used = float(np.interp(end, times, cpus) - np.interp(start, times, cpus))
-            kinds[kind] = kinds.get(kind, 0.0) + used
-        return kinds
-
-    def by_kind(self) -> dict[str, list[int]]:
-        kinds: dict[str, list[int]] = {}
-        for kind, rss in self.peak.values():
-            kinds.setdefault(kind, []).append(rss)
-        return kinds
-
-
-def _descendants(root: int, kind_of=None):
-    """(pid, kind, rss bytes, CPU seconds) of ``root`` and every process below it; kind from its
-    command line."""
-    parents, info = {}, {}
-    for entry in os.listdir("/proc"):
-        if not entry.isdigit():
-            continue
-        try:
-            with open(f"/proc/{entry}/stat") as f:
-                stat = f.read()
-            with open(f"/proc/{entry}/cmdline", "rb") as f:
-                command = f.read().split(b"\0")
-            with open(f"/proc/{entry}/statm") as f:
-                pages = int(f.read().split()[1])
-        except OSError:
-            continue
-        fields = stat.rsplit(")", 1)[1].split()  # fields 3.. of proc(5): state, ppid, ..., utime, stime
-        parents[int(entry)] = int(fields[1])
-        info[int(entry)] = ((kind_of or _kind)(command), pages * os.sysconf("SC_PAGE_SIZE"),
-                            (int(fields[11]) + int(fields[12])) / _TICKS)
-    below = {root}
-    changed = True
-    while changed:
-        changed = False
-        for pid, ppid in parents.items():
-            if ppid in below and pid not in below:
-                below.add(pid)
-                changed = True
-    return [(pid, *info[pid]) for pid in below if pid in info]
-
-
-_TICKS = os.sysconf("SC_CLK_TCK")
-
-
-def _kind(command: list[bytes]) -> str:
-    text = b" ".join(command).decode(errors="replace")
-    for module, kind in (("dtpf.entity.service", "entity"), ("dtpf.information.service", "information"),
-                         ("dtpf.system.service", "system"), ("dtpf.scripts.record", "recorder")):
-        if module in text:
-            return kind
-    return "other"
 
 
 def step_latencies(estimates_by_twin: dict[str, list]) -> list[float]:
@@ -243,9 +135,6 @@ _plans: dict[int, dict[str, int]] = {}
 def run_floor(n: int, k: int, steps: int, folder: Path, entities: int | None = None) -> dict:
     """The floor of a fleet of K twins at N (``dtpf.scripts.bench.fleet_floor``, the product's receivers),
     with the messages of a short solo launch at N with the fleet's point clouds."""
-    from dtpf.scripts.bench import fleet_floor  # it imports this module
-    from dtpf.scripts.fleet import FLEET_CLOUD_POINTS
-
     plan = _plans.get(n)
     if plan is None:
         config = RunConfig(particles=n, steps=steps, twin=f"p{n}", run_id="bench")
@@ -340,8 +229,6 @@ def main(argv=None) -> int:
                     if runs[mode]:
                         rows.append((n, k, mode, _median_run(runs[mode])))
                 if args.floor:
-                    from dtpf.scripts.bench.pipeline import inprocess_step  # it imports this module
-
                     print(f"N={n} in-process step CPU ({steps} steps)", file=sys.stderr)
                     floors[n, k] = {"floor": _median_run(runs["floor"]), "runs": runs,
                                     "a_ms": 1e3 * statistics.median(inprocess_step(n, steps)["cpu_s"]

@@ -51,7 +51,7 @@ import subprocess
 import sys
 import time
 
-from dtpf.scripts.bench.fleet import RssSampler
+from dtpf.scripts.bench.cpu import RssSampler
 from dtpf.shell.bus import Doorbell, Inbox, free_port, open_session, publisher, zenoh_config
 
 RECEIVERS = ("inbox", "demux")

@@ -23,8 +23,8 @@ where it fits (``--solo-max``), (k) K solo ``dtpf.scripts.launch.launch`` at onc
 
 Beside each fleet, in the same run (``--no-floor`` leaves them out):
 
-- (f) the floor: ``dtpf.scripts.bench.fleet_floor`` with the same K, steps and
-  entity processes: the fleet's messages (topics and sizes from the log of a
+- (f) the floor: ``dtpf.scripts.bench.fleet_floor`` with the same K, steps (at
+  least 3,000 twin-steps, so the CPU samples span its window) and entity processes: the fleet's messages (topics and sizes from the log of a
   short solo launch at the same N with the fleet's point clouds) between
   stand-in processes that do no work, its CPU per twin-step counted the same
   way;
@@ -74,6 +74,8 @@ TARGET_K, TARGET_N, TARGET_RATE = 100, 1_000, 1_000.0
 TARGET_SHARED_MB_PER_TWIN = 2.0
 #: CPU per twin-step at (TARGET_N, TARGET_K) at most this many times (in-process step CPU + the floor's).
 FLOOR_FACTOR = 2.0
+#: Twin-steps a floor run takes at least (more steps per twin than the fleet's when K is small).
+FLOOR_TWIN_STEPS = 3_000
 #: --quick: the target's case alone, no solo launches, these steps per twin.
 QUICK_STEPS = 100
 
@@ -139,6 +141,9 @@ def run_floor(n: int, k: int, steps: int, folder: Path, entities: int | None = N
     if plan is None:
         config = RunConfig(particles=n, steps=steps, twin=f"p{n}", run_id="bench")
         plan = _plans[n] = fleet_floor.plan_of_launch(config, folder, cloud_points=FLEET_CLOUD_POINTS)
+    # At least FLOOR_TWIN_STEPS in its window: the CPU samples, 0.25 s apart, must span it (a floor of 10 twins
+    # of 40 steps took 0.18 s and read no CPU at all).
+    steps = max(steps, -(-FLOOR_TWIN_STEPS // k))
     result = fleet_floor.one_run(k, "inbox", steps, entities or os.cpu_count() or 1, plan=plan)
     if "stalled" in result:
         raise RuntimeError(f"floor N={n} K={k} stalled after {result['stalled']} of {k * steps} twin-steps")

@@ -43,16 +43,16 @@ order; the table shows medians over repetitions, and (b)/(a) is the median of
 the per-repetition ratios of time per step.
 
 The message path's targets against the floor (printed with their ratios,
-PASS/FAIL; they decide no exit code): at N = 1e3, (b) at most 2 x ((a) + (f)), the in-process step plus the
-floor's round trip, both measured in the same repetition; at N = 1e5, (b)/(a)
-at most 1.3 with the recorder.
+PASS/FAIL; they decide no exit code): at N = 1e3, (b) at most 2 x ((a) + (f)),
+the in-process step plus the floor's round trip, both measured in the same
+repetition; at N = 1e5, (b)/(a) at most 1.3 with the recorder.
 
 Run from the repository root::
 
     python -m dtpf.scripts.bench.pipeline                          # N = 1e3 .. 1e6, about 5 minutes
-    python -m dtpf.scripts.bench.pipeline --quick                  # 1e3 and 1e5, (a), (b), (f): about 1 minute
+    python -m dtpf.scripts.bench.pipeline --quick                  # 1e3 and 1e5, (a), (b), (c), (f): 1-2 minutes
     python -m dtpf.scripts.bench.pipeline --sizes 1e5 --steps 200 --repeats 5
-    python -m dtpf.scripts.bench.pipeline --recorder with         # (a) and (b) only
+    python -m dtpf.scripts.bench.pipeline --recorder with         # (a), (b) and (f) only
     python -m dtpf.scripts.bench.pipeline --sizes 1e3 1e5 --recorder with --secure tls   # secured against plain
 """
 from __future__ import annotations
@@ -127,7 +127,7 @@ def window_time(times: list[float]) -> float:
 
 # --- (a) in-process -----------------------------------------------------------
 
-def run_inprocess(config: RunConfig, clock=time.perf_counter) -> float:
+def run_inprocess(config: RunConfig) -> float:
     """Seconds per step of the in-process pipeline over the timed window.
 
     The same code as ``dtpf.scripts.inprocess.run`` (``simulate`` + ``build``), but
@@ -219,11 +219,7 @@ def fmt_rate(seconds: float) -> str:
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(
         prog="python -m dtpf.scripts.bench.pipeline",
-        description="Steady-state steps per second of the in-process pipeline (a), of the three-process "
-                    "lockstep pipeline over Zenoh started by dtpf launch (b), and of the floor (f): the same "
-                    "hops between stand-in processes that do no work; their ratios; prints a Markdown table "
-                    "and PASS/FAIL against the targets, the message path's among them: (b) <= 2 x ((a) + (f)) at "
-                    "N = 1e3, (b)/(a) <= 1.3 at N = 1e5.",
+        description=__doc__,
         epilog="Start-up, JIT loading and liveliness discovery are excluded: only steps "
                f"{FIRST_TIMED}..T are timed. Environment variables (e.g. MALLOC_MMAP_THRESHOLD_) are "
                "inherited by the child services. Exit code 1 when a target fails (the message path's targets are "

@@ -108,6 +108,15 @@ def _wait_listening(namespace: str, address: str, port: int, timeout: float = 60
         time.sleep(0.2)
 
 
+def _wait_said(host: Host, process, text: str, timeout: float = 60.0) -> None:
+    """Until ``process`` has written ``text`` to its output."""
+    deadline = time.monotonic() + timeout
+    while text not in host.output(process):
+        assert process.poll() is None, host.output(process)[-3000:]
+        assert time.monotonic() < deadline, f"{process.name} did not say {text!r}: {host.output(process)[-3000:]}"
+        time.sleep(0.1)
+
+
 def _estimate_steps(path: Path, twin: str) -> set[int]:
     """The steps of ``twin``'s estimates in a log being written (read as far as it goes)."""
     try:
@@ -131,14 +140,18 @@ def test_a_partition_longer_than_a_lease_loses_nothing_with_a_recorder_on_each_h
                              "--flush-interval", "0.2", "--log-level", "INFO", "-o", str(tmp_path / "a.mcap")),
                      b.start("recorder", "-m", "dtpf.scripts.record", "--connect", router_b, "--all-twins",
                              "--flush-interval", "0.2", "--log-level", "INFO", "-o", str(tmp_path / "b.mcap"))]
+        # An --all-twins recorder declares no token of the entities' twins (an entity's --wait-for recorder
+        # waited its whole startup timeout, 20 s, for it): the recorders are subscribed once they say so,
+        # before the shared layers start, so their subscriptions reach host B before the shared layers'
+        # tokens, which the entities wait for.
+        for recorder in recorders:
+            _wait_said(a if recorder in a.started else b, recorder, "recording dtpf/** into")
         shared = [a.start("information", "-m", "dtpf.information.service", "--connect", router_a, "--twins", "p-*"),
                   a.start("system", "-m", "dtpf.system.service", "--connect", router_a, "--twins", "p-*")]
         entities = [a.start("entity", "-m", "dtpf.entity.service", "--connect", router_a, "--twin", "p-a",
-                            "--twins", "2", "--wait-for", "information", "--wait-for", "system",
-                            "--wait-for", "recorder", *run),
+                            "--twins", "2", "--wait-for", "information", "--wait-for", "system", *run),
                     b.start("entity", "-m", "dtpf.entity.service", "--connect", router_b, "--twin", "p-b",
-                            "--twins", "2", "--wait-for", "information", "--wait-for", "system",
-                            "--wait-for", "recorder", *run)]
+                            "--twins", "2", "--wait-for", "information", "--wait-for", "system", *run)]
         # Cut the link once host A's recorder hears host B's twins at work.
         deadline = time.monotonic() + 120
         while len(_estimate_steps(tmp_path / "a.mcap", "p-b-1")) < 20:

@@ -320,10 +320,10 @@ def _decode_envelope(view: memoryview) -> ParticleSet:
         raise MessageError(f"invalid {ENVELOPE_ENCODING} header: {_explain(exc)}", step=step) from None
     step = header.fields.step
     arrays = _read_arrays(view, header, data_start, step)
-    try:
-        return ParticleSet(**header.fields.__dict__, **arrays)
-    except ValidationError as exc:
-        raise MessageError(f"invalid ParticleSet: {_explain(exc)}", step=step) from None
+    try:  # the header's fields were validated above: only the arrays and their lengths are left
+        return ParticleSet.from_header(header.fields, **arrays)
+    except ValueError as exc:
+        raise MessageError(f"invalid ParticleSet: {exc}", step=step) from None
 
 
 def _read_arrays(view: memoryview, header: EnvelopeHeader, data_start: int, step: int) -> dict[str, np.ndarray]:

@@ -259,6 +259,17 @@ def _check_counts(message: BaseModel, n: int | None) -> None:
         raise ValueError(f"n_large + n_processed must be at most N={n}, got {large} + {processed}")
 
 
+def _check_lengths(header: BaseModel, particles: np.ndarray, weights: np.ndarray) -> None:
+    """As many particles as weights, and the header's counts and ``parents`` within that N."""
+    n_particles, n_weights = particles.shape[0], weights.shape[0]
+    if n_particles != n_weights:
+        raise ValueError(
+            f"particles and weights differ in length: {n_particles} particles, {n_weights} weights")
+    _check_counts(header, n_weights)
+    if header.parents is not None and header.parents > n_weights:
+        raise ValueError(f"parents must be at most N={n_weights}, got {header.parents}")
+
+
 class ParticleSetHeader(Message):
     """Everything of a :class:`ParticleSet` but its arrays.
 
@@ -321,14 +332,30 @@ class ParticleSet(ParticleSetHeader):
 
     @model_validator(mode="after")
     def _check_lengths(self) -> "ParticleSet":
-        n_particles, n_weights = self.particles.shape[0], self.weights.shape[0]
-        if n_particles != n_weights:
-            raise ValueError(
-                f"particles and weights differ in length: {n_particles} particles, {n_weights} weights")
-        _check_counts(self, n_weights)
-        if self.parents is not None and self.parents > n_weights:
-            raise ValueError(f"parents must be at most N={n_weights}, got {self.parents}")
+        _check_lengths(self, self.particles, self.weights)
         return self
+
+    @classmethod
+    def from_header(cls, header: ParticleSetHeader, particles: Any, weights: Any) -> "ParticleSet":
+        """The set of an already validated ``header`` and two arrays, validating only what the header's
+        validation did not: the arrays (the checks the constructor applies) and their lengths, against each
+        other and the header's counts. What a decoder uses: the scalar fields are validated once.
+
+        Raises ValueError naming the array (``particles: ...``) or the mismatch, as the constructor does.
+        """
+        if type(header) is not ParticleSetHeader:
+            raise TypeError(f"header must be a ParticleSetHeader, got {type(header).__name__}")
+        arrays = {}
+        for name, check, value in (("particles", check_particles, particles), ("weights", check_weights, weights)):
+            try:
+                arrays[name] = _read_only(check(value))
+            except ValueError as error:
+                raise ValueError(f"{name}: Value error, {error}") from None
+        try:
+            _check_lengths(header, arrays["particles"], arrays["weights"])
+        except ValueError as error:
+            raise ValueError(f"Value error, {error}") from None
+        return cls.model_construct(**header.__dict__, **arrays)
 
     @property
     def n(self) -> int:

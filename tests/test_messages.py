@@ -882,3 +882,28 @@ def test_is_base64_agrees_with_b64decode_on_random_texts():
         taken += is_base64(text)
     assert 1_000 < taken < 19_000  # both kinds were tried
     assert is_base64(base64.b64encode(np.arange(4000.0).tobytes()).decode())
+
+
+@pytest.mark.parametrize("change", [
+    {}, {"weights": [0.5, np.nan, 0.5]}, {"weights": [0.5, -0.1, 0.6]}, {"weights": [0.2, 0.2]},
+    {"particles": [[0.0], [np.inf], [1.0]]}, {"particles": np.zeros((3, 1, 1))}, {"parents": 4},
+    {"n_large": 2, "n_processed": 2, "n_mixed": 1, "n_plain": 1},
+])
+def test_a_set_from_a_validated_header_is_refused_or_taken_as_the_constructor_does(change):
+    """ParticleSet.from_header (what decoding uses, the scalar fields validated once) refuses what the
+    constructor refuses, with the same words, and builds an equal set otherwise."""
+    header = {"run_id": "r", "twin_id": "t", "step": 3, "stamp": {"sec": 5, "nsec": 0}, "kind": "preprocessed",
+              "ps": 0.5, "threshold": 0.1,
+              "n_large": 1, "n_processed": 2, "n_mixed": 1, "n_plain": 1, "parents": 2}
+    arrays = {"particles": [[0.0], [1.0], [2.0]], "weights": [0.2, 0.3, 0.5]}
+    for name, value in change.items():
+        (arrays if name in arrays else header)[name] = value
+    try:
+        built = ParticleSet(**header, **arrays)
+    except ValidationError as error:
+        expected = error.errors()[0]["msg"]
+        with pytest.raises(ValueError) as info:
+            ParticleSet.from_header(ParticleSetHeader(**header), **arrays)
+        assert str(info.value).endswith(expected), (str(info.value), expected)
+        return
+    assert ParticleSet.from_header(ParticleSetHeader(**header), **arrays) == built

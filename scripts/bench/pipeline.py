@@ -49,7 +49,7 @@ repetition; at N = 1e5, (b)/(a) at most 1.3 with the recorder.
 
 Run from the repository root::
 
-    python -m dtpf.scripts.bench.pipeline                          # N = 1e3 .. 1e6, about 5 minutes
+    python -m dtpf.scripts.bench.pipeline                          # N = 1e3 .. 1e6, 3 repetitions: about 5 minutes
     python -m dtpf.scripts.bench.pipeline --quick                  # 1e3 and 1e5, (a), (b), (c), (f): 1-2 minutes
     python -m dtpf.scripts.bench.pipeline --sizes 1e5 --steps 200 --repeats 5
     python -m dtpf.scripts.bench.pipeline --recorder with         # (a), (b) and (f) only
@@ -234,7 +234,7 @@ def main(argv=None) -> int:
     parser.add_argument("--steps", type=int, nargs="+", default=None, metavar="T",
                         help="steps per run: one value for every N, or one per N "
                              f"(default: {', '.join(f'{t} at {fmt_n(n)}' for n, t in DEFAULT_STEPS.items())})")
-    parser.add_argument("--repeats", type=int, default=None, help="repetitions per N (default: 5)")
+    parser.add_argument("--repeats", type=int, default=None, help="repetitions per N (default: 3)")
     parser.add_argument("--recorder", choices=("both", "with", "without"), default="both",
                         help="three-process runs with the MCAP recorder (b, as dtpf launch runs), without it "
                              "(c, the split alone), or both (default: %(default)s)")
@@ -264,7 +264,7 @@ def main(argv=None) -> int:
         args.repeats = QUICK_REPEATS if args.repeats is None else args.repeats
         args.secure = "off" if args.secure is None else args.secure
     args.sizes = sorted(DEFAULT_STEPS) if args.sizes is None else args.sizes
-    args.repeats = 5 if args.repeats is None else args.repeats
+    args.repeats = 3 if args.repeats is None else args.repeats
     args.secure = "tls" if args.secure is None else args.secure
     if args.steps is None:
         steps = [default_steps(n) for n in args.sizes]

@@ -13,8 +13,7 @@ no filter, no rules, no pydantic, no MCAP writing. The hops are the lockstep's:
 the entity stand-in sends step k + 1's set once step k's answer is in, the
 information stand-in answers step k once the PS of step k - 1 is in (as the
 information layer waits for it), the system stand-in answers each weight
-state. Each stand-in
-receives as the product does (``dtpf.shell.bus.Inbox``: a Zenoh subscriber whose
+state. Each stand-in receives as the product does (``dtpf.shell.bus.Inbox``: a Zenoh subscriber whose
 Python callback copies the payload into a queue that rings a doorbell) and
 publishes with the product's publishers (congestion control BLOCK); the
 recorder stand-in takes every message of the fleet and copies it out. The

@@ -20,6 +20,8 @@ from __future__ import annotations
 import argparse
 import base64
 import time
+from collections import deque
+from dataclasses import dataclass
 
 import numpy as np
 import zenoh
@@ -196,6 +198,8 @@ class TwinRun:
         self.pf: ParticleFilter | None = None
         self.pending: PendingStep | None = None
         self.truth = None
+        #: Finished steps whose outputs wait for the next step's set to go out (:meth:`_publish_done`).
+        self.done: deque[StepOutputs] = deque()
         self.next_tick = 0.0
         #: The exit code once the run has ended (None while it runs).
         self.code: int | None = None
@@ -218,7 +222,10 @@ class TwinRun:
             self._start()
             return now
         if self.pending is None:
-            wake = self._begin(now)
+            try:
+                wake = self._begin(now)
+            finally:  # the last step's estimate, once the next step's set is out (or none is due, or it failed)
+                self._publish_done()
             if self.pending is None:
                 return wake
         if self.pending.asks:  # asked only with a twin to ask
@@ -286,31 +293,58 @@ class TwinRun:
     def _finish(self, answer: Preprocessed | None) -> None:
         pending, self.pending = self.pending, None
         step = self.pf.finish_step(pending, answer)
-        _publish_step(self.shell, step, self.truth, pending.observation, self.model, self.config, self.cloud)
+        self.done.append(StepOutputs.of(self.shell, step, self.truth, pending.observation, self.model, self.config,
+                                        self.cloud))
         if self.period:
             self.next_tick += self.period
 
+    def _publish_done(self) -> None:
+        """Publish the outputs of the finished steps, in step order. :meth:`poll` calls it once the next
+        step's particle set is out: the information layer then works on that set while this process
+        encodes the estimate and the cloud (a lockstep step no longer waits for them)."""
+        while self.done:
+            self.done.popleft().publish(self.shell)
 
-def _publish_step(shell: ServiceShell, step, truth, observation, model, config: RunConfig, cloud: int = 0) -> None:
-    """The estimate of one filter step (and, in the video scenario, its frame)."""
-    report = step.report
-    shell.publish(Estimate(
-        **shell.header(step.step), mean=step.mean.tolist(), var=step.var.tolist(),
-        lower=step.lower.tolist(), upper=step.upper.tolist(), ess=step.ess,
-        ess_ratio=step.ess / config.particles, resampled=step.resampled, degraded=step.degraded,
-        truth=None if truth is None else [float(v) for v in truth],
-        observation=[float(v) for v in observation],
-        ps=report.ps if report is not None else None,
-        log_predictive=step.log_predictive if np.isfinite(step.log_predictive) else None,
-        innovation=step.innovation if step.innovation is not None and np.isfinite(step.innovation) else None))
-    for message in model.step_messages(shell.header(step.step), step.particles, step.weights, step.mean):
-        shell.publish(message)
-    if cloud:  # the particle set as Foxglove draws it (entity/cloud.py says which particles)
-        points = cloud_points(step.particles, step.weights, cloud)
-        shell.publish(PointCloud.model_validate(dict(
-            **shell.header(step.step), timestamp=Time.now(), frame_id="state", point_stride=POINT_STRIDE,
-            fields=[PackedElementField(name=name, offset=offset, type=8) for name, offset in FIELDS],
-            data=base64.b64encode(points.tobytes()).decode("ascii")), context=BASE64_CHECKED))
+
+@dataclass
+class StepOutputs:
+    """What one finished filter step publishes, taken from the step at once (nothing in it shares memory
+    with the filter's arrays, which the next step overwrites), and encoded when :meth:`publish` runs."""
+
+    estimate: dict
+    model_messages: list
+    points: np.ndarray | None
+
+    @classmethod
+    def of(cls, shell: ServiceShell, step, truth, observation, model, config: RunConfig,
+           cloud: int = 0) -> "StepOutputs":
+        report = step.report
+        estimate = dict(
+            **shell.header(step.step), mean=step.mean.tolist(), var=step.var.tolist(),
+            lower=step.lower.tolist(), upper=step.upper.tolist(), ess=step.ess,
+            ess_ratio=step.ess / config.particles, resampled=step.resampled, degraded=step.degraded,
+            truth=None if truth is None else [float(v) for v in truth],
+            observation=[float(v) for v in observation],
+            ps=report.ps if report is not None else None,
+            log_predictive=step.log_predictive if np.isfinite(step.log_predictive) else None,
+            innovation=step.innovation if step.innovation is not None and np.isfinite(step.innovation) else None)
+        # In the video scenario, its frame; the particle set as Foxglove draws it (entity/cloud.py says which
+        # particles: a new array).
+        return cls(estimate, list(model.step_messages(shell.header(step.step), step.particles, step.weights,
+                                                      step.mean)),
+                   cloud_points(step.particles, step.weights, cloud) if cloud else None)
+
+    def publish(self, shell: ServiceShell) -> None:
+        """The estimate, the model's messages, then the cloud."""
+        shell.publish(Estimate(**self.estimate))
+        for message in self.model_messages:
+            shell.publish(message)
+        if self.points is not None:
+            shell.publish(PointCloud.model_validate(dict(
+                **shell.header(self.estimate["step"]), timestamp=Time.now(), frame_id="state",
+                point_stride=POINT_STRIDE,
+                fields=[PackedElementField(name=name, offset=offset, type=8) for name, offset in FIELDS],
+                data=base64.b64encode(self.points.tobytes()).decode("ascii")), context=BASE64_CHECKED))
 
 
 class LiveObservations:

@@ -22,6 +22,40 @@ from dtpf.shell.bus import Inbox, free_port, open_session, zenoh_config
 ROOT = Path(__file__).resolve().parent.parent
 
 
+#: Seconds each test file took on one worker of ``python3 -m pytest`` (2 cores, both workers busy). The workers
+#: take files longest first (see :func:`pytest_xdist_make_scheduler`), so that the last files to start are
+#: short and both workers end together; a file not listed goes after the listed ones. Only the order matters.
+FILE_SECONDS = {
+    "test_fuzz.py": 104, "test_resilience.py": 97, "test_real_twin.py": 76, "test_fleet.py": 73,
+    "test_services.py": 38, "test_nothing_lost.py": 36, "test_partition.py": 33, "test_packaging.py": 28,
+    "test_ros2_live.py": 28, "test_schemas.py": 28, "test_security.py": 27, "test_tracking.py": 27,
+    "test_cli_habits.py": 27, "test_plot.py": 19, "test_guard.py": 19, "test_replay.py": 18,
+    "test_ros2_bag.py": 17, "test_experiments.py": 17, "test_choose.py": 15, "test_newcomer.py": 14,
+    "test_foxglove_live.py": 11, "test_logfile.py": 8, "test_policy.py": 6, "test_observations.py": 4,
+    "test_rules.py": 4, "test_resampling.py": 2, "test_messages.py": 2, "test_filter.py": 2,
+}
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_xdist_make_scheduler(config, log):
+    """``--dist loadfile`` with the files longest first (``FILE_SECONDS``) instead of most tests first: a
+    file of one long test (the partition) no longer starts last, with the other worker idle meanwhile."""
+    if config.getvalue("dist") != "loadfile":
+        return None
+    from xdist.scheduler import LoadFileScheduling
+
+    class LongestFirst(LoadFileScheduling):
+        def _assign_work_unit(self, node):
+            if not getattr(self, "_ordered", False):
+                units = sorted(self.workqueue.items(), key=lambda unit: -FILE_SECONDS.get(Path(unit[0]).name, 0))
+                self.workqueue.clear()
+                self.workqueue.update(units)
+                self._ordered = True
+            super()._assign_work_unit(node)
+
+    return LongestFirst(config, log)
+
+
 class Processes:
     """Starts service processes and guarantees they are stopped."""
 

@@ -171,6 +171,9 @@ class ObservationTable:
     truth_components : tuple of int
         The state component each truth column holds (default: 0 .. d-1, the
         state's leading components); empty without truth.
+    problem : str or None
+        What the file lacked, when only part of it could be read (a rosbag2
+        log cut short); None for a whole file.
     """
 
     observations: np.ndarray
@@ -180,6 +183,8 @@ class ObservationTable:
     truth_columns: tuple[str, ...]
     source: str
     truth_components: tuple[int, ...] | None = None
+    #: What the file lacked, in words, when only part of it could be read (a rosbag2 log cut short).
+    problem: str | None = None
 
     def __post_init__(self):
         z = _frozen(self.observations)

@@ -234,7 +234,12 @@ def _mapper(fields_spec: str | None, model, name: str):
 def read_bag(path, topic: str | None, fields_spec: str | None, *, obs_dim: int | None = None,
              state_dim: int | None = None, steps: int | None = None, model=None) -> ObservationTable:
     """The observations of ``topic`` in the rosbag2 log ``path``: one step per message, in the bag's
-    order; times are the bag's receive times in seconds. ObservationError for anything wrong."""
+    order; times are the bag's receive times in seconds. ObservationError for anything wrong.
+
+    A bag whose MCAP file was cut short (a recording that did not end: no summary or footer) is read up to
+    the cut, with the message types of ROS 2 Kilted and those its schemas define; the table's ``problem``
+    says so and how many messages were read.
+    """
     source = os.fsdecode(path)
     name = source
     p = Path(source)
@@ -248,7 +253,8 @@ def read_bag(path, topic: str | None, fields_spec: str | None, *, obs_dim: int |
 
     mapper, _ = _mapper(fields_spec, model, name)
     rows, times = [], []
-    read = 0
+    taker = _Taker(name, source, topic, mapper, obs_dim, steps, rows, times)
+    problem = None
     try:
         with AnyReader([p], default_typestore=get_typestore(Stores.ROS2_KILTED)) as reader:
             connections = [c for c in reader.connections if c.topic == topic]
@@ -261,33 +267,21 @@ def read_bag(path, topic: str | None, fields_spec: str | None, *, obs_dim: int |
                 raise ObservationError(f"{name}: topic {topic!r} has messages of {len(types)} types "
                                        f"({', '.join(types)})", source=source)
             for connection, timestamp, raw in reader.messages(connections=connections):
-                if steps is not None and len(rows) >= steps:
+                if not taker.wants_more():
                     break
-                read += 1
-                message = reader.deserialize(raw, connection.msgtype)
-                try:
-                    values = mapper(message)
-                except FieldPathError as error:
-                    raise ObservationError(f"{name} message {read} on {topic}: {error}", source=source,
-                                           row=read - 1) from None
-                bad = [v for v in values if not math.isfinite(v)]
-                if bad:
-                    raise ObservationError(f"{name} message {read} on {topic}: {bad[0]} (observations must be "
-                                           f"finite)", source=source, row=read - 1)
-                if obs_dim is not None and len(values) != obs_dim:
-                    count = f"{len(values)} value{'' if len(values) == 1 else 's'}"
-                    raise ObservationError(f"{name} message {read} on {topic}: {count}, the model observes "
-                                           f"{obs_dim} per step", source=source, row=read - 1)
-                rows.append(values)
-                times.append(timestamp / 1e9)
+                taker.take(timestamp, lambda: reader.deserialize(raw, connection.msgtype))
     except ObservationError:
         raise
     except Exception as error:  # a cut or corrupt bag: rosbags' own errors
         text = " ".join(str(error).split())
-        raise ObservationError(f"{name}: cannot read the bag after {read} messages of {topic}: "
-                               f"{type(error).__name__}: {text}", source=source) from None
+        cut = _cut_mcap(p) if taker.read == 0 else None
+        if cut is None:
+            raise ObservationError(f"{name}: cannot read the bag after {taker.read} messages of {topic}: "
+                                   f"{type(error).__name__}: {text}", source=source) from None
+        problem = _read_cut_bag(cut, name, source, topic, taker)
     if not rows:
-        raise ObservationError(f"{name}: no message on {topic!r}", source=source)
+        raise ObservationError(f"{name}: no message on {topic!r}" + (f" ({problem})" if problem else ""),
+                               source=source)
     width = len(rows[0])
     if any(len(r) != width for r in rows):
         row = next(i for i, r in enumerate(rows) if len(r) != width)
@@ -296,7 +290,101 @@ def read_bag(path, topic: str | None, fields_spec: str | None, *, obs_dim: int |
     columns = tuple(f"z{j}" for j in range(width)) if fields_spec is None else _column_names(fields_spec, width)
     return ObservationTable(observations=np.asarray(rows, dtype=np.float64), truth=None,
                             times=np.maximum.accumulate(np.asarray(times, dtype=np.float64)),
-                            columns=columns, truth_columns=(), source=source)
+                            columns=columns, truth_columns=(), source=source, problem=problem)
+
+
+class _Taker:
+    """Messages of a bag's topic to rows of observations: mapped, checked, counted."""
+
+    def __init__(self, name, source, topic, mapper, obs_dim, steps, rows, times):
+        self.name, self.source, self.topic, self.mapper = name, source, topic, mapper
+        self.obs_dim, self.steps, self.rows, self.times = obs_dim, steps, rows, times
+        self.read = 0
+
+    def wants_more(self) -> bool:
+        return self.steps is None or len(self.rows) < self.steps
+
+    def take(self, timestamp: int, deserialize) -> None:
+        name, topic, source = self.name, self.topic, self.source
+        self.read += 1
+        read = self.read
+        message = deserialize()
+        try:
+            values = self.mapper(message)
+        except FieldPathError as error:
+            raise ObservationError(f"{name} message {read} on {topic}: {error}", source=source,
+                                   row=read - 1) from None
+        bad = [v for v in values if not math.isfinite(v)]
+        if bad:
+            raise ObservationError(f"{name} message {read} on {topic}: {bad[0]} (observations must be "
+                                   f"finite)", source=source, row=read - 1)
+        if self.obs_dim is not None and len(values) != self.obs_dim:
+            count = f"{len(values)} value{'' if len(values) == 1 else 's'}"
+            raise ObservationError(f"{name} message {read} on {topic}: {count}, the model observes "
+                                   f"{self.obs_dim} per step", source=source, row=read - 1)
+        self.rows.append(values)
+        self.times.append(timestamp / 1e9)
+
+
+def _cut_mcap(path: Path) -> Path | None:
+    """The bag's one MCAP file if it lacks its footer (a recording that did not end), else None."""
+    files = [path] if path.is_file() else sorted(path.glob("*.mcap"))
+    if len(files) != 1 or not files[0].is_file():
+        return None
+    with open(files[0], "rb") as file:
+        size = file.seek(0, os.SEEK_END)
+        if size < 8 + 8:
+            return files[0] if size >= 8 else None
+        file.seek(size - 8)
+        return None if file.read(8) == b"\x89MCAP0\r\n" else files[0]
+
+
+def _read_cut_bag(path: Path, name: str, source: str, topic: str, taker: _Taker) -> str:
+    """Take the topic's messages of a cut MCAP bag up to the cut (dtpf's reader of damaged MCAP files);
+    what is missing, in words. ObservationError when nothing of the file can be read as MCAP."""
+    from rosbags.typesys import Stores, get_typestore, get_types_from_msg
+
+    from dtpf.recording.logfile import LogError, read_log
+
+    try:
+        log = read_log(path)
+    except LogError as error:
+        raise ObservationError(f"{name}: cannot read the bag: {error}", source=source) from None
+    typestore = get_typestore(Stores.ROS2_KILTED)
+    channels = {cid: channel for cid, channel in log.channels.items() if channel.topic == topic}
+    if not channels:
+        found = sorted({channel.topic for channel in log.channels.values()})
+        raise ObservationError(f"{name}: no topic {topic!r} in what the cut bag holds (it has: "
+                               f"{', '.join(found) or 'no topics'}; {log.problem})", source=source)
+    msgtypes = {}
+    for cid, channel in channels.items():
+        schema = log.schemas.get(channel.schema_id)
+        if schema is None or channel.message_encoding != "cdr":
+            raise ObservationError(f"{name}: topic {topic!r} of the cut bag has no ROS 2 schema or is not CDR "
+                                   f"({channel.message_encoding!r})", source=source)
+        msgtypes[cid] = schema.name
+        if schema.name not in typestore.fielddefs and schema.encoding == "ros2msg":
+            try:
+                typestore.register(get_types_from_msg(schema.data.decode("utf-8"), schema.name))
+            except Exception as error:  # a schema rosbags cannot parse
+                raise ObservationError(f"{name}: the cut bag's type {schema.name}: {error}", source=source) from None
+    if len(set(msgtypes.values())) > 1:
+        raise ObservationError(f"{name}: topic {topic!r} has messages of {len(set(msgtypes.values()))} types "
+                               f"({', '.join(sorted(set(msgtypes.values())))})", source=source)
+    for item in log.messages:
+        if item.channel_id in channels:
+            if not taker.wants_more():
+                break
+            try:
+                taker.take(item.log_time, lambda: typestore.deserialize_cdr(item.data, msgtypes[item.channel_id]))
+            except ObservationError:
+                raise
+            except Exception as error:  # a message rosbags cannot deserialise
+                raise ObservationError(f"{name} message {taker.read} on {topic}: cannot deserialise it: "
+                                       f"{type(error).__name__}: {error}", source=source) from None
+    held = sum(1 for item in log.messages if item.channel_id in channels)
+    return (f"{name} was cut short: read up to the cut, where {held} message{'' if held == 1 else 's'} of "
+            f"{topic} end ({log.problem})")
 
 
 def _column_names(spec: str, width: int) -> tuple[str, ...]:

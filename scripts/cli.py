@@ -58,6 +58,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 
     # run() reads the file once; T is its rows unless --steps is smaller
     config = fit_simulation(config_from_args(args), args)
+    _note_cut_bag(config)
     result = run(config, progress=None if args.quiet else ProgressBar())
     ps = result.ps
     ps_text = "off" if not config.preprocess else f"{np.nanmin(ps):g} .. {np.nanmax(ps):g}"
@@ -211,6 +212,17 @@ def _ros2_options(args: argparse.Namespace) -> list[str]:
     return words
 
 
+def _note_cut_bag(config) -> None:
+    """Say on stderr when the run's rosbag2 log was cut short and is read up to the cut."""
+    from dtpf.entity import rosbag
+    from dtpf.entity.sources import read_table
+
+    if config.observation_file is not None and (config.topic is not None or rosbag.is_bag(config.observation_file)):
+        problem = read_table(config, steps=1).problem
+        if problem is not None:
+            print(f"dtpf: note: {problem}", file=sys.stderr)
+
+
 def _note_partial_truth(config, model) -> None:
     """Say on stderr when the observation file's truth covers only part of the state: the estimates of a
     launch carry the whole state's truth or none, so its summary judges by the log predictive."""
@@ -219,6 +231,8 @@ def _note_partial_truth(config, model) -> None:
     from dtpf.entity.sources import read_table
 
     table = read_table(config, model, steps=1)
+    if table.problem is not None:
+        print(f"dtpf: note: {table.problem}", file=sys.stderr)
     if table.truth is not None and not table.covers(model.dim):
         covered = ", ".join(f"x[{c}]" for c in table.truth_components)
         print(f"dtpf: note: the truth of {config.observation_file} covers {covered} of the state's {model.dim} "

@@ -144,22 +144,39 @@ def test_a_bad_bag_option_is_one_line_and_exit_2(bag, case, extra, expected):
     assert __import__("re").search(expected, lines[0]), lines[0]
 
 
-def test_a_nan_and_a_cut_bag_are_one_line_each(tmp_path):
+def test_a_nan_in_a_bag_is_one_line(tmp_path):
     nan_bag = tmp_path / "nan"
     write_bag(nan_bag, example_rows()[:10], nan_at=6)
     done = dtpf("run", "-q", "--model", EXAMPLE, "--observations", str(nan_bag), "--topic", "/target",
                 "--ros2-fields", "point.x,point.y")
     assert done.returncode == 2 and "message 7 on /target: nan (observations must be finite)" in done.stderr, \
         done.stderr
+
+
+def test_a_cut_bag_is_read_up_to_the_cut_and_says_so(tmp_path):
+    """A bag whose recording did not end (its MCAP file cut in the middle, no summary or footer) runs on the
+    messages before the cut, the same numbers as the whole bag cut to that many steps, and says so."""
     whole = tmp_path / "whole"
     write_bag(whole, example_rows())
     data = (whole / "whole.mcap").read_bytes()
     cut = tmp_path / "cut.mcap"
     cut.write_bytes(data[: len(data) // 2])
-    done = dtpf("run", "-q", "--model", EXAMPLE, "--observations", str(cut), "--topic", "/target",
-                "--ros2-fields", "point.x,point.y")
-    assert done.returncode == 2, done.stdout + done.stderr
-    assert len(done.stderr.strip().splitlines()) == 1 and "cannot read the bag" in done.stderr, done.stderr
+    common = ("--model", EXAMPLE, "--topic", "/target", "--ros2-fields", "point.x,point.y", "-n", "300")
+    done = dtpf("run", "-q", "--observations", str(cut), *common)
+    assert done.returncode == 0, done.stdout + done.stderr
+    steps = int(done.stdout.split("T = ")[1].split(",")[0])
+    assert f"was cut short: read up to the cut, where {steps} messages of /target end" in done.stderr, done.stderr
+    assert 5 <= steps < len(example_rows()), done.stdout
+    again = dtpf("run", "-q", "--observations", str(whole), "--steps", str(steps), *common)
+    assert again.returncode == 0 and "cut short" not in again.stderr, again.stderr
+    figures = [line for line in done.stdout.splitlines() if line.startswith(("log predictive", "mean ESS"))]
+    assert len(figures) == 2 and figures == [line for line in again.stdout.splitlines()
+                                             if line.startswith(("log predictive", "mean ESS"))]
+    # Cut inside the header: nothing to read, one line.
+    head = tmp_path / "head.mcap"
+    head.write_bytes(data[:20])
+    done = dtpf("run", "-q", "--observations", str(head), *common)
+    assert done.returncode == 2 and len(done.stderr.strip().splitlines()) == 1, done.stderr
 
 
 def test_the_model_may_map_a_message_itself(bag, tmp_path, monkeypatch):

@@ -116,6 +116,9 @@ def _record(shell: ServiceShell, recording: McapRecording, pattern: str, compres
             if waiting:
                 shell.log.warning("stopped before %s said their run ended", ", ".join(sorted(waiting)[:10]))
             break
+        # A wait bounded just above: the exit watchdog (whose grace is shorter than --drain-finished) must not
+        # cut it and leave the log without its summary and footer.
+        shell.watchdog.progress()
         item = inbox.get(timeout=0.05)
         if item is not None:
             admission.record(recording, item)

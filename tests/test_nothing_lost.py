@@ -13,7 +13,7 @@ import zenoh
 from dtpf.messages.codec import MessageError, decode_for_key, encode
 from dtpf.messages.config import RunConfig
 from dtpf.messages.models import Estimate
-from dtpf.recording.logfile import last_estimate_steps, read_log
+from dtpf.recording.logfile import LogError, last_estimate_steps, read_log
 from dtpf.recording.writer import LogWriteError, McapRecording
 from dtpf.scripts.launch import launch
 from dtpf.shell.bus import BusError, Inbox, free_port, open_session, zenoh_config
@@ -355,3 +355,42 @@ def test_a_status_flood_does_not_hold_the_end_of_a_launch():
     flooded, sent = _tail("t-flooded-end", flood=True)
     assert sent >= 50  # the flood ran for the whole run (60 steps at 30 steps/s: 2 s)
     assert flooded <= quiet + 2.0, (flooded, quiet)
+
+
+def test_a_recorder_stopped_before_a_twin_ended_waits_for_it_and_still_finishes_its_log(processes, router, tmp_path):
+    """Stopped while a twin it heard from has not said its run ended, the recorder keeps taking messages for
+    --drain-finished seconds, longer than the exit watchdog's grace (which cut that wait and left the log
+    without its summary and footer, exit code 130), then says so, finishes the log and exits 0."""
+    import signal
+
+    from conftest import service_args
+    from dtpf.shell.service import EXIT_GRACE
+
+    log = tmp_path / "waiting.mcap"
+    recorder = processes.start("recorder", service_args("dtpf.scripts.record", router.endpoint, "--all-twins",
+                                                        "--twin", "w-recorder", "--drain-finished", "4", "-o",
+                                                        str(log)))
+    assert router.collect(lambda ms: any(getattr(m, "layer", None) == "recorder" for m in ms), timeout=60), \
+        processes.output(recorder)
+    publisher = router.session.declare_publisher("dtpf/w-1/entity/estimate")
+    estimate = Estimate(run_id="w", twin_id="w-1", step=1, mean=[0.0], var=[1.0], lower=[-1.0], upper=[1.0],
+                        ess=10.0, ess_ratio=0.5, resampled=True, degraded=False, observation=[0.0])
+    def logged() -> bool:  # the log as far as it is written (the recorder flushes it every second)
+        try:
+            return any(m.topic == "dtpf/w-1/entity/estimate" for m in read_log(log).messages)
+        except (OSError, LogError):  # not created, or nothing written yet
+            return False
+
+    deadline = time.monotonic() + 60
+    while not logged():
+        assert time.monotonic() < deadline and recorder.poll() is None, processes.output(recorder)
+        publisher.put(encode(estimate))
+        time.sleep(0.2)
+    stopped = time.monotonic()
+    recorder.send_signal(signal.SIGINT)
+    assert recorder.wait(timeout=60) == 0, processes.output(recorder)
+    assert time.monotonic() - stopped > EXIT_GRACE  # it waited past the watchdog's grace
+    assert "stopped before w-1 said their run ended" in processes.output(recorder), processes.output(recorder)
+    written = read_log(log)
+    assert written.complete and written.problem is None
+    assert any(m.topic == "dtpf/w-1/entity/estimate" for m in written.messages)

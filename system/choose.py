@@ -18,6 +18,17 @@ on the real observations, without truth and without ``sample_observation``:
 3. At k + 1 the real z_(k+1) weights each copy; its predictive
    log-likelihood log mean_j p(z_(k+1) | x_j) scores the arm, and the
    difference to the plain copy, clipped to +-50 nats, is arm a's d_a(k).
+   A second score looks at the copy's point estimate alone: the
+   log-likelihood log p(z_(k+1) | mean_j x_j) of its predicted mean; its
+   difference to the plain copy's, clipped the same way, is e_a(k).
+
+The first score is a proper score of the copy's whole predictive
+distribution; it favours a cloud spread wide enough to hold the truth over
+one collapsed beside it, even when the wide cloud's mean is far worse than
+the collapsed one's (the paper's rule on a drifting constant far from the
+origin: its copy predicts every observation better than plain, its mean
+errs a hundred times more). The second sees the estimate the user reads;
+the choosing policy enters an arm only when both favour it.
 
 Each copy is thus a filter of M particles running its arm at every step, a
 counterfactual of the entity's: a move whose benefit builds up over many
@@ -44,10 +55,19 @@ from dtpf.information import rules
 from dtpf.information.layer import ARMS, Arm
 from dtpf.system.evidence import predictive_log_likelihood
 
-__all__ = ["ArmEvidence", "CLIP"]
+__all__ = ["ArmEvidence", "CLIP", "point_log_likelihood"]
 
 #: Largest |difference| of one step (nats): one wild observation cannot decide a window.
 CLIP = 50.0
+
+
+def point_log_likelihood(model: StateSpaceModel, particles: np.ndarray, observation: np.ndarray, k: int) -> float:
+    """log p(z_k | mean_j x_j): the observation's log-likelihood at the particles' mean (-inf when not finite)."""
+    mean = np.mean(particles, axis=0, keepdims=True)
+    if not np.isfinite(mean).all():
+        return -np.inf
+    value = float(np.asarray(model.log_likelihood(mean, observation, k), dtype=np.float64).reshape(-1)[0])
+    return value if np.isfinite(value) else -np.inf
 
 
 def _difference(arm: float, plain: float) -> float:
@@ -92,6 +112,8 @@ class ArmEvidence:
         self.threshold_rule = threshold_rule
         self.particles = int(particles)
         self.differences: deque[dict[str, float]] = deque(maxlen=int(window))
+        #: e_a(k): the copies' predicted means scored against plain's (see the module docstring).
+        self.point_differences: deque[dict[str, float]] = deque(maxlen=int(window))
         #: (k + 1, arm -> M particles of its copy propagated to k + 1)
         self._copies: tuple[int, dict[str, np.ndarray]] | None = None
         self._z = np.empty(0)
@@ -113,6 +135,10 @@ class ArmEvidence:
         """Each arm's summed differences against plain (nats; plain's is 0)."""
         return {arm.name: float(sum(d[arm.name] for d in self.differences)) for arm in self.arms}
 
+    def point_totals(self) -> dict[str, float]:
+        """Each arm's summed differences of its predicted mean's log-likelihood against plain's (nats)."""
+        return {arm.name: float(sum(d[arm.name] for d in self.point_differences)) for arm in self.arms}
+
     def observe(self, step: int, particles: np.ndarray, weights: np.ndarray, observation: np.ndarray,
                  rng: np.random.Generator) -> dict[str, float] | None:
         """Take the set of ``step`` as the system layer received it and its observation z_step.
@@ -127,16 +153,19 @@ class ArmEvidence:
         copies, self._copies = self._copies, None
         weighted: dict[str, tuple[np.ndarray, np.ndarray]] = {}
         if copies is not None and copies[0] == k:
-            values = {}
+            values, points = {}, {}
             for name, x in copies[1].items():
                 log_w = model.log_likelihood(x, z, k)
                 top = float(np.max(log_w))
                 values[name] = predictive_log_likelihood(model, x, z, k) if np.isfinite(top) else -np.inf
+                points[name] = point_log_likelihood(model, x, z, k)
                 if np.isfinite(top):
                     w = np.exp(log_w - top)
                     weighted[name] = (x, w / w.sum())
             scored = {name: _difference(value, values["plain"]) for name, value in values.items()}
             self.differences.append(scored)
+            self.point_differences.append({name: _difference(value, points["plain"])
+                                           for name, value in points.items()})
         for name in self.names:  # a copy that lost the observation (or the first step): the entity's set
             if name not in weighted:
                 weighted[name] = (particles, weights)

@@ -54,6 +54,13 @@ Policies (:data:`POLICIES`):
   plain stays above ``leave`` (default log 3: the hysteresis), moves to another arm whose evidence
   beats the chosen one's by ``enter``, and goes back to plain when the chosen arm's evidence fades
   (unless another arm's exceeds ``enter``). It starts plain; the first evidence comes at step 2.
+  With ``veto`` (the default) a second evidence must agree: the log-likelihood of the
+  observations at each copy's predicted *mean*, summed against plain's over the same window. An
+  arm is entered only while that sum is at least 0 and at least the arm in force's (its estimate
+  predicts the observations no worse than plain's and the chosen arm's), and left when it falls
+  below ``-leave``: a move that spreads the cloud wide
+  enough to hold the truth predicts better than a collapsed cloud, yet its estimate can be far
+  worse.
 
 A policy that needs the twin's simulation sets :attr:`PSPolicy.simulates`;
 the system layer then gives its predictor the particle set of each step.
@@ -437,6 +444,10 @@ class ChoosePS(PSPolicy):
         Steps of evidence summed per arm (default 20).
     particles : int
         M, the twin's copy of the entity's set (default 1000).
+    veto : bool
+        Enter an arm only while its predicted means' evidence against plain's is at least 0 and at least
+        the arm in force's, and leave
+        it when that falls below ``-leave`` (default True; False: the predictive evidence alone).
     """
 
     name = "choose"
@@ -448,7 +459,7 @@ class ChoosePS(PSPolicy):
 
     def __init__(self, ps: float | None = None, *, max_change: float | None = None, arms=None,
                  enter: float = math.log(99.0), leave: float = math.log(3.0), window: int = 20,
-                 particles: int = 1000):
+                 particles: int = 1000, veto: bool = True):
         from dtpf.information.layer import ARMS
         chosen = tuple(ARMS) if arms is None else tuple(arms)
         unknown = [a for a in chosen if a not in ARMS]
@@ -462,6 +473,7 @@ class ChoosePS(PSPolicy):
         if int(window) < 1 or int(particles) < 1:
             raise ValueError(f"window and particles must be at least 1, got {window!r}, {particles!r}")
         self.window, self.particles = int(window), int(particles)
+        self.veto = bool(veto)
         self._table = ARMS
         #: The arm in force (the latest decision's; the arm the entity applies at the step being decided).
         self.arm = self.initial_arm
@@ -480,10 +492,21 @@ class ChoosePS(PSPolicy):
         if not evidence:
             return self._decision(step, self.arm, f"choose: no evidence yet: {self.arm} kept", {})
         current = self.arm
-        others = [a for a in self.arms if a != current and a != "plain" and a in evidence]
+        points = (forecast.arm_point_evidence or {}) if self.veto else {}
+        floor = max(0.0, points.get(current, 0.0))  # an arm's estimate must predict no worse than plain's and
+        others = [a for a in self.arms                # the arm in force's
+                  if a != current and a != "plain" and a in evidence and points.get(a, 0.0) >= floor]
         best = max(others, key=lambda a: evidence[a]) if others else None
         now = evidence.get(current, 0.0)
-        if current == "plain":
+        vetoed = current != "plain" and points.get(current, 0.0) < -self.leave
+        if vetoed and best is not None and evidence[best] > self.enter:
+            arm, verdict = best, (f"{current}'s estimate predicts worse than plain's ({points[current]:.3g} < "
+                                  f"{-self.leave:.3g} nats), {best} beats plain by {evidence[best]:.3g} > "
+                                  f"{self.enter:.3g}")
+        elif vetoed:
+            arm, verdict = "plain", (f"{current}'s estimate predicts worse than plain's ({points[current]:.3g} < "
+                                     f"{-self.leave:.3g} nats)")
+        elif current == "plain":
             if best is not None and evidence[best] > self.enter:
                 arm, verdict = best, f"{best} beats plain by {evidence[best]:.3g} > {self.enter:.3g} nats"
             else:
@@ -497,7 +520,8 @@ class ChoosePS(PSPolicy):
                                   f"{evidence[best]:.3g} > {self.enter:.3g}")
         else:
             arm, verdict = "plain", f"{current} faded ({now:.3g} <= {self.leave:.3g} nats against plain)"
-        tried = ", ".join(f"{a} {evidence[a]:.3g}" for a in self.arms if a != "plain" and a in evidence)
+        tried = ", ".join(f"{a} {evidence[a]:.3g}" + (f" (mean {points[a]:.3g})" if a in points else "")
+                          for a in self.arms if a != "plain" and a in evidence)
         reason = (f"choose: evidence against plain over the last {forecast.evidence_steps} observations "
                   f"({tried}); {verdict}: {arm}")
         return self._decision(step, arm, reason, {"evidence": float(evidence.get(arm, 0.0))})

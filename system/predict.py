@@ -311,6 +311,8 @@ class Forecast:
     #: With a predictor that gathers :mod:`dtpf.system.choose`: each arm's summed differences of
     #: predictive log-likelihood against plain resampling over the last ``evidence_steps`` steps (nats).
     arm_evidence: dict[str, float] | None = field(default=None, compare=False)
+    #: The same over the copies' predicted means: log p(z | mean) against plain's (nats).
+    arm_point_evidence: dict[str, float] | None = field(default=None, compare=False)
 
     @property
     def next_ess_ratio(self) -> float:
@@ -425,7 +427,8 @@ class Predictor:
                            predicted_spread=float(simulation.spread.mean()), simulation=simulation)
         if self.evidence is not None and hasattr(self.evidence, "totals"):  # the evidence per arm
             self.evidence.observe(step, snapshot.particles, snapshot.weights, snapshot.observation, rng)
-            figures.update(arm_evidence=self.evidence.totals(), evidence_steps=self.evidence.steps)
+            figures.update(arm_evidence=self.evidence.totals(), arm_point_evidence=self.evidence.point_totals(),
+                           evidence_steps=self.evidence.steps)
         elif self.evidence is not None:  # after the simulation's draws, so they do not change
             self.evidence.observe(step, snapshot.particles, snapshot.weights, snapshot.observation, rng)
             figures.update(evidence=self.evidence.total, evidence_steps=len(self.evidence.differences))

@@ -17,8 +17,9 @@ from dtpf.system.choose import ArmEvidence
 from dtpf.system.layer import SystemLayer
 from dtpf.system.policy import ChoosePS
 
-#: A drift run that puts three arms in force (plain, dt-paper from step 5, regularised later); found in process.
-CHOSEN = RunConfig(scenario="drift", policy="choose", particles=100, steps=30, seed=11, twin="t-choose")
+#: A drift run that puts three arms in force (plain, dt-paper from step 10, regularised from step 20); found in
+#: process.
+CHOSEN = RunConfig(scenario="drift", policy="choose", particles=100, steps=30, seed=31, twin="t-choose")
 
 
 def test_the_arms_the_contract_names_are_the_arms_the_layers_implement():
@@ -177,6 +178,55 @@ def test_the_policy_switches_only_on_strong_evidence_and_back_when_it_fades():
         ChoosePS(arms=("plain", "teleport"))
     with pytest.raises(ValueError):
         ChoosePS(enter=1.0, leave=2.0)
+
+
+def test_an_arm_whose_estimate_predicts_worse_is_not_entered_and_is_left():
+    """The point-estimate veto: strong predictive evidence is not enough when the arm's predicted means
+    predict the observations worse than plain's (or than the arm in force's)."""
+    from dtpf.system.predict import Forecast
+
+    def decide(policy, step, evidence, points):
+        zero = dict.fromkeys(("plain", "dt-relative", "dt-paper", "roughening", "regularised"), 0.0)
+        forecast = Forecast(step, 100, 1.0, 0.0, 1.0, arm_evidence={**zero, **evidence},
+                            arm_point_evidence={**zero, **points}, evidence_steps=20)
+        return policy.decide(step, forecast)
+
+    policy = ChoosePS()
+    assert decide(policy, 1, {"dt-paper": 1000.0}, {"dt-paper": -0.01}).arm == "plain"
+    assert decide(policy, 2, {"dt-paper": 1000.0, "dt-relative": 600.0},
+                  {"dt-paper": -200.0, "dt-relative": 600.0}).arm == "dt-relative"
+    # From the arm in force, another arm with more predictive evidence but a worse estimate is not taken.
+    assert decide(policy, 3, {"dt-paper": 1000.0, "dt-relative": 600.0},
+                  {"dt-paper": 30.0, "dt-relative": 600.0}).arm == "dt-relative"
+    # The arm in force is left once its estimate predicts worse than plain's by more than leave (log 3).
+    left = decide(policy, 4, {"dt-relative": 600.0}, {"dt-relative": -math.log(3.0) - 0.01})
+    assert left.arm == "plain" and "predicts worse than plain's" in left.reason
+    assert decide(policy, 5, {"roughening": 9.0}, {"roughening": 0.0}).arm == "roughening"
+    assert decide(policy, 6, {"roughening": 9.0}, {"roughening": -math.log(3.0) + 0.01}).arm == "roughening"
+    # Without the veto, the predictive evidence alone decides.
+    assert decide(ChoosePS(veto=False), 1, {"dt-paper": 1000.0}, {"dt-paper": -200.0}).arm == "dt-paper"
+
+
+def test_the_point_evidence_scores_the_copies_predicted_means():
+    """e_a(k) of ArmEvidence: log p(z | mean of the copy) minus plain's, as the model's likelihood gives it."""
+    from dtpf.system.choose import point_log_likelihood
+
+    model = models.DriftModel(process_var=0.0, dim=1, observation_var=0.25)
+    particles = np.array([[1.0], [3.0]])
+    z = np.array([1.5])
+    expected = float(model.log_likelihood(np.array([[2.0]]), z, 1)[0])
+    assert point_log_likelihood(model, particles, z, 1) == pytest.approx(expected)
+    assert point_log_likelihood(model, np.array([[np.nan]]), z, 1) == -np.inf
+    rng = np.random.default_rng(3)
+    particles = rng.normal(0.0, 1.0, (200, 1))
+    evidence = ArmEvidence(model, ("roughening",), n=200, particles=200)
+    evidence.observe(1, particles, np.full(200, 1 / 200), np.zeros(1), np.random.default_rng(4))
+    copies = {name: x.copy() for name, x in evidence._copies[1].items()}
+    evidence.observe(2, particles, np.full(200, 1 / 200), z, np.random.default_rng(5))
+    plain = point_log_likelihood(model, copies["plain"], z, 2)
+    rough = point_log_likelihood(model, copies["roughening"], z, 2)
+    assert evidence.point_totals() == pytest.approx({"plain": 0.0, "roughening": rough - plain})
+    assert rough != plain
 
 
 def test_a_decision_message_must_name_a_known_arm_and_fit_it():

@@ -21,6 +21,7 @@ least 80% of the gap to the best of them; on ``switching``, significantly better
 method::
 
     python -m dtpf.scripts.paper.evaluate_chooser --csv runs/chooser.csv     # 1000 seeds per cell
+    python -m dtpf.scripts.paper.evaluate_chooser --csv runs/chooser.csv --resume  # go on after a cut
     python -m dtpf.scripts.paper.evaluate_chooser --quick                     # 6 seeds, T = 25
 
 Progress goes to stderr, the tables to stdout; ``--csv`` keeps every run's figures, and
@@ -30,6 +31,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import io
 import math
 import sys
 import time
@@ -200,9 +202,18 @@ CSV_FIELDS = ("scenario", "particles", "seed", "variant", "error", "ms", "off_pl
 
 def read_csv(path: Path) -> dict[tuple[str, int], dict[int, dict]]:
     cells: dict[tuple[str, int], dict[int, dict]] = {}
-    with open(path, newline="") as handle:
+    text = path.read_text()
+    if not text.endswith("\n"):  # a last row a killed run cut short
+        text = text[: text.rfind("\n") + 1]
+    with io.StringIO(text, newline="") as handle:
         for row in csv.DictReader(handle):
-            figures = {f: float(row[f]) for f in ("error", "ms", "off_plain") if row.get(f) not in (None, "")}
+            try:  # a row cut short by a killed run is skipped (its seed is run again on --resume)
+                figures = {f: float(row[f]) for f in ("error", "ms", "off_plain") if row.get(f) not in (None, "")}
+                int(row["particles"]), int(row["seed"])
+            except (TypeError, ValueError):
+                continue
+            if "error" not in figures:
+                continue
             cells.setdefault((row["scenario"], int(row["particles"])), {}).setdefault(int(row["seed"]), {})[
                 row["variant"]] = figures
     return cells
@@ -268,6 +279,9 @@ def main(argv=None) -> int:
     parser.add_argument("--steps", type=int, default=100, help="T (default: %(default)s; the video has 50 frames)")
     parser.add_argument("--workers", type=int, default=2, help="worker processes (default: %(default)s)")
     parser.add_argument("--csv", type=Path, default=None, help="write every run's figures to this CSV file")
+    parser.add_argument("--resume", action="store_true",
+                        help="with --csv: keep the seeds that file holds complete, run only the others and append "
+                             "them (a long run cut short goes on where it stopped)")
     parser.add_argument("--from-csv", type=Path, default=None, help="only rebuild the tables from this CSV file")
     parser.add_argument("--quick", action="store_true", help="6 seeds, T = 25, N = 50 on every scenario: a smoke run")
     parser.add_argument("--cost", action="store_true",
@@ -298,14 +312,27 @@ def main(argv=None) -> int:
     tasks = [Task(sc, n, seed, min(args.steps, frames) if sc == "video" else args.steps)
              for seed in range(args.first_seed, args.first_seed + args.seeds) for sc, n in cells]
     results: dict[tuple[str, int], dict[int, dict]] = {cell: {} for cell in cells}
+    if args.resume and args.csv is None:
+        parser.error("--resume needs --csv FILE")
+    resumed = args.resume and args.csv.exists()
+    if resumed:
+        for cell, by_seed in read_csv(args.csv).items():
+            if cell in results:
+                results[cell].update({seed: f for seed, f in by_seed.items() if all(label in f for label in VARIANTS)})
+        tasks = [t for t in tasks if t.seed not in results[(t.scenario, t.particles)]]
+        print(f"resuming {args.csv}: {sum(map(len, results.values()))} cell-seeds done, {len(tasks)} to run",
+              file=sys.stderr)
     progress = TaskProgress("evaluate_chooser", len(tasks))
     start = time.perf_counter()
     writer = handle = None
     if args.csv is not None:
         args.csv.parent.mkdir(parents=True, exist_ok=True)
-        handle = open(args.csv, "w", newline="")
+        if resumed and not args.csv.read_bytes().endswith(b"\n"):  # a last row cut short: end its line
+            args.csv.open("a").write("\n")
+        handle = open(args.csv, "a" if resumed else "w", newline="")
         writer = csv.writer(handle)
-        writer.writerow(CSV_FIELDS)
+        if not resumed:
+            writer.writerow(CSV_FIELDS)
 
     def keep(done: Task, figures: dict[str, dict]) -> None:
         results[(done.scenario, done.particles)][done.seed] = figures

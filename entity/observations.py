@@ -174,6 +174,10 @@ class ObservationTable:
     problem : str or None
         What the file lacked, when only part of it could be read (a rosbag2
         log cut short); None for a whole file.
+    stamps : (T,) ndarray or None
+        The time of each row as int64 nanoseconds since the Unix epoch, when
+        the file's times are a clock's (a rosbag2 log's receive times, the
+        step times of its run's estimates); None otherwise.
     """
 
     observations: np.ndarray
@@ -185,6 +189,7 @@ class ObservationTable:
     truth_components: tuple[int, ...] | None = None
     #: What the file lacked, in words, when only part of it could be read (a rosbag2 log cut short).
     problem: str | None = None
+    stamps: np.ndarray | None = None
 
     def __post_init__(self):
         z = _frozen(self.observations)
@@ -216,7 +221,12 @@ class ObservationTable:
             times = _frozen(times)
             if times.shape != (z.shape[0],):
                 raise ValueError(f"times must have shape ({z.shape[0]},), got shape {times.shape}")
-        for field, value in (("observations", z), ("truth", truth), ("times", times),
+        stamps = self.stamps
+        if stamps is not None:
+            stamps = _frozen(np.asarray(stamps, dtype=np.int64))
+            if stamps.shape != (z.shape[0],):
+                raise ValueError(f"stamps must have shape ({z.shape[0]},), got shape {stamps.shape}")
+        for field, value in (("observations", z), ("truth", truth), ("times", times), ("stamps", stamps),
                              ("columns", columns), ("truth_columns", truth_columns)):
             object.__setattr__(self, field, value)
         object.__setattr__(self, "source", str(self.source))
@@ -240,7 +250,7 @@ class ObservationTable:
             truth=None if self.truth is None else self.truth[:steps],
             times=None if self.times is None else self.times[:steps],
             columns=self.columns, truth_columns=self.truth_columns, source=self.source,
-            truth_components=self.truth_components)
+            truth_components=self.truth_components, stamps=None if self.stamps is None else self.stamps[:steps])
 
 
 def read_observations(path, *, obs_dim: int | None = None, state_dim: int | None = None,

@@ -20,7 +20,8 @@ rclpy's message objects) and a rosbag2 log (here, on the messages ``rosbags`` de
 
 A rosbag2 log is a folder with ``metadata.yaml`` or its ``.mcap`` file (MCAP storage, CDR
 messages), read with ``rosbags`` (the ``[ros2]`` or ``[rosbag]`` extra). One message of the
-topic is one step; the bag's receive time (seconds) becomes the step's time. Every problem is
+topic is one step; the bag's receive time becomes the step's time (the table's ``times`` in
+seconds, its ``stamps`` in nanoseconds: the stamps of the run's estimates). Every problem is
 one line (:class:`~dtpf.entity.observations.ObservationError`): a bag without the topic, a
 field path the message type does not have, a NaN, a bag that cannot be read to its end.
 """
@@ -234,7 +235,8 @@ def _mapper(fields_spec: str | None, model, name: str):
 def read_bag(path, topic: str | None, fields_spec: str | None, *, obs_dim: int | None = None,
              state_dim: int | None = None, steps: int | None = None, model=None) -> ObservationTable:
     """The observations of ``topic`` in the rosbag2 log ``path``: one step per message, in the bag's
-    order; times are the bag's receive times in seconds. ObservationError for anything wrong.
+    order; times are the bag's receive times in seconds, stamps the same in nanoseconds (made non-decreasing
+    both). ObservationError for anything wrong.
 
     A bag whose MCAP file was cut short (a recording that did not end: no summary or footer) is read up to
     the cut, with the message types of ROS 2 Kilted and those its schemas define; the table's ``problem``
@@ -288,9 +290,9 @@ def read_bag(path, topic: str | None, fields_spec: str | None, *, obs_dim: int |
         raise ObservationError(f"{name} message {row + 1} on {topic}: {len(rows[row])} values, the first had "
                                f"{width}", source=source, row=row)
     columns = tuple(f"z{j}" for j in range(width)) if fields_spec is None else _column_names(fields_spec, width)
-    return ObservationTable(observations=np.asarray(rows, dtype=np.float64), truth=None,
-                            times=np.maximum.accumulate(np.asarray(times, dtype=np.float64)),
-                            columns=columns, truth_columns=(), source=source, problem=problem)
+    stamps = np.maximum.accumulate(np.asarray(times, dtype=np.int64))
+    return ObservationTable(observations=np.asarray(rows, dtype=np.float64), truth=None, times=stamps / 1e9,
+                            stamps=stamps, columns=columns, truth_columns=(), source=source, problem=problem)
 
 
 class _Taker:
@@ -323,7 +325,7 @@ class _Taker:
             raise ObservationError(f"{name} message {read} on {topic}: {count}, the model observes "
                                    f"{self.obs_dim} per step", source=source, row=read - 1)
         self.rows.append(values)
-        self.times.append(timestamp / 1e9)
+        self.times.append(timestamp)
 
 
 def _cut_mcap(path: Path) -> Path | None:

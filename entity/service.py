@@ -293,8 +293,9 @@ class TwinRun:
     def _finish(self, answer: Preprocessed | None) -> None:
         pending, self.pending = self.pending, None
         step = self.pf.finish_step(pending, answer)
+        stamps = None if self.data is None else self.data.stamps
         self.done.append(StepOutputs.of(self.shell, step, self.truth, pending.observation, self.model, self.config,
-                                        self.cloud))
+                                        self.cloud, None if stamps is None else int(stamps[step.step - 1])))
         if self.period:
             self.next_tick += self.period
 
@@ -317,7 +318,9 @@ class StepOutputs:
 
     @classmethod
     def of(cls, shell: ServiceShell, step, truth, observation, model, config: RunConfig,
-           cloud: int = 0) -> "StepOutputs":
+           cloud: int = 0, stamp: int | None = None) -> "StepOutputs":
+        """``stamp``: the step's time (ns since the Unix epoch) when its observation file gives one (a
+        rosbag2 log), the estimate's stamp; None: the estimate is stamped when it is made."""
         report = step.report
         estimate = dict(
             **shell.header(step.step), mean=step.mean.tolist(), var=step.var.tolist(),
@@ -328,6 +331,8 @@ class StepOutputs:
             ps=report.ps if report is not None else None,
             log_predictive=step.log_predictive if np.isfinite(step.log_predictive) else None,
             innovation=step.innovation if step.innovation is not None and np.isfinite(step.innovation) else None)
+        if stamp is not None:
+            estimate["stamp"] = Time.from_ns(stamp)
         # In the video scenario, its frame; the particle set as Foxglove draws it (entity/cloud.py says which
         # particles: a new array).
         return cls(estimate, list(model.step_messages(shell.header(step.step), step.particles, step.weights,

@@ -51,6 +51,9 @@ class RunData:
     truth_components: tuple[int, ...] = ()
     #: The names of those columns (the file's truth columns; x0, x1, ... for a simulation).
     truth_columns: tuple[str, ...] = ()
+    #: (T,) int64 nanoseconds since the Unix epoch: each step's time, the stamp of its estimate (a rosbag2
+    #: log's receive times); None: the estimates carry their publish time.
+    stamps: np.ndarray | None = None
 
     def __post_init__(self):
         if self.truth is not None and self.known_truth is None:
@@ -135,7 +138,7 @@ def observations_of(config, model: StateSpaceModel) -> RunData | None:
         whole = table.covers(model.dim)
         return RunData(table.observations, table.truth if whole else None, table.source,
                        known_truth=table.truth, truth_components=table.truth_components,
-                       truth_columns=table.truth_columns)
+                       truth_columns=table.truth_columns, stamps=table.stamps)
     truth, observations = model.simulate(config.steps, stream(config.seed, config.twin, 0, "scenario"))
     return RunData(np.asarray(observations, dtype=np.float64), np.asarray(truth, dtype=np.float64),
                    f"simulation of {config.model_ref}")

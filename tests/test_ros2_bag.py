@@ -80,12 +80,22 @@ def test_a_bag_written_by_rosbags_drives_dtpf_run_to_the_csv_numbers(bag, monkey
     assert "T = 100" in done.stdout  # every message of the topic, one step each; the other topic is not read
 
 
-def test_a_bag_drives_dtpf_launch_to_the_csv_numbers_and_exports_back_to_rosbag2(bag, tmp_path, monkeypatch):
-    monkeypatch.chdir(ROOT)
+@pytest.fixture(scope="module")
+def bag_launch(bag, tmp_path_factory):
+    """dtpf launch of 30 steps of the bag: its configuration, result and log."""
     config = RunConfig(model=EXAMPLE, observations=str(bag / "radar.mcap"), topic="/target",
                        ros2_fields="point.x,point.y", particles=500, steps=30, seed=3, twin="rb-bag")
-    log = tmp_path / "bag-launch.mcap"
-    result = launch(config, log_path=log, timeout=5.0)
+    log = tmp_path_factory.mktemp("bag-launch") / "bag-launch.mcap"
+    with pytest.MonkeyPatch.context() as patch:
+        patch.chdir(ROOT)
+        result = launch(config, log_path=log, timeout=5.0)
+    return config, result, log
+
+
+def test_a_bag_drives_dtpf_launch_to_the_csv_numbers_and_exports_back_to_rosbag2(bag_launch, tmp_path,
+                                                                                 monkeypatch):
+    monkeypatch.chdir(ROOT)
+    config, result, log = bag_launch
     assert result.exit_codes == {"recorder": 0, "system": 0, "information": 0, "entity": 0}
     reference = inprocess.run(config.model_copy(update={"observations": EXAMPLE_NO_TRUTH, "topic": None,
                                                         "ros2_fields": None}))
@@ -121,8 +131,18 @@ def test_a_bag_drives_dtpf_launch_to_the_csv_numbers_and_exports_back_to_rosbag2
         covariance = pose.pose.covariance.reshape(6, 6)
         assert (covariance[0, 0], covariance[1, 1]) == (estimate.var[0], estimate.var[1])
         assert pose.header.frame_id == "map"
+        assert (pose.header.stamp.sec, pose.header.stamp.nanosec) == (estimate.stamp.sec, estimate.stamp.nsec)
     assert ess == [e.ess for e in estimates]
     assert observed == [e.observation for e in estimates]
+
+
+def test_the_bag_time_of_each_message_is_the_stamp_of_its_estimate(bag_launch):
+    """Bag time becomes the step time: each estimate of a launch driven by a bag is stamped with the bag's
+    receive time of its step's message, to the nanosecond (write_bag: 1000 s, then every 50 ms)."""
+    _, result, _ = bag_launch
+    estimates = sorted(result.estimates, key=lambda e: e.step)
+    assert [e.step for e in estimates] == list(range(1, 31))
+    assert [e.stamp.to_ns() for e in estimates] == [1_000_000_000_000 + (k - 1) * 50_000_000 for k in range(1, 31)]
 
 
 @pytest.mark.parametrize("case, extra, expected", [

@@ -394,3 +394,85 @@ def test_a_recorder_stopped_before_a_twin_ended_waits_for_it_and_still_finishes_
     written = read_log(log)
     assert written.complete and written.problem is None
     assert any(m.topic == "dtpf/w-1/entity/estimate" for m in written.messages)
+
+
+# --- a stalled router does not make a service drop its own queue ------------------------------------------------
+
+
+def test_a_service_waits_longer_than_a_router_before_it_drops_a_blocked_link():
+    from dtpf.shell.bus import SERVICE_WAIT_BEFORE_CLOSE, WAIT_BEFORE_CLOSE_KEY, ZENOH_WAIT_BEFORE_CLOSE
+
+    def wait(config) -> int:
+        return int(config.get_json(WAIT_BEFORE_CLOSE_KEY))
+
+    assert SERVICE_WAIT_BEFORE_CLOSE > ZENOH_WAIT_BEFORE_CLOSE
+    assert wait(zenoh_config(mode="client", connect=["tcp/127.0.0.1:7447"])) == SERVICE_WAIT_BEFORE_CLOSE
+    assert wait(zenoh_config(mode="peer")) == SERVICE_WAIT_BEFORE_CLOSE
+    assert wait(zenoh_config(mode="router", listen=["tcp/127.0.0.1:0"])) == ZENOH_WAIT_BEFORE_CLOSE
+    assert wait(zenoh_config(mode="client", connect=["tcp/127.0.0.1:7447"],
+                             cfg=[f"{WAIT_BEFORE_CLOSE_KEY}:2000000"])) == 2_000_000
+
+
+def test_a_router_stalled_longer_than_zenohs_wait_loses_none_of_a_clients_blocked_messages(processes):
+    """A router that reads nothing for 8 s (SIGSTOP), longer than Zenoh's 5 s wait before it closes a blocked
+    link: the client publishing 30 MB meanwhile blocks and waits, and every message arrives once the router
+    goes on. With Zenoh's default wait the client closes its link and drops what its queue held."""
+    import signal
+
+    port = free_port()
+    router = processes.start("router", ["-m", "dtpf", "router", "--listen", f"tcp/127.0.0.1:{port}"])
+    endpoint = [f"tcp/127.0.0.1:{port}"]
+    deadline = time.monotonic() + 60
+    while True:
+        try:
+            subscriber = open_session(zenoh_config(mode="client", connect=endpoint))
+            break
+        except BusError:
+            assert time.monotonic() < deadline and router.poll() is None, processes.output(router)
+            time.sleep(0.1)
+    publisher = open_session(zenoh_config(mode="client", connect=endpoint))
+    received: list[int] = []
+    arrived = threading.Event()
+    count = 300
+
+    def take(sample) -> None:
+        received.append(int.from_bytes(sample.payload.to_bytes()[:4], "big"))
+        if len(received) == count:
+            arrived.set()
+
+    sink = subscriber.declare_subscriber("stall/test", take)
+    put = publisher.declare_publisher("stall/test", congestion_control=zenoh.CongestionControl.BLOCK)
+    body = bytes(100_000)
+    try:
+        put.put((0).to_bytes(4, "big") + body)  # the route is there before the router stops
+        deadline = time.monotonic() + 60
+        while not received:
+            assert time.monotonic() < deadline, "the first message did not arrive"
+            time.sleep(0.05)
+        received.clear()
+        os.kill(router.pid, signal.SIGSTOP)
+        stopped = time.monotonic()
+        done = threading.Event()
+
+        def publish() -> None:
+            for i in range(1, count + 1):
+                put.put(i.to_bytes(4, "big") + body)
+            done.set()
+
+        thread = threading.Thread(target=publish, daemon=True)
+        thread.start()
+        blocked = not done.wait(8.0)
+        os.kill(router.pid, signal.SIGCONT)
+        resumed = time.monotonic() - stopped
+        assert done.wait(120), "the client's puts did not end after the router went on"
+        arrived.wait(60)  # the last message, if it comes
+        assert sorted(received) == list(range(1, count + 1)), (
+            f"{count - len(set(received))} of {count} messages lost after a router stall of {resumed:.1f} s "
+            f"(the puts {'blocked' if blocked else 'ended'} while the router was stopped)")
+        assert blocked, "30 MB went out while the router was stopped: the test did not fill the link"
+
+    finally:
+        os.kill(router.pid, signal.SIGCONT)
+        sink.undeclare()
+        publisher.close()
+        subscriber.close()

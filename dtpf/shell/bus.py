@@ -13,7 +13,13 @@ Every dtpf process takes the same Zenoh flags (after zenoh-python's
 Defaults are safe on a shared machine: multicast and gossip scouting are off,
 and a process that listens listens on loopback only unless told otherwise.
 Publishers use congestion control BLOCK: the default DROP loses most of a
-burst of large messages.
+burst of large messages. A blocked put waits for room in the link's queue;
+Zenoh closes the link (and drops what its queue holds) when none comes
+within ``wait_before_close``. A router waits 5 s, Zenoh's default; every
+other process waits :data:`SERVICE_WAIT_BEFORE_CLOSE` (60 s) unless its
+configuration says otherwise, so that a service whose router is stalled
+(a router blocked on the queue of a link that went dead, which it closes
+after its own 5 s) waits for the router instead of dropping its own queue.
 """
 from __future__ import annotations
 
@@ -81,6 +87,14 @@ def add_zenoh_arguments(parser: argparse.ArgumentParser) -> None:
                             "entity, information, system, recorder, sensor or viewer)")
 
 
+#: Where Zenoh keeps how long a BLOCK put waits for room before it closes the link (microseconds).
+WAIT_BEFORE_CLOSE_KEY = "transport/link/tx/queue/congestion_control/block/wait_before_close"
+#: Zenoh's default of that wait (5 s), which routers keep.
+ZENOH_WAIT_BEFORE_CLOSE = 5_000_000
+#: The wait of every process that is not a router (60 s): longer than a router's, see the module docstring.
+SERVICE_WAIT_BEFORE_CLOSE = 60_000_000
+
+
 def zenoh_config(*, mode: str | None = None, connect: list[str] = (), listen: list[str] = (),
                  config_file: str | None = None, cfg: list[str] = (), secure=None,
                  role: str | None = None) -> zenoh.Config:
@@ -125,6 +139,9 @@ def zenoh_config(*, mode: str | None = None, connect: list[str] = (), listen: li
             settings[key] = json.loads(value)
         except json.JSONDecodeError:
             settings[key] = value  # a bare string
+    if mode != "router" and WAIT_BEFORE_CLOSE_KEY not in settings \
+            and json.loads(config.get_json(WAIT_BEFORE_CLOSE_KEY)) == ZENOH_WAIT_BEFORE_CLOSE:
+        settings[WAIT_BEFORE_CLOSE_KEY] = SERVICE_WAIT_BEFORE_CLOSE
     for key, value in settings.items():
         try:
             config.insert_json5(key, json.dumps(value))

@@ -212,3 +212,52 @@ def test_the_model_may_map_a_message_itself(bag, tmp_path, monkeypatch):
     mapped = inprocess.run(RunConfig(model=f"{model}:Mapped", observations=str(bag), topic="/target", **common))
     reference = inprocess.run(RunConfig(model=EXAMPLE, observations=EXAMPLE_NO_TRUTH, **common))
     np.testing.assert_array_equal(mapped.means, reference.means)
+
+
+def test_the_ros2_messages_are_the_bytes_rosbags_serialises():
+    """The bridge and dtpf export --ros2 make each message's CDR bytes themselves: the same bytes as rosbags'
+    serialiser (frame names of every length modulo 8, so every padding is exercised)."""
+    import math
+
+    from dtpf.scripts.ros2 import convert
+
+    types = TYPESTORE.types
+
+    def serialised(msgtype, **fields):
+        return TYPESTORE.serialize_cdr(types[msgtype](**fields), msgtype)
+
+    def pose(x, y, z, yaw):
+        return types["geometry_msgs/msg/Pose"](
+            position=types["geometry_msgs/msg/Point"](x=x, y=y, z=z),
+            orientation=types["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=math.sin(yaw / 2), w=math.cos(yaw / 2)))
+
+    rng = np.random.default_rng(0)
+    for frame in ("m", "ma", "map", "odom", "frame", "radar1", "laser_2", "base_link"):
+        header = types["std_msgs/msg/Header"](stamp=types["builtin_interfaces/msg/Time"](sec=1000, nanosec=5),
+                                              frame_id=frame)
+        covariance = rng.normal(size=36)
+        poses = convert.PoseSet([1.5, -2.0, 0.25], 0.7, covariance, None)
+        assert convert.pose_cdr(1000, 5, frame, poses) == serialised(
+            "geometry_msgs/msg/PoseWithCovarianceStamped", header=header,
+            pose=types["geometry_msgs/msg/PoseWithCovariance"](pose=pose(1.5, -2.0, 0.25, 0.7), covariance=covariance))
+        particles = rng.normal(size=(7, 4))
+        assert convert.pose_array_cdr(1000, 5, frame, particles) == serialised(
+            "geometry_msgs/msg/PoseArray", header=header, poses=[pose(*p) for p in particles.tolist()])
+        values = rng.normal(size=3)
+        layout = types["std_msgs/msg/MultiArrayLayout"](
+            dim=[types["std_msgs/msg/MultiArrayDimension"](label=frame, size=3, stride=3)], data_offset=0)
+        assert convert.float64_array_cdr(values, frame) == serialised("std_msgs/msg/Float64MultiArray",
+                                                                      layout=layout, data=values)
+    assert convert.float64_cdr(0.125) == serialised("std_msgs/msg/Float64", data=0.125)
+    assert [convert.bool_cdr(v) for v in (True, False)] == [serialised("std_msgs/msg/Bool", data=v)
+                                                            for v in (True, False)]
+
+
+def test_the_pose_waits_for_the_cloud_only_for_a_covariance_the_cloud_gives():
+    """The cloud carries x[0], x[1], x[2]: a covariance between two of those, and only that, needs it."""
+    from dtpf.scripts.ros2.convert import cloud_covariances
+
+    assert not cloud_covariances({"x": 0}, 1)
+    assert cloud_covariances({"x": 0, "y": 1}, 4)
+    assert cloud_covariances({"x": 0, "y": 1, "yaw": 3}, 4)
+    assert not cloud_covariances({"x": 0, "yaw": 3}, 4)

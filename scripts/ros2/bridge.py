@@ -34,18 +34,21 @@ from collections import OrderedDict
 
 from dtpf.entity import model_ref, rosbag
 from dtpf.messages import keys
-from dtpf.messages.codec import MessageError, decode_for_key
+from dtpf.messages.codec import MessageError, decode
 from dtpf.messages.config import RunConfig, add_run_arguments, config_from_args
 from dtpf.messages.foxglove import PointCloud
-from dtpf.messages.models import Estimate, Observation, Time
+from dtpf.messages.models import MAX_OBSERVATION_VALUES, Estimate, Layer, Observation, Time
 from dtpf.scripts.console import run_command
 from dtpf.scripts.ros2 import Ros2Error, require_rclpy
 from dtpf.scripts.ros2.convert import (
     TOPICS,
-    Builder,
+    bool_cdr,
+    cloud_covariances,
     cloud_points_of,
+    float64_cdr,
     parse_pose,
     pose_array_cdr,
+    pose_cdr,
     pose_set,
     pose_set_particles,
 )
@@ -136,9 +139,12 @@ class Outbound:
     """The twin's estimates and clouds (Zenoh) to ROS 2 publishers.
 
     Zenoh's callbacks publish, one at a time (a lock); the executor's thread serves the input, and looks
-    for estimates that waited too long. A step's pose goes out when its estimate and its cloud are both in
-    (in either order), CLOUD_WAIT after the estimate without the cloud, or at once while the entity
-    publishes no clouds; its particles right after it."""
+    for estimates that waited too long. When the cloud gives the pose a covariance between two components
+    (:func:`~dtpf.scripts.ros2.convert.cloud_covariances`, ``--ros2-covariance cloud``), a step's pose goes
+    out when its estimate and its cloud are both in (in either order), CLOUD_WAIT after the estimate
+    without the cloud, or at once while the entity publishes no clouds, its particles right after it;
+    otherwise the pose goes out with its estimate and the particles with their cloud. Every message is
+    published as its CDR bytes (:mod:`dtpf.scripts.ros2.convert`), the pose first."""
 
     def __init__(self, node, session, config: RunConfig, dim: int, args, stamps):
         self.mapping = parse_pose(args.ros2_pose, dim)
@@ -151,32 +157,39 @@ class Outbound:
         profile = qos(args)
         self.pub = {name: node.create_publisher(message_class(msgtype), f"{ns}/{name}", profile)
                     for name, msgtype in TOPICS.items() if name != "observation"}
-        self.build = Builder(message_class)
         self.pending: dict[int, tuple[Estimate, float]] = {}
         self.clouds: OrderedDict = OrderedDict()  # a step's cloud that came before its estimate
         #: True once an estimate waited CLOUD_WAIT for its cloud in vain (an entity with --cloud-points 0).
         self.no_clouds = False
-        #: --ros2-covariance diagonal: the pose goes out with its estimate, the particles with their cloud.
-        self.wait_for_cloud = args.ros2_covariance != "diagonal"
+        #: False (--ros2-covariance diagonal, or a pose the cloud adds no covariance to): the pose goes out
+        #: with its estimate, the particles with their cloud.
+        self.wait_for_cloud = args.ros2_covariance != "diagonal" and cloud_covariances(self.mapping, dim)
         self.published = 0
         self.samples = 0
         self.closed = False
         self.lock = threading.Lock()
-        self.subscribers = [session.declare_subscriber(keys.key(config.twin, "entity", topic), self._on_sample)
-                            for topic in ("estimate", "cloud")]
+        self.twin = config.twin
+        self.subscribers = [session.declare_subscriber(keys.key(config.twin, "entity", topic),
+                                                       lambda sample, cls=cls: self._on_sample(sample, cls))
+                            for topic, cls in (("estimate", Estimate), ("cloud", PointCloud))]
 
-    def _on_sample(self, sample) -> None:  # a Zenoh thread
+    def _on_sample(self, sample, cls) -> None:  # a Zenoh thread
         self.samples += 1
         with self.lock:
             if not self.closed:
-                self.handle(str(sample.key_expr), sample.payload.to_bytes())
+                self.handle(sample.payload.to_bytes(), cls)
 
-    def handle(self, key: str, payload: bytes) -> None:
-        """One sample that arrived."""
+    def handle(self, payload: bytes, cls) -> None:
+        """One sample that arrived on the twin's key of ``cls`` (the checks of decode_for_key, without
+        parsing the key again)."""
         try:
-            message = decode_for_key(key, payload)
+            message = decode(payload, cls)
         except MessageError as error:
             log.debug("not a message of the twin: %s", error)
+            return
+        if message.twin_id != self.twin or message.layer != Layer.ENTITY:
+            log.debug("not a message of the twin: %s of twin %r, layer %s", cls.__name__, message.twin_id,
+                      message.layer.value)
             return
         if isinstance(message, Estimate):
             cloud = self.clouds.pop(message.step, None)
@@ -214,13 +227,12 @@ class Outbound:
         poses = pose_set(estimate, points, self.mapping)
         stamp = self.stamps.get(tuple(estimate.observation or ()))
         sec, nsec = stamp if stamp is not None else (estimate.stamp.sec, estimate.stamp.nsec)
-        header = self.build.header(sec, nsec, self.frame)
-        self.pub["pose"].publish(self.build.pose(header, poses))
-        self.pub["ess"].publish(self.build.float64(estimate.ess))
+        self.pub["pose"].publish(pose_cdr(sec, nsec, self.frame, poses))
+        self.pub["ess"].publish(float64_cdr(estimate.ess))
         if estimate.ps is not None:
-            self.pub["ps"].publish(self.build.float64(estimate.ps))
-        self.pub["degraded"].publish(self.build.bool(estimate.degraded))
-        if poses.particles is not None:  # its CDR bytes, made with NumPy, published raw
+            self.pub["ps"].publish(float64_cdr(estimate.ps))
+        self.pub["degraded"].publish(bool_cdr(estimate.degraded))
+        if poses.particles is not None:
             self.pub["particles"].publish(pose_array_cdr(sec, nsec, self.frame, poses.particles))
         elif not self.wait_for_cloud:
             self.cloud_stamps[estimate.step] = (sec, nsec)
@@ -278,8 +290,12 @@ class Inbound:
         if not all(math.isfinite(v) for v in values):
             shell.reject("a ROS message with a NaN or infinite value", f"values {values[:8]} are not all finite")
             return
+        if not 0 < len(values) <= MAX_OBSERVATION_VALUES:
+            shell.reject("a ROS message with no values or too many",
+                         f"{len(values)} values (an observation holds 1 to {MAX_OBSERVATION_VALUES})")
+            return
         stamp = rosbag.stamp_of(message)
-        if stamp is None or stamp == (0, 0):
+        if stamp is None or stamp == (0, 0) or stamp[0] < 0:
             now = time.time_ns()
             stamp = (now // 10**9, now % 10**9)
         self.sequence += 1
@@ -287,16 +303,44 @@ class Inbound:
         self.stamps[key] = stamp
         if len(self.stamps) > 10_000:
             self.stamps.popitem(last=False)
-        shell.publish(Observation(**shell.header(self.sequence), stamp=Time(sec=stamp[0], nsec=stamp[1]),
-                                  values=values))
+        # Every field is checked above or comes from the shell: built without pydantic's validation (a
+        # fraction of the cost on this path), validated by the entity that receives it.
+        shell.publish(Observation.model_construct(**shell.header(self.sequence), layer=Layer.SENSOR,
+                                                  stamp=Time.model_construct(sec=stamp[0], nsec=stamp[1]),
+                                                  values=values))
         self.sent += 1
+
+
+def checked_values(paths: list[rosbag.FieldPath]):
+    """:func:`~dtpf.entity.rosbag.values_of` for messages of the type ``paths`` were checked against
+    (:func:`~dtpf.entity.rosbag.check_fields`): the names are looked up without being checked again; a
+    path that ends on anything but one float (an array, an integer), or that a message does not fit (an
+    index past the end of its array), goes through values_of, which says why."""
+    steps = [path.steps for path in paths]
+
+    def values(message) -> list[float]:
+        out = []
+        try:
+            for path in steps:
+                value = message
+                for name, selector in path:
+                    value = getattr(value, name)
+                    if selector is not None:
+                        value = value[selector]
+                if type(value) is not float:
+                    return rosbag.values_of(message, paths)
+                out.append(value)
+        except (AttributeError, IndexError, TypeError):
+            return rosbag.values_of(message, paths)
+        return out
+    return values
 
 
 def _mapper(args, config: RunConfig, model, cls):
     if args.ros2_fields or config.ros2_fields:
         paths = rosbag.parse_fields(args.ros2_fields or config.ros2_fields)
         rosbag.check_fields(cls(), paths)
-        return lambda message: rosbag.values_of(message, paths)
+        return checked_values(paths)
     hook = getattr(model, rosbag.MODEL_HOOK, None)
     if hook is None:
         raise Ros2Error(f"say how a {rosbag.type_name(cls())} becomes an observation: --ros2-fields (e.g. 'range', "

@@ -27,7 +27,17 @@ from dtpf.messages.foxglove import PointCloud
 from dtpf.messages.models import Estimate
 from dtpf.recording.logfile import in_step_order, read_logs
 from dtpf.scripts.ros2 import Ros2Error
-from dtpf.scripts.ros2.convert import TOPICS, Builder, cloud_points_of, parse_pose, pose_array_cdr, pose_set
+from dtpf.scripts.ros2.convert import (
+    TOPICS,
+    bool_cdr,
+    cloud_points_of,
+    float64_array_cdr,
+    float64_cdr,
+    parse_pose,
+    pose_array_cdr,
+    pose_cdr,
+    pose_set,
+)
 
 __all__ = ["export_ros2", "register"]
 
@@ -70,7 +80,6 @@ def export_ros2(logs: list[Path], out: Path, *, pose: str | None = None, namespa
             clouds.setdefault((message.twin_id, message.step), cloud_points_of(message))
     if not estimates:
         raise Ros2Error(f"{', '.join(str(p) for p in logs)}: no estimate in the log: nothing to export")
-    build = Builder(lambda name: store.types[name], array=lambda values: np.asarray(values, dtype=np.float64))
     written: dict[str, int] = {}
     with Writer(out, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
         for twin in sorted(estimates):
@@ -84,24 +93,19 @@ def export_ros2(logs: list[Path], out: Path, *, pose: str | None = None, namespa
             connection = {name: writer.add_connection(f"{ns}/{name}", msgtype, typestore=store)
                           for name, msgtype in TOPICS.items()}
 
-            def put(name, message, at):
-                writer.write(connection[name], at, store.serialize_cdr(message, TOPICS[name]))
-
             for step, estimate in chosen.items():
                 at = times[id(estimate)]
-                points = clouds.get((twin, step))
-                poses = pose_set(estimate, points, mapping)
-                header = build.header(estimate.stamp.sec, estimate.stamp.nsec, frame)
-                put("pose", build.pose(header, poses), at)
+                sec, nsec = estimate.stamp.sec, estimate.stamp.nsec
+                poses = pose_set(estimate, clouds.get((twin, step)), mapping)
+                writer.write(connection["pose"], at, pose_cdr(sec, nsec, frame, poses))
                 if poses.particles is not None:
-                    writer.write(connection["particles"], at, pose_array_cdr(estimate.stamp.sec, estimate.stamp.nsec,
-                                                                             frame, poses.particles))
+                    writer.write(connection["particles"], at, pose_array_cdr(sec, nsec, frame, poses.particles))
                 if estimate.observation is not None:
-                    put("observation", build.float64_array(estimate.observation, "observation"), at)
-                put("ess", build.float64(estimate.ess), at)
+                    writer.write(connection["observation"], at, float64_array_cdr(estimate.observation, "observation"))
+                writer.write(connection["ess"], at, float64_cdr(estimate.ess))
                 if estimate.ps is not None:
-                    put("ps", build.float64(estimate.ps), at)
-                put("degraded", build.bool(estimate.degraded), at)
+                    writer.write(connection["ps"], at, float64_cdr(estimate.ps))
+                writer.write(connection["degraded"], at, bool_cdr(estimate.degraded))
             written[twin] = len(chosen)
     return written
 

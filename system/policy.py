@@ -50,7 +50,9 @@ Policies (:data:`POLICIES`):
   PS 0.81, roughening, the regularised kernel), from the evidence of the real observations
   (:mod:`dtpf.system.choose`): each arm's windowed log Bayes factor against plain over the last
   20 steps. From plain it switches to the arm with the largest evidence only when that exceeds
-  ``enter`` (default log 99, odds of 99 to 1); it keeps a chosen arm while its evidence against
+  ``enter`` (default log 99, odds of 99 to 1) and the window's per-step differences are steady (their
+  mean at least ``steady`` standard errors above 0, default 2: on the video a difference of about
+  1 nat a step either way sums past log 99 by chance); it keeps a chosen arm while its evidence against
   plain stays above ``leave`` (default log 3: the hysteresis), moves to another arm whose evidence
   beats the chosen one's by ``enter``, and goes back to plain when the chosen arm's evidence fades
   (unless another arm's exceeds ``enter``). It starts plain; the first evidence comes at step 2.
@@ -444,6 +446,9 @@ class ChoosePS(PSPolicy):
         Steps of evidence summed per arm (default 20).
     particles : int
         M, the twin's copy of the entity's set (default 1000).
+    steady : float
+        Enter an arm (or replace the arm in force) only when the window's per-step differences have a mean
+        at least this many standard errors above 0 (default 2; 0: the sum alone decides).
     veto : bool
         Enter an arm only while its predicted means' evidence against plain's is at least 0 and at least
         the arm in force's, and leave
@@ -459,7 +464,7 @@ class ChoosePS(PSPolicy):
 
     def __init__(self, ps: float | None = None, *, max_change: float | None = None, arms=None,
                  enter: float = math.log(99.0), leave: float = math.log(3.0), window: int = 20,
-                 particles: int = 1000, veto: bool = True):
+                 particles: int = 1000, veto: bool = True, steady: float = 2.0):
         from dtpf.information.layer import ARMS
         chosen = tuple(ARMS) if arms is None else tuple(arms)
         unknown = [a for a in chosen if a not in ARMS]
@@ -474,6 +479,7 @@ class ChoosePS(PSPolicy):
             raise ValueError(f"window and particles must be at least 1, got {window!r}, {particles!r}")
         self.window, self.particles = int(window), int(particles)
         self.veto = bool(veto)
+        self.steady = float(steady)
         self._table = ARMS
         #: The arm in force (the latest decision's; the arm the entity applies at the step being decided).
         self.arm = self.initial_arm
@@ -487,6 +493,21 @@ class ChoosePS(PSPolicy):
         chosen = self._table[arm]
         return PSDecision(chosen.ps, step + 1, self.name, reason, figures, preprocess=chosen.preprocess, arm=arm)
 
+    def _beats(self, forecast: Forecast, arm: str, other: str) -> bool:
+        """Whether ``arm``'s evidence exceeds ``other``'s by ``enter`` nats, and steadily: the mean of the
+        window's per-step differences at least ``steady`` standard errors above 0."""
+        evidence = forecast.arm_evidence
+        if not evidence[arm] - evidence.get(other, 0.0) > self.enter:
+            return False
+        steps = forecast.arm_differences
+        if not steps or self.steady <= 0:
+            return True
+        d = np.array([s.get(arm, 0.0) - s.get(other, 0.0) for s in steps])
+        if d.size < 2:
+            return False
+        spread = float(np.std(d, ddof=1))
+        return spread == 0.0 or float(np.mean(d)) / (spread / math.sqrt(d.size)) > self.steady
+
     def decide(self, step: int, forecast: Forecast) -> PSDecision:
         evidence = forecast.arm_evidence
         if not evidence:
@@ -499,7 +520,7 @@ class ChoosePS(PSPolicy):
         best = max(others, key=lambda a: evidence[a]) if others else None
         now = evidence.get(current, 0.0)
         vetoed = current != "plain" and points.get(current, 0.0) < -self.leave
-        if vetoed and best is not None and evidence[best] > self.enter:
+        if vetoed and best is not None and self._beats(forecast, best, "plain"):
             arm, verdict = best, (f"{current}'s estimate predicts worse than plain's ({points[current]:.3g} < "
                                   f"{-self.leave:.3g} nats), {best} beats plain by {evidence[best]:.3g} > "
                                   f"{self.enter:.3g}")
@@ -507,15 +528,15 @@ class ChoosePS(PSPolicy):
             arm, verdict = "plain", (f"{current}'s estimate predicts worse than plain's ({points[current]:.3g} < "
                                      f"{-self.leave:.3g} nats)")
         elif current == "plain":
-            if best is not None and evidence[best] > self.enter:
+            if best is not None and self._beats(forecast, best, "plain"):
                 arm, verdict = best, f"{best} beats plain by {evidence[best]:.3g} > {self.enter:.3g} nats"
             else:
-                arm, verdict = "plain", f"no arm beats plain by more than {self.enter:.3g} nats"
-        elif best is not None and evidence[best] - now > self.enter:
+                arm, verdict = "plain", f"no arm beats plain by more than {self.enter:.3g} nats steadily"
+        elif best is not None and self._beats(forecast, best, current):
             arm, verdict = best, f"{best} beats {current} by {evidence[best] - now:.3g} > {self.enter:.3g} nats"
         elif now > self.leave:
             arm, verdict = current, f"{current} still beats plain by {now:.3g} > {self.leave:.3g} nats"
-        elif best is not None and evidence[best] > self.enter:
+        elif best is not None and self._beats(forecast, best, "plain"):
             arm, verdict = best, (f"{current} faded ({now:.3g} <= {self.leave:.3g} nats), {best} beats plain by "
                                   f"{evidence[best]:.3g} > {self.enter:.3g}")
         else:

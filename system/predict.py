@@ -313,6 +313,8 @@ class Forecast:
     arm_evidence: dict[str, float] | None = field(default=None, compare=False)
     #: The same over the copies' predicted means: log p(z | mean) against plain's (nats).
     arm_point_evidence: dict[str, float] | None = field(default=None, compare=False)
+    #: The window's differences themselves, one {arm: d_a(k)} per step, oldest first.
+    arm_differences: tuple[dict[str, float], ...] | None = field(default=None, compare=False, repr=False)
 
     @property
     def next_ess_ratio(self) -> float:
@@ -428,7 +430,7 @@ class Predictor:
         if self.evidence is not None and hasattr(self.evidence, "totals"):  # the evidence per arm
             self.evidence.observe(step, snapshot.particles, snapshot.weights, snapshot.observation, rng)
             figures.update(arm_evidence=self.evidence.totals(), arm_point_evidence=self.evidence.point_totals(),
-                           evidence_steps=self.evidence.steps)
+                           arm_differences=tuple(self.evidence.differences), evidence_steps=self.evidence.steps)
         elif self.evidence is not None:  # after the simulation's draws, so they do not change
             self.evidence.observe(step, snapshot.particles, snapshot.weights, snapshot.observation, rng)
             figures.update(evidence=self.evidence.total, evidence_steps=len(self.evidence.differences))

@@ -207,6 +207,25 @@ def test_an_arm_whose_estimate_predicts_worse_is_not_entered_and_is_left():
     assert decide(ChoosePS(veto=False), 1, {"dt-paper": 1000.0}, {"dt-paper": -200.0}).arm == "dt-paper"
 
 
+def test_an_arm_is_entered_only_on_steady_evidence_not_on_a_lucky_sum():
+    """The same sum (6 nats > log 99) from twenty steady differences enters; from a noisy walk, it does not."""
+    from dtpf.system.predict import Forecast
+
+    def decide(policy, differences):
+        steps = tuple({"plain": 0.0, "roughening": d} for d in differences)
+        forecast = Forecast(1, 100, 1.0, 0.0, 1.0, arm_evidence={"plain": 0.0, "roughening": float(sum(differences))},
+                            arm_differences=steps, evidence_steps=len(steps))
+        return policy.decide(1, forecast)
+
+    steady = [0.3] * 20                                          # mean 0.3, SE ~0: far above 2 SE
+    noisy = [3.6, -3.0] * 10                                     # sum 6, mean 0.3, SE 0.74: 0.4 SE
+    assert decide(ChoosePS(), steady).arm == "roughening"
+    refused = decide(ChoosePS(), noisy)
+    assert refused.arm == "plain" and "steadily" in refused.reason
+    assert decide(ChoosePS(steady=0.0), noisy).arm == "roughening"  # the sum alone
+    assert decide(ChoosePS(), [6.0]).arm == "plain"               # one difference has no spread to judge
+
+
 def test_the_point_evidence_scores_the_copies_predicted_means():
     """e_a(k) of ArmEvidence: log p(z | mean of the copy) minus plain's, as the model's likelihood gives it."""
     from dtpf.system.choose import point_log_likelihood

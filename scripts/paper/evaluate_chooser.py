@@ -35,7 +35,7 @@ import io
 import math
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from multiprocessing import get_context
 from pathlib import Path
 
@@ -79,6 +79,8 @@ class Task:
     particles: int
     seed: int
     steps: int
+    #: The variants to run (empty: every one of VARIANTS, and the Kalman filter where it is exact).
+    labels: tuple[str, ...] = ()
 
 
 def scenario_model(name: str):
@@ -117,8 +119,9 @@ def run_task(task: Task) -> tuple[Task, dict[str, dict]]:
         _MODELS[task.scenario] = scenario_model(task.scenario)
     options, model = _MODELS[task.scenario]
     truth, observations = simulate(task_config(task, options), model)
-    results = {label: run_variant(task, label, model, options, truth, observations) for label in VARIANTS}
-    if isinstance(model, models.DriftModel):  # the exact posterior mean
+    results = {label: run_variant(task, label, model, options, truth, observations)
+               for label in (task.labels or VARIANTS)}
+    if isinstance(model, models.DriftModel) and not task.labels:  # the exact posterior mean
         results[KALMAN] = dict(error=float(np.mean((model.kalman(observations) - truth) ** 2)))
     return task, results
 
@@ -219,6 +222,17 @@ def read_csv(path: Path) -> dict[tuple[str, int], dict[int, dict]]:
     return cells
 
 
+def _drop_variants(path: Path, labels: set[str]) -> None:
+    """Rewrite the CSV at ``path`` without the rows of ``labels`` (and without a last row cut short)."""
+    text = path.read_text()
+    if not text.endswith("\n"):
+        text = text[: text.rfind("\n") + 1]
+    rows = list(csv.reader(io.StringIO(text, newline="")))
+    kept = [row for i, row in enumerate(rows) if i == 0 or len(row) < 4 or row[3] not in labels]
+    with open(path, "w", newline="") as handle:
+        csv.writer(handle).writerows(kept)
+
+
 def report(cells: dict[tuple[str, int], dict[int, dict]]) -> tuple[str, bool]:
     """The tables and verdicts of ``cells``, and whether every target is met."""
     out, verdicts, all_met = [], [], True
@@ -280,8 +294,11 @@ def main(argv=None) -> int:
     parser.add_argument("--workers", type=int, default=2, help="worker processes (default: %(default)s)")
     parser.add_argument("--csv", type=Path, default=None, help="write every run's figures to this CSV file")
     parser.add_argument("--resume", action="store_true",
-                        help="with --csv: keep the seeds that file holds complete, run only the others and append "
-                             "them (a long run cut short goes on where it stopped)")
+                        help="with --csv: keep what that file holds, run only the variants it lacks for each seed "
+                             "and append them (a long run cut short goes on where it stopped)")
+    parser.add_argument("--rerun", nargs="+", default=(), metavar="VARIANT",
+                        help="with --csv and --resume: drop these variants' rows from the file first, so that they "
+                             "are run again for every seed (after a change to one of them, e.g. --rerun choose)")
     parser.add_argument("--from-csv", type=Path, default=None, help="only rebuild the tables from this CSV file")
     parser.add_argument("--quick", action="store_true", help="6 seeds, T = 25, N = 50 on every scenario: a smoke run")
     parser.add_argument("--cost", action="store_true",
@@ -314,14 +331,25 @@ def main(argv=None) -> int:
     results: dict[tuple[str, int], dict[int, dict]] = {cell: {} for cell in cells}
     if args.resume and args.csv is None:
         parser.error("--resume needs --csv FILE")
+    unknown = [label for label in args.rerun if label not in VARIANTS]
+    if unknown or (args.rerun and not args.resume):
+        parser.error(f"--rerun takes variants of {', '.join(VARIANTS)} and needs --resume"
+                     + (f"; unknown: {', '.join(unknown)}" if unknown else ""))
     resumed = args.resume and args.csv.exists()
     if resumed:
+        if args.rerun:
+            _drop_variants(args.csv, set(args.rerun))
         for cell, by_seed in read_csv(args.csv).items():
             if cell in results:
-                results[cell].update({seed: f for seed, f in by_seed.items() if all(label in f for label in VARIANTS)})
-        tasks = [t for t in tasks if t.seed not in results[(t.scenario, t.particles)]]
-        print(f"resuming {args.csv}: {sum(map(len, results.values()))} cell-seeds done, {len(tasks)} to run",
-              file=sys.stderr)
+                results[cell].update(by_seed)
+        kept, tasks = tasks, []
+        for t in kept:
+            have = results[(t.scenario, t.particles)].get(t.seed, {})
+            missing = tuple(label for label in VARIANTS if label not in have)
+            if missing:
+                tasks.append(t if len(missing) == len(VARIANTS) else replace(t, labels=missing))
+        print(f"resuming {args.csv}: {len(kept) - len(tasks)} cell-seeds done, {len(tasks)} to run "
+              f"({sum(1 for t in tasks if t.labels)} of them only for the variants they lack)", file=sys.stderr)
     progress = TaskProgress("evaluate_chooser", len(tasks))
     start = time.perf_counter()
     writer = handle = None
@@ -335,7 +363,7 @@ def main(argv=None) -> int:
             writer.writerow(CSV_FIELDS)
 
     def keep(done: Task, figures: dict[str, dict]) -> None:
-        results[(done.scenario, done.particles)][done.seed] = figures
+        results[(done.scenario, done.particles)].setdefault(done.seed, {}).update(figures)
         if writer is not None:
             for label, f in figures.items():
                 writer.writerow([done.scenario, done.particles, done.seed, label,

@@ -446,8 +446,8 @@ def bridge_arguments(parser: argparse.ArgumentParser, defaults: bool = True) -> 
                        help="QoS history depth, in and out (default: 100)")
     group.add_argument("--ros2-covariance", choices=("cloud", "diagonal"), default=None,
                        help="the pose's covariance: 'cloud' waits for the step's particle cloud for the covariances "
-                            "between components; 'diagonal' publishes the pose with its estimate, variances only "
-                            "(default: cloud)")
+                            "between components (when two mapped components are in the cloud: x[0], x[1], x[2]); "
+                            "'diagonal' publishes the pose with its estimate, variances only (default: cloud)")
     group.add_argument("--ros2-best-effort", action="store_true",
                        help="QoS best effort instead of reliable (in and out), as sensor drivers often publish")
 

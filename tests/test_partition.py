@@ -25,7 +25,7 @@ from pathlib import Path
 import pytest
 
 from dtpf.recording.logfile import LogError, read_log, read_logs
-from dtpf.scripts.logs.summary import summarise
+from dtpf.scripts.logs.summary import format_ranges, summarise
 
 STEPS, RATE, CUT = 260, 10.0, 15.0
 PORT = 7447
@@ -117,18 +117,6 @@ def _wait_said(host: Host, process, text: str, timeout: float = 60.0) -> None:
         time.sleep(0.1)
 
 
-def _ranges(steps: list[int]) -> str:
-    """'3-7, 9' for [3, 4, 5, 6, 7, 9]."""
-    out, start = [], None
-    for i, step in enumerate(steps):
-        if start is None:
-            start = step
-        if i + 1 == len(steps) or steps[i + 1] != step + 1:
-            out.append(f"{start}-{step}" if step != start else f"{step}")
-            start = None
-    return ", ".join(out)
-
-
 def _estimate_steps(path: Path, twin: str) -> set[int]:
     """The steps of ``twin``'s estimates in a log being written (read as far as it goes)."""
     try:
@@ -190,5 +178,5 @@ def test_a_partition_longer_than_a_lease_loses_nothing_with_a_recorder_on_each_h
     # The two hosts' logs together hold every step of every twin.
     summary = summarise(read_logs([tmp_path / "b.mcap", tmp_path / "a.mcap"]))
     steps = {t.twin: t.steps for t in summary.twins if t.twin in twins}
-    missing = {t: _ranges(sorted(set(range(1, STEPS + 1)) - set(s))) for t, s in steps.items()}
+    missing = {t: format_ranges(set(range(1, STEPS + 1)) - set(s)) for t, s in steps.items()}
     assert steps == {twin: list(range(1, STEPS + 1)) for twin in twins}, (missing, said_a[-3000:])

@@ -21,6 +21,7 @@ from dtpf.information.layer import InformationLayer
 from dtpf.messages.config import RunConfig
 from dtpf.messages.models import ParticleSet, Status
 from dtpf.recording.logfile import Log, LogError, in_step_order, read_logs
+from dtpf.scripts.logs.summary import format_ranges
 from dtpf.system.layer import SystemLayer
 from dtpf.system.predict import Snapshot
 
@@ -239,17 +240,6 @@ def _ordinals(found: list[int]) -> str:
     return ", ".join(f"the {words.get(n, f'{n}th')} received at {k} step{'s' * (k != 1)}" for n, k in counts.items())
 
 
-def _ranges(steps: list[int]) -> str:
-    parts, start = [], None
-    for i, step in enumerate(steps):
-        if start is None:
-            start = step
-        if i + 1 == len(steps) or steps[i + 1] != step + 1:
-            parts.append(str(start) if start == step else f"{start}-{step}")
-            start = None
-    return ", ".join(parts)
-
-
 def cmd_verify(args: argparse.Namespace) -> int:
     try:
         log = read_logs(args.log)
@@ -281,7 +271,7 @@ def _report(result: Verification, verbose: bool) -> int:
             print(f"step {step}: ok")
     if result.unanswered:
         print(f"steps without a recorded preprocessed set (the information layer did not answer): "
-              f"{_ranges(result.unanswered)}")
+              f"{format_ranges(result.unanswered)}")
     for topic, steps in sorted(result.competing.items()):
         if topic.endswith("/entity/particles"):
             how = "the re-run used the one received in step order, as the entity publishes them"
@@ -289,11 +279,11 @@ def _report(result: Verification, verbose: bool) -> int:
             found = [result.used[topic, step] + 1 for step in steps if (topic, step) in result.used]
             how = (f"the re-run reproduced one message of each ({_ordinals(found)}); the rest are not what the "
                    f"twin's layers computed" if found else "none was checked")
-        print(f"competing: {topic} had more than one message at steps {_ranges(sorted(steps))}: {how}")
+        print(f"competing: {topic} had more than one message at steps {format_ranges(steps)}: {how}")
     if result.mismatch is not None:
         print(f"MISMATCH {result.mismatch}")
         if result.checked:
-            print(f"steps {_ranges(result.checked)} were reproduced exactly before it")
+            print(f"steps {format_ranges(result.checked)} were reproduced exactly before it")
         return 1
     print(f"OK: {len(result.checked)} steps reproduced exactly "
           f"(preprocessed sets bit for bit, weight states, PS commands)")

@@ -201,7 +201,8 @@ class Message(BaseModel):
     run_id: RunId = Field(description="Id of the run (one execution of a scenario).")
     twin_id: TwinId = Field(description="Id of the digital twin (one filter).")
     step: Count = Field(description="Filter step k, 1..T; 0 for run-level messages.")
-    stamp: Time = Field(description="Wall-clock time the message was made (publish time).")
+    stamp: Time = Field(description="When the message was made (wall-clock publish time); an estimate of a run "
+                                  "driven by a recorded log (a rosbag2 file) carries its step's recorded time.")
     layer: Layer = Field(description="The layer that produced the message.")
 
     @classmethod

@@ -20,7 +20,8 @@ on the real observations, without truth and without ``sample_observation``:
    difference to the plain copy, clipped to +-50 nats, is arm a's d_a(k).
    A second score looks at the copy's point estimate alone: the
    log-likelihood log p(z_(k+1) | mean_j x_j) of its predicted mean; its
-   difference to the plain copy's, clipped the same way, is e_a(k).
+   difference to the plain copy's, clipped at +50 nats only (it can only
+   keep an arm out, so a mean far off counts in full), is e_a(k).
 
 The first score is a proper score of the copy's whole predictive
 distribution; it favours a cloud spread wide enough to hold the truth over
@@ -59,6 +60,9 @@ __all__ = ["ArmEvidence", "CLIP", "point_log_likelihood"]
 
 #: Largest |difference| of one step (nats): one wild observation cannot decide a window.
 CLIP = 50.0
+#: Lowest point difference of one step (nats): the point evidence is clipped at +CLIP only, so that a copy
+#: whose mean is sometimes far off cannot hide it behind steps where it was close (it only ever vetoes).
+POINT_FLOOR = 1e9
 
 
 def point_log_likelihood(model: StateSpaceModel, particles: np.ndarray, observation: np.ndarray, k: int) -> float:
@@ -70,15 +74,15 @@ def point_log_likelihood(model: StateSpaceModel, particles: np.ndarray, observat
     return value if np.isfinite(value) else -np.inf
 
 
-def _difference(arm: float, plain: float) -> float:
-    """arm - plain in nats, clipped to +-CLIP; -inf against -inf is 0."""
+def _difference(arm: float, plain: float, lowest: float = -CLIP) -> float:
+    """arm - plain in nats, clipped to [``lowest``, CLIP]; -inf against -inf is 0."""
     if not np.isfinite(arm) and not np.isfinite(plain):
         return 0.0
     if not np.isfinite(plain):
         return CLIP
     if not np.isfinite(arm):
-        return -CLIP
-    return float(np.clip(arm - plain, -CLIP, CLIP))
+        return lowest
+    return float(np.clip(arm - plain, lowest, CLIP))
 
 
 class ArmEvidence:
@@ -164,7 +168,7 @@ class ArmEvidence:
                     weighted[name] = (x, w / w.sum())
             scored = {name: _difference(value, values["plain"]) for name, value in values.items()}
             self.differences.append(scored)
-            self.point_differences.append({name: _difference(value, points["plain"])
+            self.point_differences.append({name: _difference(value, points["plain"], lowest=-POINT_FLOOR)
                                            for name, value in points.items()})
         for name in self.names:  # a copy that lost the observation (or the first step): the entity's set
             if name not in weighted:

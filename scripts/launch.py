@@ -256,6 +256,30 @@ def rejected_by_layer(statuses) -> dict[str, int]:
     return totals
 
 
+def bridge_patterns(config: RunConfig) -> tuple[str, ...]:
+    """The key expressions a launcher's bridge records: the twin's keys and its sensor's."""
+    sensor = config.observation_key()
+    pattern = keys.twin_pattern(config.twin)
+    return (pattern, *([sensor] if sensor and not sensor.startswith(pattern[:-2]) else []))
+
+
+def watch_recorder(process: subprocess.Popen, open_inbox, early: dict[int, Inbox], stopping) -> threading.Thread:
+    """A thread that waits for the recorder ``process`` to end and at once opens ``open_inbox()`` into
+    ``early[pid]``, unless ``stopping()``: the launcher's bridge then holds every message from the moment the
+    recorder died, not from the moment its loop next looks at its children (0.1 s idle, more under load)."""
+    def wait() -> None:
+        process.wait()
+        if not stopping():
+            try:
+                early[process.pid] = open_inbox()
+            except Exception:  # the router is closing: the launcher's loop makes its own bridge, if any
+                pass
+
+    thread = threading.Thread(target=wait, name=f"watch-recorder-{process.pid}", daemon=True)
+    thread.start()
+    return thread
+
+
 class Bridge:
     """The twin's messages, recorded by the launcher between a recorder's death and its successor.
 
@@ -266,7 +290,8 @@ class Bridge:
     segment: :func:`dtpf.recording.logfile.join_logs` drops such repeats.
     """
 
-    def __init__(self, router, config: RunConfig, path: Path, patterns: tuple[str, ...] | None = None):
+    def __init__(self, router, config: RunConfig, path: Path, patterns: tuple[str, ...] | None = None,
+                 inbox: Inbox | None = None):
         from dtpf.messages.admission import RunShape
         from dtpf.recording.writer import McapRecording
 
@@ -274,11 +299,9 @@ class Bridge:
         self.path = path
         self.shape = RunShape(config.particles, None, None, config.steps)
         self.recording = McapRecording(path, compression="none")
-        if patterns is None:  # one twin's keys and its sensor's; a fleet passes its own
-            sensor = config.observation_key()
-            pattern = keys.twin_pattern(config.twin)
-            patterns = (pattern, *([sensor] if sensor and not sensor.startswith(pattern[:-2]) else []))
-        self.inbox = Inbox(router, *patterns)
+        # ``inbox``: one opened the moment the recorder died (see :func:`watch_recorder`); else one now, on
+        # the twin's keys and its sensor's (a fleet passes its own patterns).
+        self.inbox = inbox if inbox is not None else Inbox(router, *(patterns or bridge_patterns(config)))
         self.written = 0
 
     def pump(self) -> None:
@@ -470,6 +493,8 @@ def launch(config: RunConfig, *, log_path: Path | None = None, port: int | None 
     used = {layer: 0 for layer in LAYERS}
     gone: set[str] = set()  # layers that died with no restart left
     bridges: list[Bridge] = []  # the launcher's own recording while a new recorder starts
+    early: dict[int, Inbox] = {}  # a dead recorder's pid -> the bridge's inbox, opened the moment it died
+    stopping = threading.Event()  # set once the recorders are being stopped on purpose
     start = time.monotonic()
 
     def start_child(layer: str, output: Path) -> None:
@@ -479,9 +504,14 @@ def launch(config: RunConfig, *, log_path: Path | None = None, port: int | None 
                             secure=secure.path if secure is not None else None, wait_for_recorder=record),
             stderr=child_output, start_new_session=True)
         layer_of_pid[children[layer].pid] = layer
+        if layer == "recorder" and record:
+            watch_recorder(children[layer], lambda: Inbox(router, *bridge_patterns(config)), early, stopping.is_set)
 
     def revive(layer: str) -> None:
         code = children[layer].returncode
+        inbox = early.pop(children[layer].pid, None) if layer == "recorder" else None
+        if inbox is not None and (code == 2 or code == EXIT_LOG_WRITE):
+            inbox.close()  # no bridge follows
         if code == 2:  # the service refused its arguments or configuration: starting it again cannot help
             raise LaunchError(f"the {layer} service exited with code 2 (a configuration error; see above)")
         if layer == "recorder" and code == EXIT_LOG_WRITE:
@@ -499,7 +529,7 @@ def launch(config: RunConfig, *, log_path: Path | None = None, port: int | None 
         segment = bridge = None
         if layer == "recorder":  # the launcher records until a new recorder listens (or to the end)
             bridge = segment_path(log_path, len(result.segments))
-            bridges.append(Bridge(router, config, bridge))
+            bridges.append(Bridge(router, config, bridge, inbox=inbox))
             result.segments.append(bridge)
         if again:
             used[layer] += 1
@@ -575,6 +605,7 @@ def launch(config: RunConfig, *, log_path: Path | None = None, port: int | None 
         # Final statuses of the other services arrive when they stop.
         _stop(children, ("information", "system"), result)
         _drain(watch, result, progress, layer_of_pid, quiet=0.3, entity_pid=children["entity"].pid)
+        stopping.set()
         _stop(children, ("recorder",), result)
     except KeyboardInterrupt:
         result.interrupted = True
@@ -589,8 +620,11 @@ def launch(config: RunConfig, *, log_path: Path | None = None, port: int | None 
                 _stop(children, ("information", "system"), result)
         except KeyboardInterrupt:  # a second Ctrl-C: no more waiting for the drain
             pass
+        stopping.set()
         close_bridges(bridges, result)
         _stop(children, tuple(reversed(LAYERS)), result)
+        for inbox in list(early.values()):  # a recorder that died as the run ended: no bridge followed
+            inbox.close()
         if ros2_bridge is not None:
             _stop({"ros2": ros2_bridge}, ("ros2",), result)
             result.exit_codes.pop("ros2", None)

@@ -87,7 +87,10 @@ def test_launch_without_the_recorder_runs_the_split_alone(tmp_path):
 
 
 def test_entity_survives_the_information_layer_being_killed_and_restarted(processes, router, tmp_path):
-    run = ["--particles", "500", "--steps", "150", "--twin", "t-kill", "--seed", "3"]
+    # 400 steps at 40 a second: about 9 s after the kill for the new information service to start and answer (with
+    # 150, a loaded machine once took longer than the 3 s left, and preprocessing never came back in the run).
+    total = 400
+    run = ["--particles", "500", "--steps", str(total), "--twin", "t-kill", "--seed", "3"]
     log = tmp_path / "kill.mcap"
     processes.start("recorder", service_args("dtpf.scripts.record", router.endpoint, *run, "--output", str(log)))
     processes.start("system", service_args("dtpf.system.service", router.endpoint, *run))
@@ -102,9 +105,9 @@ def test_entity_survives_the_information_layer_being_killed_and_restarted(proces
     processes.start("information", service_args("dtpf.information.service", router.endpoint, *run))
     entity.wait(timeout=120)
     assert entity.returncode == 0, processes.output(entity)
-    router.collect(lambda m: {e.step for e in m if isinstance(e, Estimate)} >= set(range(1, 151)), timeout=30)
+    router.collect(lambda m: {e.step for e in m if isinstance(e, Estimate)} >= set(range(1, total + 1)), timeout=30)
     estimates = sorted((m for m in router.messages if isinstance(m, Estimate)), key=lambda e: e.step)
-    assert [e.step for e in estimates] == list(range(1, 151))
+    assert [e.step for e in estimates] == list(range(1, total + 1))
     degraded = [e.step for e in estimates if e.degraded]
     assert degraded and degraded[0] > 20
     assert any(not e.degraded for e in estimates if e.step > degraded[-1]), "preprocessing never came back"
@@ -117,7 +120,7 @@ def test_entity_survives_the_information_layer_being_killed_and_restarted(proces
         process.wait(timeout=20)
     recorded = read_with_mcap_only(log)
     steps = sorted(m["step"] for m in recorded["dtpf/t-kill/entity/estimate"])
-    assert steps == list(range(1, 151))  # the log holds every step the entity made
+    assert steps == list(range(1, total + 1))  # the log holds every step the entity made
     assert sum(m["degraded"] for m in recorded["dtpf/t-kill/entity/estimate"]) == len(degraded)
 
 

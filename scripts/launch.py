@@ -494,6 +494,7 @@ def launch(config: RunConfig, *, log_path: Path | None = None, port: int | None 
     gone: set[str] = set()  # layers that died with no restart left
     bridges: list[Bridge] = []  # the launcher's own recording while a new recorder starts
     early: dict[int, Inbox] = {}  # a dead recorder's pid -> the bridge's inbox, opened the moment it died
+    watchers: dict[int, threading.Thread] = {}  # a recorder's pid -> the thread that waits for it
     stopping = threading.Event()  # set once the recorders are being stopped on purpose
     start = time.monotonic()
 
@@ -505,11 +506,15 @@ def launch(config: RunConfig, *, log_path: Path | None = None, port: int | None 
             stderr=child_output, start_new_session=True)
         layer_of_pid[children[layer].pid] = layer
         if layer == "recorder" and record:
-            watch_recorder(children[layer], lambda: Inbox(router, *bridge_patterns(config)), early, stopping.is_set)
+            watchers[children[layer].pid] = watch_recorder(
+                children[layer], lambda: Inbox(router, *bridge_patterns(config)), early, stopping.is_set)
 
     def revive(layer: str) -> None:
         code = children[layer].returncode
-        inbox = early.pop(children[layer].pid, None) if layer == "recorder" else None
+        inbox = None
+        if layer == "recorder" and (watcher := watchers.pop(children[layer].pid, None)) is not None:
+            watcher.join(timeout=2.0)  # it opens the inbox right after the process ended, which this saw
+            inbox = early.pop(children[layer].pid, None)
         if inbox is not None and (code == 2 or code == EXIT_LOG_WRITE):
             inbox.close()  # no bridge follows
         if code == 2:  # the service refused its arguments or configuration: starting it again cannot help

@@ -13,6 +13,7 @@ Run ``python -m dtpf.system.service --help`` for the options.
 from __future__ import annotations
 
 import argparse
+import time
 
 import zenoh
 
@@ -37,6 +38,10 @@ def summary_of(state: WeightState) -> WeightSummary:
 
 #: How many steps ahead of the one it decides on the service keeps a particle set.
 MAX_AHEAD = 4
+#: Seconds a stopped service waits for the weight state of a run's last step when it has decided every
+#: step before it (the launcher stops the layers as soon as the entity has finished; the last decision
+#: should be in the log whichever of the two processes the machine ran first).
+FINAL_WAIT = 0.5
 
 
 class ParticleSets:
@@ -83,6 +88,8 @@ class TwinSystem:
         self.sets = ParticleSets(shell) if self.layer.needs_particles else None
         self.waiting: WeightState | None = None
         self.deadline = 0.0
+        self.steps = config.steps
+        self.decided = 0  #: the last step decided on
 
     def poll(self, now: float) -> float | None:
         """Handle what has arrived; the time to look again if a weight state waits for its set."""
@@ -106,7 +113,18 @@ class TwinSystem:
             self.waiting = None
             self._decide(state, snapshot)
 
+    def finish(self, doorbell) -> None:
+        """After the stop: decide on what has arrived, and wait up to :data:`FINAL_WAIT` seconds for the
+        weight state of the run's last step when it is the only one missing."""
+        end = time.monotonic() + FINAL_WAIT
+        self.poll(time.monotonic())
+        while (self.steps is not None and self.decided == self.steps - 1
+               and (left := end - time.monotonic()) > 0):
+            doorbell.wait(left)
+            self.poll(time.monotonic())
+
     def _decide(self, state: WeightState, snapshot: Snapshot | None) -> None:
+        self.decided = max(self.decided, state.step)
         try:
             decision = self.layer.observe(state.step, summary_of(state), snapshot)
         except ValueError as error:  # a state the predictor cannot take: counted, the service goes on

@@ -68,6 +68,43 @@ def test_launch_records_every_step_and_reproduces_the_inprocess_run(tmp_path):
     assert all(m["ps"] == 0.81 for m in decoded["dtpf/t-launch/system/ps"])
 
 
+class _Arrivals:
+    """Weight states that arrive at given times, for a TwinSystem whose poll is replaced by this one."""
+
+    def __init__(self, system, arrivals: dict[int, float]):
+        self.system, self.arrivals, self.waited = system, dict(arrivals), []
+
+    def poll(self, now: float) -> None:
+        for step, at in sorted(self.arrivals.items()):
+            if at <= now:
+                self.system.decided = max(self.system.decided, step)
+                del self.arrivals[step]
+
+    def wait(self, timeout: float) -> set:
+        self.waited.append(timeout)
+        due = min(self.arrivals.values(), default=float("inf"))
+        time.sleep(max(0.0, min(timeout, due - time.monotonic())))
+        return set()
+
+
+@pytest.mark.parametrize("decided, arrivals, final", [
+    (38, {39: 0.0, 40: 0.1}, 40),   # the last step's state comes 0.1 s after the stop: decided on
+    (10, {11: 0.0, 12: 0.1}, 11),   # stopped mid-run: what arrived is answered, nothing waited for
+    (38, {39: 0.0, 40: 5.0}, 39),   # the last state never comes in time: at most FINAL_WAIT seconds
+])
+def test_a_stopped_system_layer_decides_the_last_step_that_arrives_just_after_the_stop(decided, arrivals, final):
+    from dtpf.system.service import FINAL_WAIT, TwinSystem
+    system = TwinSystem.__new__(TwinSystem)
+    system.steps, system.decided = 40, decided
+    start = time.monotonic()
+    stand_in = _Arrivals(system, {step: start + delay for step, delay in arrivals.items()})
+    system.poll = stand_in.poll
+    system.finish(stand_in)
+    assert system.decided == final
+    assert time.monotonic() - start < FINAL_WAIT + 0.5
+    assert bool(stand_in.waited) == (decided == 38)
+
+
 def wait_for_step(router, step, timeout, degraded=None):
     def seen(messages):
         return any(isinstance(m, Estimate) and m.step >= step and (degraded is None or m.degraded == degraded)

@@ -91,10 +91,14 @@ def serve_run(run, doorbell: Doorbell) -> int:
 
 
 def serve_one(shell: ServiceShell, twin, doorbell: Doorbell) -> None:
-    """Poll ``twin`` whenever its inboxes ring (or its deadline comes) until the shell stops."""
+    """Poll ``twin`` whenever its inboxes ring (or its deadline comes) until the shell stops; then its
+    ``finish(doorbell)``, if it has one (what arrived before the stop is answered)."""
     while not shell.stopping:
         deadline = twin.poll(time.monotonic())
         doorbell.wait(_wait_time(deadline, time.monotonic()))
+    finish = getattr(twin, "finish", None)
+    if finish is not None:
+        finish(doorbell)
 
 
 @dataclass(frozen=True)

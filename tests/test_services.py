@@ -313,7 +313,7 @@ def test_a_signal_inside_interrupts_held_takes_effect_when_the_block_ends():
     folded = []
     with pytest.raises(KeyboardInterrupt):
         with interrupts_held():
-            os.kill(os.getpid(), signal.SIGINT)
+            signal.raise_signal(signal.SIGINT)  # to this thread: its handler runs here, now
             folded.append("after the signal")  # still runs: the signal waits for the block's end
     assert folded == ["after the signal"]
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # the handler is put back
@@ -326,7 +326,7 @@ def test_sigterm_inside_interrupts_held_runs_the_installed_handler_at_the_end():
     previous = signal.signal(signal.SIGTERM, lambda signum, frame: seen.append(signum))
     try:
         with interrupts_held():
-            os.kill(os.getpid(), signal.SIGTERM)
+            signal.raise_signal(signal.SIGTERM)
             assert seen == []
         assert seen == [signal.SIGTERM]
     finally:

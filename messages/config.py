@@ -102,6 +102,9 @@ class RunConfig(BaseModel):
                                            "Smith 1993) or 'regularised' (the kernel of the regularised particle "
                                            "filter, Musso, Oudjane and Le Gland 2001).")
     policy: str = Field("fixed", description="PS policy of the system layer.")
+    choose_base: Literal[names.ARMS] = Field("plain", description="The choosing policy's base arm: the move in "
+                                             "force when no other has the evidence, and the one every other "
+                                             "arm's evidence is against (only with policy 'choose').")
     ps: float = Field(0.81, ge=0.0, le=1.0, description="PS of the fixed policy, and the initial PS.")
     ps_rate: float = Field(0.25, gt=0.0, le=1.0, description="Largest change of PS per step that the "
                                                               "adaptive policies make.")
@@ -216,6 +219,9 @@ class RunConfig(BaseModel):
     def _policy_fits_scenario(self) -> "RunConfig":
         if self.steps is None and self.simulated:
             raise ValueError("steps: a simulated scenario needs a number of steps")
+        if self.choose_base != "plain" and self.policy != "choose":
+            raise ValueError(f"choose_base: a base arm ({self.choose_base}) is for policy 'choose', not "
+                             f"{self.policy!r}")
         if self.model is not None:
             return self  # a user model is checked when it is loaded (dtpf.entity.model_check)
         # A simulating policy draws observations from the model; a video scenario cannot.
@@ -285,6 +291,9 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
                             "to the predicted degradation), 'guard' (preprocess only where the twin's simulation "
                             "predicts it lowers the error), 'guard-observed' (only while the real observations "
                             f"favour it); see docs/guides/policies.md (default: {defaults.policy})")
+    group.add_argument("--choose-base", default=None, choices=names.ARMS, metavar="ARM",
+                       help="with --policy choose: the arm in force when no other has the evidence, and the one the "
+                            f"others are scored against ({', '.join(names.ARMS)}; default: {defaults.choose_base})")
     group.add_argument("--ps", type=float, default=None,
                        help=f"PS of the fixed policy, initial PS of the others (default: {defaults.ps})")
     group.add_argument("--ps-rate", type=float, default=None, metavar="CHANGE",
@@ -293,7 +302,7 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
 
 #: The RunConfig fields the run flags set (argparse dest = field name).
 _FLAG_FIELDS = ("scenario", "model", "observations", "topic", "ros2_fields", "particles", "steps", "resampler", "resample_below",
-                "preprocess", "threshold", "weight_rule", "move_rule", "jitter", "policy", "ps", "ps_rate", "seed", "twin", "run_id")
+                "preprocess", "threshold", "weight_rule", "move_rule", "jitter", "policy", "choose_base", "ps", "ps_rate", "seed", "twin", "run_id")
 
 
 def read_config_file(path) -> dict:

@@ -366,7 +366,7 @@ def service_command(layer: str, config: RunConfig, endpoint: str, *, timeout: fl
                "--scenario", config.scenario, "--particles", str(config.particles),
                "--resampler", config.resampler, "--threshold", str(config.threshold),
                "--weight-rule", config.weight_rule, "--move-rule", config.move_rule, "--jitter", config.jitter,
-               "--policy", config.policy, "--ps", repr(config.ps),
+               "--policy", config.policy, "--choose-base", config.choose_base, "--ps", repr(config.ps),
                "--ps-rate", repr(config.ps_rate),
                "--seed", str(config.seed), "--twin", config.twin, "--run-id", config.run_id,
                "--timeout", repr(timeout), "--log-level", log_level, "--connect", endpoint,

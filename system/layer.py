@@ -67,7 +67,8 @@ class SystemLayer:
         from dtpf.system import policy as ps_policy
         from dtpf.system.evidence import Evidence
 
-        policy = ps_policy.get(config.policy, ps=config.ps, max_change=config.ps_rate)
+        base = {"base": config.choose_base} if config.policy == "choose" else {}
+        policy = ps_policy.get(config.policy, ps=config.ps, max_change=config.ps_rate, **base)
         if policy.simulates and model is None:
             model = model_ref.resolve(config.model_ref)
         options = dict(threshold_rule=config.threshold, weight_rule=config.weight_rule, move_rule=config.move_rule)

@@ -453,24 +453,25 @@ class ChoosePS(PSPolicy):
         Enter an arm only while its predicted means' evidence against plain's is at least 0 and at least
         the arm in force's, and leave
         it when that falls below ``-leave`` (default True; False: the predictive evidence alone).
+    base : str
+        The arm in force when no other has the evidence (default plain): every threshold above is then
+        against this arm's copy instead of plain's.
     """
 
     name = "choose"
     simulates = True
     uses_evidence = True
     initial_preprocess = False
-    #: The arm in force before the first decision.
-    initial_arm = "plain"
-
     def __init__(self, ps: float | None = None, *, max_change: float | None = None, arms=None,
                  enter: float = math.log(99.0), leave: float = math.log(3.0), window: int = 20,
-                 particles: int = 1000, veto: bool = True, steady: float = 2.0):
+                 particles: int = 1000, veto: bool = True, steady: float = 2.0, base: str = "plain"):
         from dtpf.information.layer import ARMS
         chosen = tuple(ARMS) if arms is None else tuple(arms)
-        unknown = [a for a in chosen if a not in ARMS]
+        unknown = [a for a in (*chosen, base) if a not in ARMS]
         if unknown:
             raise ValueError(f"unknown arm {unknown[0]!r}; expected some of {', '.join(ARMS)}")
-        self.arms = tuple(dict.fromkeys(("plain", *chosen)))
+        self.arms = tuple(dict.fromkeys(("plain", base, *chosen)))
+        self.base = base
         self.enter = _non_negative(enter, "enter")
         self.leave = float(leave)
         if not self.leave <= self.enter:
@@ -482,7 +483,7 @@ class ChoosePS(PSPolicy):
         self.steady = float(steady)
         self._table = ARMS
         #: The arm in force (the latest decision's; the arm the entity applies at the step being decided).
-        self.arm = self.initial_arm
+        self.arm = self.initial_arm = base
 
     @property
     def initial_ps(self) -> float:
@@ -509,41 +510,44 @@ class ChoosePS(PSPolicy):
         return spread == 0.0 or float(np.mean(d)) / (spread / math.sqrt(d.size)) > self.steady
 
     def decide(self, step: int, forecast: Forecast) -> PSDecision:
-        evidence = forecast.arm_evidence
-        if not evidence:
+        if not forecast.arm_evidence:
             return self._decision(step, self.arm, f"choose: no evidence yet: {self.arm} kept", {})
+        base = self.base
+        # Evidence against the base arm's copy (the sums are against plain's: a difference of two sums).
+        evidence = {a: e - forecast.arm_evidence.get(base, 0.0) for a, e in forecast.arm_evidence.items()}
+        points = {} if not self.veto else {a: e - (forecast.arm_point_evidence or {}).get(base, 0.0)
+                                           for a, e in (forecast.arm_point_evidence or {}).items()}
         current = self.arm
-        points = (forecast.arm_point_evidence or {}) if self.veto else {}
-        floor = max(0.0, points.get(current, 0.0))  # an arm's estimate must predict no worse than plain's and
-        others = [a for a in self.arms                # the arm in force's
-                  if a != current and a != "plain" and a in evidence and points.get(a, 0.0) >= floor]
+        floor = max(0.0, points.get(current, 0.0))  # an arm's estimate must predict no worse than the base's
+        others = [a for a in self.arms                # and the arm in force's
+                  if a != current and a != base and a in evidence and points.get(a, 0.0) >= floor]
         best = max(others, key=lambda a: evidence[a]) if others else None
         now = evidence.get(current, 0.0)
-        vetoed = current != "plain" and points.get(current, 0.0) < -self.leave
-        if vetoed and best is not None and self._beats(forecast, best, "plain"):
-            arm, verdict = best, (f"{current}'s estimate predicts worse than plain's ({points[current]:.3g} < "
-                                  f"{-self.leave:.3g} nats), {best} beats plain by {evidence[best]:.3g} > "
+        vetoed = current != base and points.get(current, 0.0) < -self.leave
+        if vetoed and best is not None and self._beats(forecast, best, base):
+            arm, verdict = best, (f"{current}'s estimate predicts worse than {base}'s ({points[current]:.3g} < "
+                                  f"{-self.leave:.3g} nats), {best} beats {base} by {evidence[best]:.3g} > "
                                   f"{self.enter:.3g}")
         elif vetoed:
-            arm, verdict = "plain", (f"{current}'s estimate predicts worse than plain's ({points[current]:.3g} < "
-                                     f"{-self.leave:.3g} nats)")
-        elif current == "plain":
-            if best is not None and self._beats(forecast, best, "plain"):
-                arm, verdict = best, f"{best} beats plain by {evidence[best]:.3g} > {self.enter:.3g} nats"
+            arm, verdict = base, (f"{current}'s estimate predicts worse than {base}'s ({points[current]:.3g} < "
+                                  f"{-self.leave:.3g} nats)")
+        elif current == base:
+            if best is not None and self._beats(forecast, best, base):
+                arm, verdict = best, f"{best} beats {base} by {evidence[best]:.3g} > {self.enter:.3g} nats"
             else:
-                arm, verdict = "plain", f"no arm beats plain by more than {self.enter:.3g} nats steadily"
+                arm, verdict = base, f"no arm beats {base} by more than {self.enter:.3g} nats steadily"
         elif best is not None and self._beats(forecast, best, current):
             arm, verdict = best, f"{best} beats {current} by {evidence[best] - now:.3g} > {self.enter:.3g} nats"
         elif now > self.leave:
-            arm, verdict = current, f"{current} still beats plain by {now:.3g} > {self.leave:.3g} nats"
-        elif best is not None and self._beats(forecast, best, "plain"):
-            arm, verdict = best, (f"{current} faded ({now:.3g} <= {self.leave:.3g} nats), {best} beats plain by "
+            arm, verdict = current, f"{current} still beats {base} by {now:.3g} > {self.leave:.3g} nats"
+        elif best is not None and self._beats(forecast, best, base):
+            arm, verdict = best, (f"{current} faded ({now:.3g} <= {self.leave:.3g} nats), {best} beats {base} by "
                                   f"{evidence[best]:.3g} > {self.enter:.3g}")
         else:
-            arm, verdict = "plain", f"{current} faded ({now:.3g} <= {self.leave:.3g} nats against plain)"
+            arm, verdict = base, f"{current} faded ({now:.3g} <= {self.leave:.3g} nats against {base})"
         tried = ", ".join(f"{a} {evidence[a]:.3g}" + (f" (mean {points[a]:.3g})" if a in points else "")
-                          for a in self.arms if a != "plain" and a in evidence)
-        reason = (f"choose: evidence against plain over the last {forecast.evidence_steps} observations "
+                          for a in self.arms if a != base and a in evidence)
+        reason = (f"choose: evidence against {base} over the last {forecast.evidence_steps} observations "
                   f"({tried}); {verdict}: {arm}")
         return self._decision(step, arm, reason, {"evidence": float(evidence.get(arm, 0.0))})
 

@@ -180,6 +180,36 @@ def test_the_policy_switches_only_on_strong_evidence_and_back_when_it_fades():
         ChoosePS(enter=1.0, leave=2.0)
 
 
+def test_a_base_arm_is_in_force_without_evidence_and_the_others_are_scored_against_it():
+    """ChoosePS(base=...): the thresholds hold against the base arm's copy (the sums are against plain's)."""
+    from dtpf.system.predict import Forecast
+
+    policy = ChoosePS(base="roughening")
+    assert (policy.arm, policy.initial_ps) == ("roughening", 0.0)
+
+    def decide(step, evidence, points=None):
+        zero = dict.fromkeys(("plain", "dt-relative", "dt-paper", "roughening", "regularised"), 0.0)
+        forecast = Forecast(step, 100, 1.0, 0.0, 1.0, arm_evidence={**zero, **evidence},
+                            arm_point_evidence={**zero, **(points or {})}, evidence_steps=20)
+        return policy.decide(step, forecast)
+
+    # 10 nats above plain, but only 2 above the base: roughening stays.
+    kept = decide(1, {"roughening": 8.0, "regularised": 10.0})
+    assert kept.arm == "roughening" and "against roughening" in kept.reason
+    assert decide(2, {"roughening": 8.0, "regularised": 8.0 + math.log(99) + 0.01}).arm == "regularised"
+    faded = decide(3, {"roughening": 8.0, "regularised": 8.0})
+    assert faded.arm == "roughening" and "faded" in faded.reason
+    # Plain is an arm like the others: it is entered when it beats the base, and stays while it does.
+    worse = dict.fromkeys(("roughening", "regularised", "dt-relative", "dt-paper"), -10.0)
+    assert decide(4, worse).arm == "plain"
+    assert decide(5, {**worse, "regularised": -9.0}).arm == "plain"
+    assert decide(6, {}).arm == "roughening"
+    # The veto is against the base's predicted means too.
+    assert decide(7, {"regularised": 50.0}, {"roughening": 5.0, "regularised": 4.0}).arm == "roughening"
+    with pytest.raises(ValueError, match="unknown arm 'teleport'"):
+        ChoosePS(base="teleport")
+
+
 def test_an_arm_whose_estimate_predicts_worse_is_not_entered_and_is_left():
     """The point-estimate veto: strong predictive evidence is not enough when the arm's predicted means
     predict the observations worse than plain's (or than the arm in force's)."""
@@ -287,8 +317,9 @@ def test_the_quick_evaluation_prints_every_variant_and_a_verdict_per_cell(capsys
         block = out.split(f"**{scenario}, N = 50**")[1].split("**")[0]
         rows = {line.split("|")[1].strip().split(" (")[0]: line for line in block.splitlines() if line.startswith("| ")}
         assert set(evaluate_chooser.VARIANTS) <= set(rows), scenario
-        assert f"- {scenario}, N = 50: choose " in out
-    assert "Every target met: " in out
+        for chooser in evaluate_chooser.CHOOSERS:
+            assert f"- {scenario}, N = 50: {chooser} " in out
+    assert "every target met by choose: " in out and "every target met by choose, roughening base: " in out
 
 
 # --- over Zenoh, in the log, through dtpf verify ----------------------------------

@@ -296,6 +296,7 @@ def test_every_run_option_of_a_launch_reaches_its_services(layer, tmp_path):
         RunConfig(scenario="drift", particles=321, steps=17, resampler="stratified", resample_below=0.5,
                   threshold="inverse-n", weight_rule="likelihood", move_rule="relative", jitter="roughening",
                   policy="rule", ps=0.5, ps_rate=0.125, seed=9, twin="t-flags", run_id="r-9"),
+        RunConfig(policy="choose", choose_base="roughening", twin="t-flags-3"),
         RunConfig(model="docs/examples/range_bearing.py:RangeBearingTarget", observations="live", steps=None,
                   preprocess=False, jitter="regularised", twin="t-flags-2"),
     ]

@@ -57,11 +57,15 @@ CURES: dict[str, dict] = {
     "regularised": dict(preprocess=False, jitter="regularised"),
 }
 CHOOSE = "choose"
+#: The chooser whose base arm is roughening (--choose-base roughening).
+CHOOSE_ROUGHENING = "choose, roughening base"
+#: The choosers, and the base arm of each.
+CHOOSERS = {CHOOSE: "plain", CHOOSE_ROUGHENING: "roughening"}
 VARIANTS: dict[str, dict] = {
     **{name: dict(preprocess=False, resampler=name) for name in TRADITIONAL},
     **CURES,
     "guard-observed, relative rule": dict(policy="guard-observed", **RELATIVE),
-    CHOOSE: dict(policy="choose"),
+    **{label: dict(policy="choose", choose_base=base) for label, base in CHOOSERS.items()},
 }
 KALMAN = "Kalman (exact)"
 #: The fixed methods the chooser is compared with (the traditional resamplers and the cures).
@@ -105,9 +109,9 @@ def run_variant(task: Task, label: str, model, options: dict, truth: np.ndarray,
     figures = dict(error=evaluate_guard._errors(task.scenario, means, truth[: len(steps)]),
                    ms=1e3 * elapsed / len(steps))
     twin = pf.preprocessor
-    if label == CHOOSE and twin is not None:
+    if label in CHOOSERS and twin is not None:
         arms = [d.arm for d in twin.decisions[:-1]]  # the arm in force at steps 2 .. T
-        figures["off_plain"] = float(np.mean([a != "plain" for a in arms])) if arms else 0.0
+        figures["off_plain"] = float(np.mean([a != CHOOSERS[label] for a in arms])) if arms else 0.0
     return figures
 
 
@@ -145,10 +149,13 @@ def cell_rows(by_seed: dict[int, dict[str, dict]]) -> list[dict]:
         m, h = mean_ci(error[label])
         d, dh = mean_ci(error[label] - error["systematic"])
         c, ch = mean_ci(error[label] - error[CHOOSE])
+        # label - chooser, paired by seed: +1 where the chooser is significantly better.
+        significant_vs = {chooser: significance(*mean_ci(error[label] - error[chooser])) if label != chooser else 0
+                          for chooser in CHOOSERS if chooser in error}
         ms = [by_seed[s][label].get("ms") for s in seeds]
         rows.append(dict(variant=label, error=m, error_ci=h, vs_systematic=d, vs_systematic_ci=dh,
                          significant=significance(d, dh) if label != "systematic" else 0,
-                         vs_choose=c, vs_choose_ci=ch, significant_vs_choose=significance(c, ch) if label != CHOOSE else 0,
+                         vs_choose=c, vs_choose_ci=ch, significant_vs=significant_vs,
                          ms=float(np.mean(ms)) if ms[0] is not None else math.nan,
                          off_plain=float(np.mean([by_seed[s][label].get("off_plain", math.nan) for s in seeds]))))
     return rows
@@ -165,18 +172,18 @@ def table(scenario: str, n: int, seeds: int, rows: list[dict]) -> str:
             f"{_num(row['vs_choose'])} ± {_num(row['vs_choose_ci'])}"
         ms = "-" if math.isnan(row["ms"]) else f"{row['ms']:.2f}"
         name = row["variant"]
-        if name == CHOOSE and not math.isnan(row["off_plain"]):
-            name += f" (not plain at {100 * row['off_plain']:.0f}% of steps)"
+        if name in CHOOSERS and not math.isnan(row["off_plain"]):
+            name += f" (not {CHOOSERS[name]} at {100 * row['off_plain']:.0f}% of steps)"
         lines.append(f"| {name} | {_num(row['error'])} ± {_num(row['error_ci'])} | {vs} | {vc} | {ms} |")
     return "\n".join(lines)
 
 
-def verdict(scenario: str, n: int, rows: list[dict]) -> tuple[str, dict[str, bool]]:
-    """The targets of the chooser in one cell, in words, and whether each is met."""
+def verdict(scenario: str, n: int, rows: list[dict], chooser: str = CHOOSE) -> tuple[str, dict[str, bool]]:
+    """The targets of ``chooser`` in one cell, in words, and whether each is met."""
     by = {row["variant"]: row for row in rows}
-    me = by[CHOOSE]
+    me = by[chooser]
     met: dict[str, bool] = {}
-    words = [f"{scenario}, N = {n}: choose {_num(me['vs_systematic'])} ± {_num(me['vs_systematic_ci'])} "
+    words = [f"{scenario}, N = {n}: {chooser} {_num(me['vs_systematic'])} ± {_num(me['vs_systematic_ci'])} "
              f"against systematic"]
     met["not worse"] = me["significant"] <= 0
     words.append("(significantly worse: target missed)." if not met["not worse"] else
@@ -188,12 +195,12 @@ def verdict(scenario: str, n: int, rows: list[dict]) -> tuple[str, dict[str, boo
         closed = -me["vs_systematic"] / gap if gap > 0 else math.nan
         met["80% of the gap"] = closed >= 0.8
         words.append(f"Best fixed method significantly better than systematic: {best['variant']} "
-                     f"({_num(best['vs_systematic'])}); choose closes {100 * closed:.0f}% of that gap "
+                     f"({_num(best['vs_systematic'])}); it closes {100 * closed:.0f}% of that gap "
                      f"({'target met' if met['80% of the gap'] else 'short of 80%'}).")
     else:
         words.append("No fixed method is significantly better than systematic.")
     if scenario == "switching":
-        not_beaten = [label for label in FIXED if label in by and by[label]["significant_vs_choose"] <= 0]
+        not_beaten = [label for label in FIXED if label in by and by[label]["significant_vs"][chooser] <= 0]
         met["beats every fixed method"] = not not_beaten
         words.append("Significantly better than every fixed method." if not not_beaten else
                      f"Not significantly better than: {', '.join(not_beaten)}.")
@@ -234,21 +241,23 @@ def _drop_variants(path: Path, labels: set[str]) -> None:
 
 
 def report(cells: dict[tuple[str, int], dict[int, dict]]) -> tuple[str, bool]:
-    """The tables and verdicts of ``cells``, and whether every target is met."""
-    out, verdicts, all_met = [], [], True
+    """The tables and verdicts of ``cells``, and whether every chooser meets every target."""
+    out, verdicts, all_met = [], [], dict.fromkeys(CHOOSERS, True)
     for (scenario, n), by_seed in cells.items():
         complete = {s: r for s, r in by_seed.items() if all(label in r for label in VARIANTS)}
         if len(complete) < 2:
             continue
         rows = cell_rows(complete)
         out.append(table(scenario, n, len(complete), rows) + "\n")
-        words, met = verdict(scenario, n, rows)
-        verdicts.append(words)
-        all_met &= all(met.values())
+        for chooser in CHOOSERS:
+            words, met = verdict(scenario, n, rows, chooser)
+            verdicts.append(words)
+            all_met[chooser] &= all(met.values())
     out.append("Verdicts:\n")
     out.extend(f"- {line}" for line in verdicts)
-    out.append(f"\nEvery target met: {'yes' if all_met else 'no'}.")
-    return "\n".join(out), all_met
+    out.append("\n" + "; ".join(f"every target met by {chooser}: {'yes' if ok else 'no'}"
+                                for chooser, ok in all_met.items()) + ".")
+    return "\n".join(out), all(all_met.values())
 
 
 def cost(sizes=(1000, 100_000), scenarios=("drift", "ungm"), steps: int = 30) -> list[str]:

@@ -102,9 +102,10 @@ class RunConfig(BaseModel):
                                            "Smith 1993) or 'regularised' (the kernel of the regularised particle "
                                            "filter, Musso, Oudjane and Le Gland 2001).")
     policy: str = Field("fixed", description="PS policy of the system layer.")
-    choose_base: Literal[names.ARMS] = Field("plain", description="The choosing policy's base arm: the move in "
-                                             "force when no other has the evidence, and the one every other "
-                                             "arm's evidence is against (only with policy 'choose').")
+    choose_base: Literal[names.ARMS] | None = Field(None, description="The choosing policy's base arm: the move "
+                                                    "in force when no other has the evidence, and the one every "
+                                                    "other arm's evidence is against (only with policy 'choose'; "
+                                                    f"default {names.DEFAULT_CHOOSE_BASE}).")
     ps: float = Field(0.81, ge=0.0, le=1.0, description="PS of the fixed policy, and the initial PS.")
     ps_rate: float = Field(0.25, gt=0.0, le=1.0, description="Largest change of PS per step that the "
                                                               "adaptive policies make.")
@@ -219,7 +220,7 @@ class RunConfig(BaseModel):
     def _policy_fits_scenario(self) -> "RunConfig":
         if self.steps is None and self.simulated:
             raise ValueError("steps: a simulated scenario needs a number of steps")
-        if self.choose_base != "plain" and self.policy != "choose":
+        if self.choose_base is not None and self.policy != "choose":
             raise ValueError(f"choose_base: a base arm ({self.choose_base}) is for policy 'choose', not "
                              f"{self.policy!r}")
         if self.model is not None:
@@ -293,7 +294,7 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
                             f"favour it); see docs/guides/policies.md (default: {defaults.policy})")
     group.add_argument("--choose-base", default=None, choices=names.ARMS, metavar="ARM",
                        help="with --policy choose: the arm in force when no other has the evidence, and the one the "
-                            f"others are scored against ({', '.join(names.ARMS)}; default: {defaults.choose_base})")
+                            f"others are scored against ({', '.join(names.ARMS)}; default: {names.DEFAULT_CHOOSE_BASE})")
     group.add_argument("--ps", type=float, default=None,
                        help=f"PS of the fixed policy, initial PS of the others (default: {defaults.ps})")
     group.add_argument("--ps-rate", type=float, default=None, metavar="CHANGE",

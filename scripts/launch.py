@@ -366,7 +366,7 @@ def service_command(layer: str, config: RunConfig, endpoint: str, *, timeout: fl
                "--scenario", config.scenario, "--particles", str(config.particles),
                "--resampler", config.resampler, "--threshold", str(config.threshold),
                "--weight-rule", config.weight_rule, "--move-rule", config.move_rule, "--jitter", config.jitter,
-               "--policy", config.policy, "--choose-base", config.choose_base, "--ps", repr(config.ps),
+               "--policy", config.policy, "--ps", repr(config.ps),
                "--ps-rate", repr(config.ps_rate),
                "--seed", str(config.seed), "--twin", config.twin, "--run-id", config.run_id,
                "--timeout", repr(timeout), "--log-level", log_level, "--connect", endpoint,
@@ -385,6 +385,8 @@ def service_command(layer: str, config: RunConfig, endpoint: str, *, timeout: fl
         command += ["--ros2-fields", config.ros2_fields]
     if config.resample_below is not None:
         command += ["--resample-below", repr(config.resample_below)]
+    if config.choose_base is not None:
+        command += ["--choose-base", config.choose_base]
     if not config.preprocess:
         command += ["--no-preprocess"]
     if layer == "entity":

@@ -67,7 +67,7 @@ class SystemLayer:
         from dtpf.system import policy as ps_policy
         from dtpf.system.evidence import Evidence
 
-        base = {"base": config.choose_base} if config.policy == "choose" else {}
+        base = {"base": config.choose_base} if config.policy == "choose" and config.choose_base else {}
         policy = ps_policy.get(config.policy, ps=config.ps, max_change=config.ps_rate, **base)
         if policy.simulates and model is None:
             model = model_ref.resolve(config.model_ref)

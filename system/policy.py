@@ -48,14 +48,16 @@ Policies (:data:`POLICIES`):
 - ``choose``: puts one of several moves in force, the *arms* (:data:`dtpf.information.layer.ARMS`:
   plain resampling, the relative DT rule at PS 0 with likelihood weights, the paper's DT rule at
   PS 0.81, roughening, the regularised kernel), from the evidence of the real observations
-  (:mod:`dtpf.system.choose`): each arm's windowed log Bayes factor against plain over the last
-  20 steps. From plain it switches to the arm with the largest evidence only when that exceeds
-  ``enter`` (default log 99, odds of 99 to 1) and the window's per-step differences are steady (their
+  (:mod:`dtpf.system.choose`): each arm's windowed log Bayes factor against the *base* arm over the
+  last 20 steps. The base (``base``, default roughening) is in force when no other arm has the
+  evidence; below, "plain" stands for it. From plain it switches to the arm with the largest evidence
+  only when that exceeds ``enter`` (default log 999 with a cure as the base, log 99 with plain,
+  odds of 999 or 99 to 1) and the window's per-step differences are steady (their
   mean at least ``steady`` standard errors above 0, default 2: on the video a difference of about
   1 nat a step either way sums past log 99 by chance); it keeps a chosen arm while its evidence against
   plain stays above ``leave`` (default log 3: the hysteresis), moves to another arm whose evidence
   beats the chosen one's by ``enter``, and goes back to plain when the chosen arm's evidence fades
-  (unless another arm's exceeds ``enter``). It starts plain; the first evidence comes at step 2.
+  (unless another arm's exceeds ``enter``). It starts on the base; the first evidence comes at step 2.
   With ``veto`` (the default) a second evidence must agree: the log-likelihood of the
   observations at each copy's predicted *mean*, summed against plain's over the same window. An
   arm is entered only while that sum is at least 0 and at least the arm in force's (its estimate
@@ -76,6 +78,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from dtpf.messages.arrays import check_probability
+from dtpf.messages.names import DEFAULT_CHOOSE_BASE
 from dtpf.system.predict import Forecast
 
 __all__ = ["PSDecision", "PSPolicy", "FixedPS", "RulePS", "PredictivePS", "GuardPS", "GuardObservedPS", "ChoosePS",
@@ -436,9 +439,10 @@ class ChoosePS(PSPolicy):
         Accepted and unused: each arm has its own PS (:data:`dtpf.information.layer.ARMS`).
     arms : sequence of str
         The arms to choose from (plain is always one); default all of them.
-    enter : float
-        Log odds an arm's evidence must exceed to replace plain, or to beat the arm in force by (nats;
-        default log 99).
+    enter : float, optional
+        Log odds an arm's evidence must exceed to replace the base arm, or to beat the arm in force by (nats;
+        default log 99 with plain as the base, log 999 with a cure as the base: leaving a cure the evaluation
+        found never worse than plain asks for ten times the odds).
     leave : float
         The arm in force stays while its evidence against plain exceeds this (default log 3; at most
         ``enter``).
@@ -454,8 +458,8 @@ class ChoosePS(PSPolicy):
         the arm in force's, and leave
         it when that falls below ``-leave`` (default True; False: the predictive evidence alone).
     base : str
-        The arm in force when no other has the evidence (default plain): every threshold above is then
-        against this arm's copy instead of plain's.
+        The arm in force when no other has the evidence (default roughening,
+        :data:`dtpf.messages.names.DEFAULT_CHOOSE_BASE`); every threshold above is against this arm's copy.
     """
 
     name = "choose"
@@ -463,15 +467,17 @@ class ChoosePS(PSPolicy):
     uses_evidence = True
     initial_preprocess = False
     def __init__(self, ps: float | None = None, *, max_change: float | None = None, arms=None,
-                 enter: float = math.log(99.0), leave: float = math.log(3.0), window: int = 20,
-                 particles: int = 1000, veto: bool = True, steady: float = 2.0, base: str = "plain"):
+                 enter: float | None = None, leave: float = math.log(3.0), window: int = 20,
+                 particles: int = 1000, veto: bool = True, steady: float = 2.0, base: str = DEFAULT_CHOOSE_BASE):
         from dtpf.information.layer import ARMS
         chosen = tuple(ARMS) if arms is None else tuple(arms)
         unknown = [a for a in (*chosen, base) if a not in ARMS]
         if unknown:
             raise ValueError(f"unknown arm {unknown[0]!r}; expected some of {', '.join(ARMS)}")
-        self.arms = tuple(dict.fromkeys(("plain", base, *chosen)))
+        self.arms = tuple(dict.fromkeys(("plain", *chosen, base)))
         self.base = base
+        if enter is None:
+            enter = math.log(99.0) if base == "plain" else math.log(999.0)
         self.enter = _non_negative(enter, "enter")
         self.leave = float(leave)
         if not self.leave <= self.enter:

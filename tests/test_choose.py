@@ -17,9 +17,10 @@ from dtpf.system.choose import ArmEvidence
 from dtpf.system.layer import SystemLayer
 from dtpf.system.policy import ChoosePS
 
-#: A drift run that puts three arms in force (plain, dt-paper from step 10, regularised from step 20); found in
-#: process.
-CHOSEN = RunConfig(scenario="drift", policy="choose", particles=100, steps=30, seed=31, twin="t-choose")
+#: A drift run on the plain base that puts three arms in force (plain, dt-paper from step 10, regularised from
+#: step 20); found in process.
+CHOSEN = RunConfig(scenario="drift", policy="choose", choose_base="plain", particles=100, steps=30, seed=31,
+                   twin="t-choose")
 
 
 def test_the_arms_the_contract_names_are_the_arms_the_layers_implement():
@@ -34,13 +35,15 @@ def _twin(config: RunConfig, model, enter: float | None = None) -> InProcessTwin
     if enter is not None:
         system.policy.enter = enter
     information = InformationLayer(model, ps=system.policy.initial_ps, threshold_rule=config.threshold,
-                                   seed=config.seed, twin=config.twin, preprocess=False, arm="plain")
+                                   seed=config.seed, twin=config.twin, preprocess=False,
+                                   arm=system.policy.initial_arm)
     return InProcessTwin(information, system)
 
 
 @pytest.mark.parametrize("scenario", ["drift", "ungm"])
 def test_a_run_that_always_chooses_plain_equals_the_plain_filter_number_for_number(scenario):
-    config = RunConfig(scenario=scenario, policy="choose", particles=100, steps=40, seed=11, twin="t-choose")
+    config = RunConfig(scenario=scenario, policy="choose", choose_base="plain", particles=100, steps=40, seed=11,
+                       twin="t-choose")
     model = models.get(scenario)
     _, z = simulate(config, model)
     plain = list(ParticleFilter(model, z, 100, seed=config.seed, twin=config.twin))
@@ -155,7 +158,7 @@ def test_the_dt_arm_moves_the_copy_by_the_rules_with_its_own_random_numbers():
 def test_the_policy_switches_only_on_strong_evidence_and_back_when_it_fades():
     from dtpf.system.predict import Forecast
 
-    policy = ChoosePS()
+    policy = ChoosePS(base="plain")
 
     def decide(step, **evidence):
         forecast = Forecast(step, 100, 1.0, 0.0, 1.0, arm_evidence={"plain": 0.0, "dt-relative": 0.0, "dt-paper": 0.0,
@@ -184,8 +187,10 @@ def test_a_base_arm_is_in_force_without_evidence_and_the_others_are_scored_again
     """ChoosePS(base=...): the thresholds hold against the base arm's copy (the sums are against plain's)."""
     from dtpf.system.predict import Forecast
 
-    policy = ChoosePS(base="roughening")
-    assert (policy.arm, policy.initial_ps) == ("roughening", 0.0)
+    policy = ChoosePS()  # the default base: roughening, entered from by odds of 999 to 1
+    assert (policy.base, policy.arm, policy.initial_ps, policy.enter) == ("roughening", "roughening", 0.0,
+                                                                          math.log(999.0))
+    assert ChoosePS(base="plain").enter == math.log(99.0)
 
     def decide(step, evidence, points=None):
         zero = dict.fromkeys(("plain", "dt-relative", "dt-paper", "roughening", "regularised"), 0.0)
@@ -196,7 +201,8 @@ def test_a_base_arm_is_in_force_without_evidence_and_the_others_are_scored_again
     # 10 nats above plain, but only 2 above the base: roughening stays.
     kept = decide(1, {"roughening": 8.0, "regularised": 10.0})
     assert kept.arm == "roughening" and "against roughening" in kept.reason
-    assert decide(2, {"roughening": 8.0, "regularised": 8.0 + math.log(99) + 0.01}).arm == "regularised"
+    assert decide(2, {"roughening": 8.0, "regularised": 8.0 + math.log(999) - 0.01}).arm == "roughening"
+    assert decide(2, {"roughening": 8.0, "regularised": 8.0 + math.log(999) + 0.01}).arm == "regularised"
     faded = decide(3, {"roughening": 8.0, "regularised": 8.0})
     assert faded.arm == "roughening" and "faded" in faded.reason
     # Plain is an arm like the others: it is entered when it beats the base, and stays while it does.
@@ -221,7 +227,7 @@ def test_an_arm_whose_estimate_predicts_worse_is_not_entered_and_is_left():
                             arm_point_evidence={**zero, **points}, evidence_steps=20)
         return policy.decide(step, forecast)
 
-    policy = ChoosePS()
+    policy = ChoosePS(base="plain")
     assert decide(policy, 1, {"dt-paper": 1000.0}, {"dt-paper": -0.01}).arm == "plain"
     assert decide(policy, 2, {"dt-paper": 1000.0, "dt-relative": 600.0},
                   {"dt-paper": -200.0, "dt-relative": 600.0}).arm == "dt-relative"
@@ -234,7 +240,7 @@ def test_an_arm_whose_estimate_predicts_worse_is_not_entered_and_is_left():
     assert decide(policy, 5, {"roughening": 9.0}, {"roughening": 0.0}).arm == "roughening"
     assert decide(policy, 6, {"roughening": 9.0}, {"roughening": -math.log(3.0) + 0.01}).arm == "roughening"
     # Without the veto, the predictive evidence alone decides.
-    assert decide(ChoosePS(veto=False), 1, {"dt-paper": 1000.0}, {"dt-paper": -200.0}).arm == "dt-paper"
+    assert decide(ChoosePS(base="plain", veto=False), 1, {"dt-paper": 1000.0}, {"dt-paper": -200.0}).arm == "dt-paper"
 
 
 def test_an_arm_is_entered_only_on_steady_evidence_not_on_a_lucky_sum():
@@ -249,11 +255,11 @@ def test_an_arm_is_entered_only_on_steady_evidence_not_on_a_lucky_sum():
 
     steady = [0.3] * 20                                          # mean 0.3, SE ~0: far above 2 SE
     noisy = [3.6, -3.0] * 10                                     # sum 6, mean 0.3, SE 0.74: 0.4 SE
-    assert decide(ChoosePS(), steady).arm == "roughening"
-    refused = decide(ChoosePS(), noisy)
+    assert decide(ChoosePS(base="plain"), steady).arm == "roughening"
+    refused = decide(ChoosePS(base="plain"), noisy)
     assert refused.arm == "plain" and "steadily" in refused.reason
-    assert decide(ChoosePS(steady=0.0), noisy).arm == "roughening"  # the sum alone
-    assert decide(ChoosePS(), [6.0]).arm == "plain"               # one difference has no spread to judge
+    assert decide(ChoosePS(base="plain", steady=0.0), noisy).arm == "roughening"  # the sum alone
+    assert decide(ChoosePS(base="plain"), [6.0]).arm == "plain"   # one difference has no spread to judge
 
 
 def test_the_point_evidence_scores_the_copies_predicted_means():
@@ -319,7 +325,7 @@ def test_the_quick_evaluation_prints_every_variant_and_a_verdict_per_cell(capsys
         assert set(evaluate_chooser.VARIANTS) <= set(rows), scenario
         for chooser in evaluate_chooser.CHOOSERS:
             assert f"- {scenario}, N = 50: {chooser} " in out
-    assert "every target met by choose: " in out and "every target met by choose, roughening base: " in out
+    assert "every target met by choose: " in out and "every target met by choose, plain base: " in out
 
 
 # --- over Zenoh, in the log, through dtpf verify ----------------------------------

@@ -56,16 +56,16 @@ CURES: dict[str, dict] = {
     "roughening": dict(preprocess=False, jitter="roughening"),
     "regularised": dict(preprocess=False, jitter="regularised"),
 }
-CHOOSE = "choose"
-#: The chooser whose base arm is roughening (--choose-base roughening).
-CHOOSE_ROUGHENING = "choose, roughening base"
+#: The chooser as --policy choose runs it (its base arm roughening), and the one on plain resampling.
+CHOOSE, CHOOSE_PLAIN = "choose", "choose, plain base"
 #: The choosers, and the base arm of each.
-CHOOSERS = {CHOOSE: "plain", CHOOSE_ROUGHENING: "roughening"}
+CHOOSERS = {CHOOSE: "roughening", CHOOSE_PLAIN: "plain"}
 VARIANTS: dict[str, dict] = {
     **{name: dict(preprocess=False, resampler=name) for name in TRADITIONAL},
     **CURES,
     "guard-observed, relative rule": dict(policy="guard-observed", **RELATIVE),
-    **{label: dict(policy="choose", choose_base=base) for label, base in CHOOSERS.items()},
+    CHOOSE: dict(policy="choose"),
+    CHOOSE_PLAIN: dict(policy="choose", choose_base="plain"),
 }
 KALMAN = "Kalman (exact)"
 #: The fixed methods the chooser is compared with (the traditional resamplers and the cures).

@@ -341,12 +341,22 @@ def test_a_signal_inside_interrupts_held_takes_effect_when_the_block_ends():
     from dtpf.scripts.launch import interrupts_held
 
     folded = []
-    with pytest.raises(KeyboardInterrupt):
-        with interrupts_held():
-            signal.raise_signal(signal.SIGINT)  # to this thread: its handler runs here, now
-            folded.append("after the signal")  # still runs: the signal waits for the block's end
-    assert folded == ["after the signal"]
-    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # the handler is put back
+    # Python's own handler, as dtpf launch installs it: a test process started in the background of a
+    # non-interactive shell has SIGINT ignored, and then an ignored signal rightly raises nothing.
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            with interrupts_held():
+                signal.raise_signal(signal.SIGINT)  # to this thread: its handler runs here, now
+                folded.append("after the signal")  # still runs: the signal waits for the block's end
+        assert folded == ["after the signal"]
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # the handler is put back
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        with interrupts_held():  # a signal ignored before the block stays ignored after it
+            signal.raise_signal(signal.SIGINT)
+        assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 def test_sigterm_inside_interrupts_held_runs_the_installed_handler_at_the_end():

@@ -98,6 +98,8 @@ class TwinInformation:
         #: first particle sets, and not waiting then would apply the old PS (and differ from the solo run).
         self.system_known = False
         self.waiting: ParticleSet | None = None  # a set waiting for the decision of the step before
+        #: Whether a set waits for the decision of the step before (not for a policy that never changes PS).
+        self.waits_for_decisions = config.policy not in names.CONSTANT_POLICIES
         self.deadline = 0.0
         self.layer.warm_up(config.particles)  # before the entity can send step 1
 
@@ -113,8 +115,8 @@ class TwinInformation:
                 system_alive = self._system_alive(message.step)
                 step = message.step
                 # The system decides on the weight state we sent; after a restart there is none to wait for.
-                if step - 1 == self.published and step > 1 and (system_alive or not self.system_known) and \
-                        self.commands.latest_step < step - 1:
+                if self.waits_for_decisions and step - 1 == self.published and step > 1 and \
+                        (system_alive or not self.system_known) and self.commands.latest_step < step - 1:
                     self.waiting, self.deadline = message, now + self.timeout
                     continue
             else:

@@ -15,7 +15,7 @@ import importlib.metadata
 import sys
 
 __all__ = ["SCENARIOS", "MODEL_ENTRY_POINTS", "CANNOT_SAMPLE", "RESAMPLERS", "THRESHOLD_RULES", "WEIGHT_RULES", "MOVE_RULES", "JITTERS",
-           "POLICIES", "SIMULATING_POLICIES", "POLICIES_STARTING_OFF", "ARMS", "scenario_names"]
+           "POLICIES", "SIMULATING_POLICIES", "POLICIES_STARTING_OFF", "CONSTANT_POLICIES", "ARMS", "scenario_names"]
 
 #: Built-in scenarios (dtpf.entity.models): Eq. 35 with 25, Eq. 35 as printed (0.25), the tracking video, and a
 #: slowly drifting constant with precise observations (where particles impoverish; not in the paper), and the
@@ -41,6 +41,9 @@ POLICIES = ("choose", "fixed", "guard", "guard-observed", "predictive", "rule")
 SIMULATING_POLICIES = frozenset({"guard", "predictive", "rule"})
 #: Policies whose first step is not preprocessed (the information layer starts with preprocessing off).
 POLICIES_STARTING_OFF = frozenset({"guard", "guard-observed", "choose"})
+#: Policies whose every decision is the run's own PS, preprocessing on: the information layer does not wait
+#: for their decision of the step before (it knows it), so the system layer is off the lockstep's path.
+CONSTANT_POLICIES = frozenset({"fixed"})
 #: The moves the choosing policy picks from (dtpf.information.layer.ARMS): plain resampling, DT preprocessing
 #: with the relative or the paper's rule, roughening, the regularised kernel.
 ARMS = ("plain", "dt-relative", "dt-paper", "roughening", "regularised")

@@ -159,6 +159,8 @@ class PSPolicy(ABC):
     uses_evidence: bool = False
     #: Whether the preprocessing runs before the first decision.
     initial_preprocess: bool = True
+    #: True if every decision is the initial PS with preprocessing on (the information layer need not wait).
+    constant: bool = False
 
     @abstractmethod
     def decide(self, step: int, forecast: Forecast) -> PSDecision:
@@ -169,6 +171,7 @@ class FixedPS(PSPolicy):
     """PS never changes (the paper's setting, PS = 0.81). ``max_change`` is accepted and unused."""
 
     name = "fixed"
+    constant = True
 
     def __init__(self, ps: float = PAPER_PS, max_change: float | None = None):
         self.ps = check_probability(ps, "PS")

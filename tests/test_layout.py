@@ -164,6 +164,7 @@ def test_the_contract_names_what_the_layers_implement():
     assert names.SIMULATING_POLICIES == {name for name, cls in policy.POLICIES.items() if cls.samples_observations}
     assert names.POLICIES_STARTING_OFF == {name for name, cls in policy.POLICIES.items()
                                            if not cls.initial_preprocess}
+    assert names.CONSTANT_POLICIES == {name for name, cls in policy.POLICIES.items() if cls.constant}
     assert set(names.MOVE_RULES) == set(rules.MOVE_RULES)
     from dtpf.entity import jitter
     assert set(names.JITTERS) == set(jitter.JITTERS)

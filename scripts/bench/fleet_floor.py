@@ -12,8 +12,9 @@ short launch's log instead), between stand-in processes that do nothing else:
 no filter, no rules, no pydantic, no MCAP writing. The hops are the lockstep's:
 the entity stand-in sends step k + 1's set once step k's answer is in, the
 information stand-in answers step k once the PS of step k - 1 is in (as the
-information layer waits for it), the system stand-in answers each weight
-state. Each stand-in receives as the product does (``dtpf.shell.bus.Inbox``: a Zenoh subscriber whose
+information layer waits for it; under the fixed policy, the default, it does
+not wait, and neither does the stand-in of ``one_run(..., waits=False)``), the
+system stand-in answers each weight state. Each stand-in receives as the product does (``dtpf.shell.bus.Inbox``: a Zenoh subscriber whose
 Python callback copies the payload into a queue that rings a doorbell) and
 publishes with the product's publishers (congestion control BLOCK); the
 recorder stand-in takes every message of the fleet and copies it out. The
@@ -153,7 +154,7 @@ class Publishers:
 
 
 def _serve(role: str, router: str, how: str, k: int, processes: int, process: int, steps: int,
-           plan: dict[str, int]) -> int:
+           plan: dict[str, int], waits: bool = True) -> int:
     """One stand-in process, until 10 s pass without input (or, for an entity, its twins are done).
 
     Each layer stand-in publishes its layer's topics of ``plan`` (``layer/name``: bytes) in the plan's order,
@@ -194,7 +195,7 @@ def _serve(role: str, router: str, how: str, k: int, processes: int, process: in
                 touched.add(twin)
             for twin in touched:
                 steps_held = held[twin]
-                while steps_held and steps_held[0] - 1 <= decided[twin]:
+                while steps_held and (not waits or steps_held[0] - 1 <= decided[twin]):
                     step = steps_held.pop(0)
                     for topic, size in answer:
                         out.put(twin, topic, _payload(size, step))
@@ -229,9 +230,10 @@ def _kind(command: list[bytes]) -> str:
 
 
 def one_run(k: int, how: str, steps: int, processes: int, scale: float = 1.0,
-            plan: dict[str, int] | None = None) -> dict:
+            plan: dict[str, int] | None = None, waits: bool = True) -> dict:
     """Twin-steps per second, seconds per step of one twin (``step_s``) and CPU ms per twin-step by kind of
-    process, of one fleet of stand-ins sending ``plan`` (default: :func:`scaled_plan` of ``scale``)."""
+    process, of one fleet of stand-ins sending ``plan`` (default: :func:`scaled_plan` of ``scale``);
+    ``waits``: the information stand-in waits for the PS decision of the step before."""
     plan = plan or scaled_plan(scale)
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     router = open_session(zenoh_config(mode="router", listen=[endpoint]))
@@ -244,7 +246,8 @@ def one_run(k: int, how: str, steps: int, processes: int, scale: float = 1.0,
                 for process in range(processes if role == "entity" else 1):
                     children.append(subprocess.Popen(
                         [sys.executable, "-P", "-m", "dtpf.scripts.bench.fleet_floor", "--serve", role, endpoint, how, str(k),
-                         str(processes), str(process), str(steps), json.dumps(plan, separators=(",", ":"))]))
+                         str(processes), str(process), str(steps), json.dumps(plan, separators=(",", ":")),
+                         "wait" if waits else "no-wait"]))
             first = last = None
             count = 0
             ends: dict[str, list[float]] = {}
@@ -284,11 +287,12 @@ def main(argv=None) -> int:
                         help="receivers to compare (default: both)")
     parser.add_argument("--repeats", type=int, default=3, help="runs per variant, interleaved (default: %(default)s)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the run order")
-    parser.add_argument("--serve", nargs=8, help=argparse.SUPPRESS)
+    parser.add_argument("--serve", nargs=9, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.serve:
-        role, router, how, k, processes, process, steps, plan = args.serve
-        return _serve(role, router, how, int(k), int(processes), int(process), int(steps), json.loads(plan))
+        role, router, how, k, processes, process, steps, plan, waits = args.serve
+        return _serve(role, router, how, int(k), int(processes), int(process), int(steps), json.loads(plan),
+                      waits == "wait")
     variants = [(k, how) for k in args.twins for how in args.receivers]
     order = variants * args.repeats
     random.Random(args.seed).shuffle(order)

@@ -27,7 +27,9 @@
                 before the repetitions, statuses left out): entity -> information
                 (the set), information -> entity (the answer) and -> system (the
                 weight state), system -> information (the PS decision, which the
-                information stand-in waits for before it answers the next set),
+                information stand-in waits for before it answers the next set,
+                as the information layer does; under the fixed policy, the
+                default, neither waits),
                 the entity's estimate and point cloud to the recorder and this
                 process; the recorder stand-in takes every message. Its time per
                 step is the round trip of those hops (``--no-floor`` leaves it out).
@@ -170,7 +172,9 @@ def _inprocess_child(n: int, steps: int, seed: int) -> int:
 
 def run_floor(config: RunConfig, plan: dict[str, int]) -> float:
     """Seconds per step of one twin's stand-ins passing ``plan``'s messages (steps 10..T)."""
-    result = fleet_floor.one_run(1, "inbox", config.steps, 1, plan=plan)
+    from dtpf.messages import names
+    result = fleet_floor.one_run(1, "inbox", config.steps, 1, plan=plan,
+                                 waits=config.policy not in names.CONSTANT_POLICIES)
     if "stalled" in result:
         raise RuntimeError(f"floor at N={config.particles} stalled after {result['stalled']} of {config.steps} "
                            "estimates")

@@ -121,18 +121,24 @@ def _switching_model() -> StateSpaceModel:
     return SensorSwitchModel()  # defined below the registry
 
 
+def _moving_model() -> StateSpaceModel:
+    return MovingDriftModel()  # defined below the registry
+
+
 #: Registered models by name. ``ungm`` is the standard benchmark (25),
 #: ``ungm-printed`` the form printed in the paper's Eq. 35 (0.25), ``video``
 #: the tracking scenario of section 5 (:mod:`dtpf.entity.tracking`), ``drift`` a slowly drifting constant
 #: where particles impoverish (:class:`DriftModel`, not in the paper), ``switching`` the same constant seen
-#: by a sensor whose noise drops mid-run (:class:`SensorSwitchModel`: the best cure changes). A value may be
-#: a zero-argument factory, built once by :func:`get`.
+#: by a sensor whose noise drops mid-run (:class:`SensorSwitchModel`), ``moving`` the constant moving away
+#: from the origin (:class:`MovingDriftModel`: the best cure changes as it goes). A value may be a
+#: zero-argument factory, built once by :func:`get`.
 MODELS: dict[str, StateSpaceModel] = {
     "ungm": GrowthModel(name="ungm", growth=25.0),
     "ungm-printed": GrowthModel(name="ungm-printed", growth=0.25),
     "video": _video_model,
     "drift": _drift_model,
     "switching": _switching_model,
+    "moving": _moving_model,
 }
 
 
@@ -267,3 +273,42 @@ class SensorSwitchModel(DriftModel):
         x, _ = DriftModel.simulate(self, steps, rng)
         sd = np.sqrt([self.variance_at(k) for k in range(1, steps + 1)])[:, None]
         return x, x + sd * rng.standard_normal((steps, self.dim))
+
+
+@dataclass(frozen=True)
+class MovingDriftModel(DriftModel):
+    """The drifting constant of :class:`DriftModel` moving away from the origin at a known ``velocity``.
+
+    x_k = x_(k-1) + velocity + u_k,   z_k = x_k + v_k (drift sd 0.001 per step, sensor sd 0.01, prior
+    N(0, 1)); with the default 0.1 per step the state goes from about 0 to about 10 in 100 steps.
+
+    Near the origin the paper's DT rule (Eq. 29-30) is the best cure of the cloud's impoverishment; its
+    move is not translation invariant, so as the state leaves the origin the same rule scatters the
+    cloud more and more, and other moves win: the best cure changes during the run. Linear and
+    Gaussian: :meth:`kalman` gives the exact posterior mean.
+    """
+
+    name: str = "moving"
+    velocity: float = 0.1
+
+    def propagate(self, particles, k, rng, noise=None):
+        return DriftModel.propagate(self, particles, k, rng, noise) + self.velocity
+
+    def simulate(self, steps, rng):
+        x, z = DriftModel.simulate(self, steps, rng)
+        shift = self.velocity * np.arange(steps)[:, None]
+        return x + shift, z + shift
+
+    def kalman(self, observations) -> np.ndarray:
+        """(T, d) exact posterior means E[x_k | z_1..z_k] (the Kalman filter with the known velocity)."""
+        z = np.asarray(observations, dtype=np.float64).reshape(len(observations), self.dim)
+        means = np.empty_like(z)
+        mean, var = np.full(self.dim, self.prior_mean), self.prior_var
+        for k in range(z.shape[0]):
+            if k:
+                mean, var = mean + self.velocity, var + self.process_var
+            gain = var / (var + self.variance_at(k + 1))
+            mean = mean + gain * (z[k] - mean)
+            var = (1.0 - gain) * var
+            means[k] = mean
+        return means

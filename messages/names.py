@@ -20,7 +20,7 @@ __all__ = ["SCENARIOS", "MODEL_ENTRY_POINTS", "CANNOT_SAMPLE", "RESAMPLERS", "TH
 #: Built-in scenarios (dtpf.entity.models): Eq. 35 with 25, Eq. 35 as printed (0.25), the tracking video, and a
 #: slowly drifting constant with precise observations (where particles impoverish; not in the paper), and the
 #: same constant seen by a sensor whose noise drops mid-run (the best cure changes).
-SCENARIOS = ("ungm", "ungm-printed", "video", "drift", "switching")
+SCENARIOS = ("ungm", "ungm-printed", "video", "drift", "switching", "moving")
 #: The entry-point group where an installed package registers scenario names of its own.
 MODEL_ENTRY_POINTS = "dtpf.models"
 #: Built-in scenarios whose model cannot draw observations (no simulating policy with them).

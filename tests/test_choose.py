@@ -313,6 +313,19 @@ def test_the_switching_scenario_drops_its_sensor_noise_and_its_kalman_filter_is_
     assert RunConfig(scenario="switching", policy="choose").scenario == "switching"
 
 
+def test_the_moving_scenario_leaves_the_origin_at_its_velocity_and_its_kalman_filter_is_exact():
+    model = models.get("moving")
+    truth, z = model.simulate(100, np.random.default_rng(0))
+    steps = np.diff(truth[:, 0])
+    assert abs(steps.mean() - model.velocity) < 4 * 0.001 / np.sqrt(99) and (z - truth).std() < 0.02
+    assert truth[-1, 0] - truth[0, 0] == pytest.approx(99 * model.velocity, abs=0.05)
+    means = model.kalman(z)
+    assert np.mean((means[10:] - truth[10:]) ** 2) < 1e-4  # the exact filter: within the sensor's variance
+    moved = model.propagate(np.zeros((4, 1)), 2, np.random.default_rng(1))
+    assert np.all(np.abs(moved - model.velocity) < 0.01)
+    assert RunConfig(scenario="moving", policy="choose").scenario == "moving"
+
+
 def test_the_quick_evaluation_prints_every_variant_and_a_verdict_per_cell(capsys):
     """``python -m dtpf.scripts.paper.evaluate_chooser --quick`` on two cells, in one process."""
     from dtpf.scripts.paper import evaluate_chooser

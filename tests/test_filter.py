@@ -291,7 +291,7 @@ def test_inprocess_pipeline_is_deterministic_and_runs_every_layer():
 def test_run_config_fails_at_construction():
     with pytest.raises(ValueError, match="unknown resampler 'fast'"):
         RunConfig(resampler="fast")
-    with pytest.raises(ValueError, match="unknown scenario 'lorenz'; expected one of drift, switching, ungm, ungm-printed, video"):
+    with pytest.raises(ValueError, match="unknown scenario 'lorenz'; expected one of drift, moving, switching, ungm, ungm-printed, video"):
         RunConfig(scenario="lorenz")
     with pytest.raises(ValueError, match="less than or equal to 1"):
         RunConfig(ps=1.2)

@@ -224,7 +224,7 @@ def test_entry_point_errors_name_the_entry_point(installed):
 
 
 def test_unknown_name_lists_builtin_and_entry_point_names(installed):
-    message = raises("nope", r"unknown model 'nope'; built-in: ungm, ungm-printed, video, drift, switching;")
+    message = raises("nope", r"unknown model 'nope'; built-in: ungm, ungm-printed, video, drift, switching, moving;")
     assert "fake-radar" in message and "fake-walk" in message
 
 
@@ -236,7 +236,7 @@ def test_empty_reference(ref):
 
 
 def test_unknown_plain_name():
-    message = raises("nope", r"unknown model 'nope'; built-in: ungm, ungm-printed, video, drift, switching; "
+    message = raises("nope", r"unknown model 'nope'; built-in: ungm, ungm-printed, video, drift, switching, moving; "
                              r"registered under dtpf.models")
     assert "package.module:NAME" in message
 

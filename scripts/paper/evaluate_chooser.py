@@ -72,7 +72,9 @@ KALMAN = "Kalman (exact)"
 FIXED = (*TRADITIONAL, *CURES)
 #: (scenario, N) cells of the evaluation.
 CELLS = (("ungm", 100), ("drift", 100), ("drift+100", 100), ("range-bearing", 100), ("video", 100),
-         ("switching", 100), ("range-bearing", 1000))
+         ("switching", 100), ("moving", 100), ("range-bearing", 1000))
+#: The scenarios where the best cure changes during the run: the chooser must beat every fixed method there.
+CHANGING = ("switching", "moving")
 SCENARIOS = tuple(dict.fromkeys(sc for sc, _ in CELLS))
 PILOT_SEED = 10_000
 
@@ -89,8 +91,8 @@ class Task:
 
 def scenario_model(name: str):
     """(RunConfig options, model object) of a scenario of this evaluation."""
-    if name == "switching":
-        return dict(scenario="switching"), models.get("switching")
+    if name in CHANGING:
+        return dict(scenario=name), models.get(name)
     return evaluate_guard.scenario_model(name)
 
 
@@ -199,7 +201,7 @@ def verdict(scenario: str, n: int, rows: list[dict], chooser: str = CHOOSE) -> t
                      f"({'target met' if met['80% of the gap'] else 'short of 80%'}).")
     else:
         words.append("No fixed method is significantly better than systematic.")
-    if scenario == "switching":
+    if scenario in CHANGING:
         not_beaten = [label for label in FIXED if label in by and by[label]["significant_vs"][chooser] <= 0]
         met["beats every fixed method"] = not not_beaten
         words.append("Significantly better than every fixed method." if not not_beaten else

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import os
 import subprocess
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -39,6 +40,7 @@ from dtpf.scripts.launch import (
     rejected_by_layer,
     segment_path,
     service_command,
+    watch_recorder,
 )
 from dtpf.shell.bus import Inbox, Presence
 
@@ -167,6 +169,9 @@ def launch_fleet(config: RunConfig, count: int, *, log_path: Path | None = None,
     children: dict[str, subprocess.Popen] = {}
     layer_of_pid: dict[int, str] = {}
     bridges: list[Bridge] = []  # the launcher's own recording while a new recorder starts
+    early: dict[int, Inbox] = {}  # a dead recorder's pid -> the bridge's inbox, opened the moment it died
+    watchers: dict[int, threading.Thread] = {}  # a recorder's pid -> the thread that waits for it
+    stopping = threading.Event()  # set once the recorder is being stopped on purpose
     total = count * (config.steps or 0)
     start = time.monotonic()
     first_estimate = last_estimate = None
@@ -178,6 +183,9 @@ def launch_fleet(config: RunConfig, count: int, *, log_path: Path | None = None,
                                   secure=secure.path if secure is not None else None, wait_for_recorder=False)
         children[name] = subprocess.Popen(command + list(extra), stderr=child_output, start_new_session=True)
         layer_of_pid[children[name].pid] = layer
+        if layer == "recorder":
+            watchers[children[name].pid] = watch_recorder(
+                children[name], lambda: Inbox(router, "dtpf/**"), early, stopping.is_set)
 
     watch = presence = None
     try:
@@ -219,6 +227,13 @@ def launch_fleet(config: RunConfig, count: int, *, log_path: Path | None = None,
                 if layer in gone or children[layer].poll() is None:
                     continue
                 code = children[layer].returncode
+                inbox = None
+                if layer == "recorder" and (watcher := watchers.pop(children[layer].pid, None)) is not None:
+                    watcher.join(timeout=2.0)  # it opens the inbox right after the process ended
+                    inbox = early.pop(children[layer].pid, None)
+                if inbox is not None and (code == 2 or code == EXIT_LOG_WRITE or restarted[layer] >= restarts):
+                    inbox.close()  # no bridge follows
+                    inbox = None
                 if layer == "recorder" and code == EXIT_LOG_WRITE:
                     # The log's disk is full, over a size limit or read-only: a new recorder would write into
                     # the same place. The fleet goes on unrecorded.
@@ -243,7 +258,7 @@ def launch_fleet(config: RunConfig, count: int, *, log_path: Path | None = None,
                     notify(result.restarts[-1])
                 if layer == "recorder":  # the launcher records until the new recorder listens
                     bridge = segment_path(log_path, len(result.segments))
-                    bridges.append(Bridge(router, config, bridge, patterns=("dtpf/**",)))
+                    bridges.append(Bridge(router, config, bridge, patterns=("dtpf/**",), inbox=inbox))
                     segment = segment_path(log_path, len(result.segments) + 1)
                     result.segments += [bridge, segment]
                     start_child("recorder", "recorder", config, "--all-twins", output=segment)
@@ -258,12 +273,16 @@ def launch_fleet(config: RunConfig, count: int, *, log_path: Path | None = None,
                     result.failures[twin] = f"its entity process ended: {_describe_code(code)}"
         _stop(children, ("information", "system"), result)
         _drain(watch, result, layer_of_pid)
+        stopping.set()
         _stop(children, ("recorder",), result)
     except KeyboardInterrupt:
         result.interrupted = True
     finally:
+        stopping.set()
         _stop(children, tuple(children), result)
         close_bridges(bridges, result)
+        for inbox in list(early.values()):  # a recorder that died as the run ended: no bridge followed
+            inbox.close()
         result.elapsed = time.monotonic() - start
         if first_estimate is not None:
             result.stepping = last_estimate - first_estimate

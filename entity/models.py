@@ -280,7 +280,7 @@ class MovingDriftModel(DriftModel):
     """The drifting constant of :class:`DriftModel` moving away from the origin at a known ``velocity``.
 
     x_k = x_(k-1) + velocity + u_k,   z_k = x_k + v_k (drift sd 0.001 per step, sensor sd 0.01, prior
-    N(0, 1)); with the default 0.1 per step the state goes from about 0 to about 10 in 100 steps.
+    N(0, 1)); with the default 0.3 per step the state goes from about 0 to about 30 in 100 steps.
 
     Near the origin the paper's DT rule (Eq. 29-30) is the best cure of the cloud's impoverishment; its
     move is not translation invariant, so as the state leaves the origin the same rule scatters the
@@ -289,7 +289,7 @@ class MovingDriftModel(DriftModel):
     """
 
     name: str = "moving"
-    velocity: float = 0.1
+    velocity: float = 0.3
 
     def propagate(self, particles, k, rng, noise=None):
         return DriftModel.propagate(self, particles, k, rng, noise) + self.velocity

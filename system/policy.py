@@ -447,7 +447,7 @@ class ChoosePS(PSPolicy):
         default log 99 with plain as the base, log 999 with a cure as the base: leaving a cure the evaluation
         found never worse than plain asks for ten times the odds).
     leave : float
-        The arm in force stays while its evidence against plain exceeds this (default log 3; at most
+        The arm in force stays while its evidence against the base exceeds this (default log 3; at most
         ``enter``).
     window : int
         Steps of evidence summed per arm (default 20).
@@ -457,7 +457,7 @@ class ChoosePS(PSPolicy):
         Enter an arm (or replace the arm in force) only when the window's per-step differences have a mean
         at least this many standard errors above 0 (default 2; 0: the sum alone decides).
     veto : bool
-        Enter an arm only while its predicted means' evidence against plain's is at least 0 and at least
+        Enter an arm only while its predicted means' evidence against the base's is at least 0 and at least
         the arm in force's, and leave
         it when that falls below ``-leave`` (default True; False: the predictive evidence alone).
     base : str
@@ -469,6 +469,7 @@ class ChoosePS(PSPolicy):
     simulates = True
     uses_evidence = True
     initial_preprocess = False
+
     def __init__(self, ps: float | None = None, *, max_change: float | None = None, arms=None,
                  enter: float | None = None, leave: float = math.log(3.0), window: int = 20,
                  particles: int = 1000, veto: bool = True, steady: float = 2.0, base: str = DEFAULT_CHOOSE_BASE):

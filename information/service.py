@@ -87,7 +87,8 @@ class TwinInformation:
                                       weight_rule=config.weight_rule, seed=config.seed, twin=config.twin,
                                       move_rule=config.move_rule,
                                       preprocess=config.policy not in names.POLICIES_STARTING_OFF,
-                                      arm=(config.choose_base or names.DEFAULT_CHOOSE_BASE) if config.policy == "choose" else None)
+                                      arm=(config.choose_base or names.DEFAULT_CHOOSE_BASE)
+                                      if config.policy == "choose" else None)
         shell.expect(RunShape.of(config, model))
         self.particle_sets = shell.inbox("entity", "particles")
         self.commands = PSInbox(shell, self.layer, config.policy)

@@ -245,7 +245,8 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
                        help="state-space model by name: 'ungm' is Eq. 35 with 25 (the standard benchmark), "
                             "'ungm-printed' Eq. 35 as printed with 0.25, 'video' the tracking scenario, 'drift' a slowly drifting "
                             "constant seen precisely (where particles impoverish), 'switching' that constant seen by a "
-                            "sensor whose noise drops at step 51, 'moving' that constant moving away from the origin at 0.3 a step "
+                            "sensor whose noise drops at step 51, 'moving' that constant moving away from the origin "
+                            "at 0.3 a step "
                             "(the best cure changes during the run); "
                             "installed packages add names through the entry-point group 'dtpf.models' "
                             f"(default: {defaults.scenario})")

@@ -47,6 +47,7 @@ from dtpf.entity import resampling
 from dtpf.entity.models import StateSpaceModel
 from dtpf.messages.arrays import check_particles, check_set
 from dtpf.messages.errors import DtpfError
+from dtpf.messages.models import MAX_COVARIANCE_DIM
 from dtpf.messages.streams import stream
 
 __all__ = ["ParticleFilter", "FilterStep", "PendingStep", "Preprocessor", "Preprocessed", "PreprocessReport", "FilterError"]
@@ -143,6 +144,10 @@ class FilterStep:
         with zhat and S the predictive mean and variance of z_k (about m when the
         filter is consistent); None unless the filter was asked for it and the
         model gives ``observation_moments``.
+    covariance : (d(d-1)/2,) ndarray or None
+        The weighted covariances between the components of the set that was
+        resampled, the pairs i < j row by row (:func:`covariances`); None unless
+        2 <= d <= 8.
     """
 
     step: int
@@ -160,6 +165,7 @@ class FilterStep:
     parents: int | None
     log_predictive: float = float("nan")
     innovation: float | None = None
+    covariance: np.ndarray | None = None
 
 
 def normalise(log_weights: np.ndarray) -> np.ndarray:
@@ -208,6 +214,17 @@ def normalised_innovation(model, particles: np.ndarray, prior_weights: np.ndarra
     spread = prior_weights @ (centred * centred) + np.asarray(noise_var, dtype=np.float64)
     residual = np.asarray(observation, dtype=np.float64).reshape(-1) - zhat
     return float(np.sum(residual * residual / spread))
+
+
+def covariances(particles: np.ndarray, weights: np.ndarray, mean: np.ndarray) -> np.ndarray | None:
+    """The weighted covariances between the components, the pairs i < j row by row: (d(d-1)/2,); None unless
+    2 <= d <= MAX_COVARIANCE_DIM (what an :class:`~dtpf.messages.models.Estimate` carries)."""
+    d = particles.shape[1]
+    if not 2 <= d <= MAX_COVARIANCE_DIM:
+        return None
+    centred = particles - mean
+    full = (centred * weights[:, None]).T @ centred
+    return full[np.triu_indices(d, 1)]
 
 
 def moments(particles: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -494,6 +511,7 @@ class ParticleFilter:
                     move = answer.jitter
 
         mean, var = moments(target_particles, target_weights)
+        covariance = covariances(target_particles, target_weights, mean)
         half = Z95 * np.sqrt(var)
         ancestors = None
         parents = self.parents
@@ -507,7 +525,8 @@ class ParticleFilter:
             self._log_total = float(np.log(self.n))
             self.parents = resampling.distinct(ancestors)
         return FilterStep(k, particles, weights, pending.ess, mean, var, mean - half, mean + half,
-                          due, degraded, report, ancestors, parents, pending.log_predictive, pending.innovation)
+                          due, degraded, report, ancestors, parents, pending.log_predictive, pending.innovation,
+                          covariance)
 
 
 @dataclass(frozen=True)

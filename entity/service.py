@@ -330,7 +330,8 @@ class StepOutputs:
             observation=[float(v) for v in observation],
             ps=report.ps if report is not None else None,
             log_predictive=step.log_predictive if np.isfinite(step.log_predictive) else None,
-            innovation=step.innovation if step.innovation is not None and np.isfinite(step.innovation) else None)
+            innovation=step.innovation if step.innovation is not None and np.isfinite(step.innovation) else None,
+            covariance=None if step.covariance is None else step.covariance.tolist())
         if stamp is not None:
             estimate["stamp"] = Time.from_ns(stamp)
         # In the video scenario, its frame; the particle set as Foxglove draws it (entity/cloud.py says which

@@ -466,6 +466,10 @@ class PSCommand(Message):
         return self
 
 
+#: Largest state dimension whose estimate carries the covariances between its components (28 values).
+MAX_COVARIANCE_DIM = 8
+
+
 class Estimate(Message):
     """The state estimate of one step, after resampling: entity -> everyone."""
 
@@ -492,6 +496,10 @@ class Estimate(Message):
         default=None, ge=0.0, description="Normalised innovation squared of z_k (about the number of "
                                           "observed values when the filter is consistent), where the model "
                                           "gives the observation's moments.")
+    covariance: list[float] | None = Field(
+        default=None, description="(d(d-1)/2,) weighted covariances between the components, the pairs i < j "
+                                  "row by row: (0, 1), (0, 2), ..., (1, 2), ...; given when 2 <= d <= "
+                                  f"{MAX_COVARIANCE_DIM}.")
 
     @model_validator(mode="after")
     def _check_shapes(self) -> "Estimate":
@@ -500,6 +508,9 @@ class Estimate(Message):
             values = getattr(self, name)
             if values is not None and len(values) != d:
                 raise ValueError(f"{name} must have length d={len(self.mean)} like mean, got {len(values)}")
+        if self.covariance is not None and len(self.covariance) != d * (d - 1) // 2:
+            raise ValueError(f"covariance must hold d(d-1)/2 = {d * (d - 1) // 2} values (d={d}), "
+                             f"got {len(self.covariance)}")
         for i, (low, high) in enumerate(zip(self.lower, self.upper)):
             if low > high:
                 raise ValueError(f"lower must not exceed upper, got lower[{i}]={low!r} > upper[{i}]={high!r}")

@@ -291,7 +291,8 @@ def estimates(draw) -> Estimate:
         ess=draw(non_negative_floats), ess_ratio=draw(non_negative_floats), resampled=draw(st.booleans()),
         degraded=draw(st.booleans()), truth=draw(optional(vectors)),
         observation=draw(optional(st.lists(finite_floats, max_size=3))), ps=draw(optional(unit_floats)),
-        log_predictive=draw(optional(finite_floats)), innovation=draw(optional(non_negative_floats)))
+        log_predictive=draw(optional(finite_floats)), innovation=draw(optional(non_negative_floats)),
+        covariance=draw(optional(st.lists(finite_floats, min_size=d * (d - 1) // 2, max_size=d * (d - 1) // 2))))
 
 
 observation_counts = st.fixed_dictionaries({name: counts for name in (

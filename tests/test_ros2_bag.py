@@ -130,6 +130,7 @@ def test_a_bag_drives_dtpf_launch_to_the_csv_numbers_and_exports_back_to_rosbag2
         assert (pose.pose.pose.position.x, pose.pose.pose.position.y) == (estimate.mean[0], estimate.mean[1])
         covariance = pose.pose.covariance.reshape(6, 6)
         assert (covariance[0, 0], covariance[1, 1]) == (estimate.var[0], estimate.var[1])
+        assert covariance[0, 1] == covariance[1, 0] == estimate.covariance[0] != 0.0  # the estimate's own
         assert pose.header.frame_id == "map"
         assert (pose.header.stamp.sec, pose.header.stamp.nanosec) == (estimate.stamp.sec, estimate.stamp.nsec)
     assert ess == [e.ess for e in estimates]
@@ -253,14 +254,57 @@ def test_the_ros2_messages_are_the_bytes_rosbags_serialises():
                                                             for v in (True, False)]
 
 
-def test_the_pose_waits_for_the_cloud_only_for_a_covariance_the_cloud_gives():
-    """The cloud carries x[0], x[1], x[2]: a covariance between two of those, and only that, needs it."""
+def test_the_pose_waits_for_the_cloud_only_for_a_covariance_the_estimate_lacks_and_the_cloud_gives():
+    """An estimate of 2 to 8 components carries its covariances; beyond, the cloud carries x[0], x[1], x[2]:
+    a covariance between two distinct ones of those, and only that, needs it."""
     from dtpf.scripts.ros2.convert import cloud_covariances
 
     assert not cloud_covariances({"x": 0}, 1)
-    assert cloud_covariances({"x": 0, "y": 1}, 4)
-    assert cloud_covariances({"x": 0, "y": 1, "yaw": 3}, 4)
-    assert not cloud_covariances({"x": 0, "yaw": 3}, 4)
+    assert not cloud_covariances({"x": 0, "y": 0}, 1)
+    assert not cloud_covariances({"x": 0, "y": 1}, 4)
+    assert not cloud_covariances({"x": 0, "y": 1}, 8)
+    assert cloud_covariances({"x": 0, "y": 1}, 9)
+    assert cloud_covariances({"x": 0, "y": 1, "yaw": 3}, 9)
+    assert not cloud_covariances({"x": 0, "yaw": 3}, 9)
+    assert not cloud_covariances({"x": 1, "y": 1}, 9)
+
+
+def test_the_pose_covariance_is_the_estimates_own_between_any_two_mapped_components():
+    """Pose rows x, y, z, yaw of state components 3, 0, 2, 3: each pair's covariance from the estimate's
+    row-by-row pairs, one component twice its variance, nothing off the diagonal with --ros2-covariance
+    diagonal; the weighted covariances are those of the particles (the filter's covariances())."""
+    from dtpf.entity.filter import covariances
+    from dtpf.messages.models import Estimate, Layer, Time
+    from dtpf.scripts.ros2 import convert
+
+    rng = np.random.default_rng(5)
+    d = 4
+    particles = rng.normal(size=(400, d)) @ rng.normal(size=(d, d))
+    weights = rng.random(400)
+    weights /= weights.sum()
+    mean = weights @ particles
+    full = np.cov(particles, rowvar=False, aweights=weights, bias=True)
+    pairs = covariances(particles, weights, mean)
+    np.testing.assert_allclose(pairs, [full[i, j] for i in range(d) for j in range(i + 1, d)], rtol=1e-12)
+    assert covariances(particles[:, :1], weights, mean[:1]) is None
+    assert covariances(np.zeros((5, 9)), np.full(5, 0.2), np.zeros(9)) is None
+
+    var = np.diag(full)
+    estimate = Estimate(run_id="r", twin_id="t", step=1, stamp=Time(sec=1, nsec=0), layer=Layer.ENTITY,
+                        mean=mean.tolist(), var=var.tolist(), lower=(mean - 1).tolist(), upper=(mean + 1).tolist(),
+                        ess=10.0, ess_ratio=0.1, resampled=True, degraded=False, covariance=pairs.tolist())
+    mapping = {"x": 3, "y": 0, "z": 2, "yaw": 3}
+    rows = {"x": 0, "y": 1, "z": 2, "yaw": 5}
+    covariance = convert.pose_set(estimate, None, mapping).covariance.reshape(6, 6)
+    for a, i in mapping.items():
+        for b, j in mapping.items():
+            assert covariance[rows[a], rows[b]] == pytest.approx(full[i, j], rel=1e-12), (a, b)
+    diagonal = convert.pose_set(estimate, None, mapping, covariances=False).covariance.reshape(6, 6)
+    assert np.count_nonzero(diagonal - np.diag(np.diag(diagonal))) == 0
+    assert [diagonal[rows[a], rows[a]] for a in mapping] == [var[i] for i in mapping.values()]
+
+    with pytest.raises(ValueError, match=r"covariance must hold d\(d-1\)/2 = 6 values"):
+        Estimate(**{**estimate.model_dump(), "covariance": pairs.tolist()[:5]})
 
 
 def test_the_bridge_formats_an_observation_that_decodes_as_the_one_pydantic_builds(monkeypatch):

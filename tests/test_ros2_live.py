@@ -210,7 +210,9 @@ def test_a_ros2_publisher_drives_the_twin_to_dtpf_run_numbers_and_a_subscriber_g
                                                                                   range(1, steps + 1))]
     assert [(p["cov"][0], p["cov"][7]) for p in poses] == [(estimates[k].var[0], estimates[k].var[1])
                                                             for k in range(1, steps + 1)]
-    assert all(p["cov"][1] == p["cov"][6] != 0.0 for p in poses)  # x-y covariance from the particle cloud
+    # The x-y covariance is the estimate's own (the pose went out with its estimate).
+    assert [(p["cov"][1], p["cov"][6]) for p in poses] == [(estimates[k].covariance[0],) * 2
+                                                            for k in range(1, steps + 1)]
     assert [p["stamp"] for p in poses] == [[1000 + k - 1, 5] for k in range(1, steps + 1)]
     assert all(x["n"] == n for x in lines if x["topic"] == "particles")
 

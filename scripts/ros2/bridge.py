@@ -140,12 +140,14 @@ class Outbound:
     """The twin's estimates and clouds (Zenoh) to ROS 2 publishers.
 
     Zenoh's callbacks publish, one at a time (a lock); the executor's thread serves the input, and looks
-    for estimates that waited too long. When the cloud gives the pose a covariance between two components
-    (:func:`~dtpf.scripts.ros2.convert.cloud_covariances`, ``--ros2-covariance cloud``), a step's pose goes
-    out when its estimate and its cloud are both in (in either order), CLOUD_WAIT after the estimate
-    without the cloud, or at once while the entity publishes no clouds, its particles right after it;
-    otherwise the pose goes out with its estimate and the particles with their cloud. Every message is
-    published as its CDR bytes (:mod:`dtpf.scripts.ros2.convert`), the pose first."""
+    for estimates that waited too long. The pose goes out with its estimate, which carries the covariances
+    between components for a state of 2 to 8; the particles go out with their cloud, which is taken from
+    the twin only while the particles have a subscriber. Beyond 8 components, when the cloud gives the
+    pose a covariance between two components (:func:`~dtpf.scripts.ros2.convert.cloud_covariances`), a
+    step's pose goes out when its estimate and its cloud are both in (in either order), CLOUD_WAIT after
+    the estimate without the cloud, or at once while the entity publishes no clouds, its particles right
+    after it. Every message is published as its CDR bytes (:mod:`dtpf.scripts.ros2.convert`), the pose
+    first."""
 
     def __init__(self, node, session, config: RunConfig, dim: int, args, stamps):
         self.mapping = parse_pose(args.ros2_pose, dim)
@@ -162,17 +164,25 @@ class Outbound:
         self.clouds: OrderedDict = OrderedDict()  # a step's cloud that came before its estimate
         #: True once an estimate waited CLOUD_WAIT for its cloud in vain (an entity with --cloud-points 0).
         self.no_clouds = False
-        #: False (--ros2-covariance diagonal, or a pose the cloud adds no covariance to): the pose goes out
-        #: with its estimate, the particles with their cloud.
-        self.wait_for_cloud = args.ros2_covariance != "diagonal" and cloud_covariances(self.mapping, dim)
+        #: False (--ros2-covariance diagonal): the pose's covariance is the estimate's variances alone.
+        self.covariances = args.ros2_covariance != "diagonal"
+        #: False (covariances the estimate carries, or none the cloud could give): the pose goes out with its
+        #: estimate, the particles with their cloud.
+        self.wait_for_cloud = self.covariances and cloud_covariances(self.mapping, dim)
         self.published = 0
         self.samples = 0
         self.closed = False
         self.lock = threading.Lock()
         self.twin = config.twin
-        self.subscribers = [session.declare_subscriber(keys.key(config.twin, "entity", topic),
-                                                       lambda sample, cls=cls: self._on_sample(sample, cls))
-                            for topic, cls in (("estimate", Estimate), ("cloud", PointCloud))]
+        self.session = session
+        self.subscribers = [self._subscribe("estimate", Estimate)]
+        #: The twin's cloud (43 kB a step at N = 1e3) is taken only while it is used: a pose that waits for it,
+        #: or a subscriber of the particles (:meth:`tick` looks).
+        self.cloud_subscriber = self._subscribe("cloud", PointCloud) if self.wait_for_cloud else None
+
+    def _subscribe(self, topic: str, cls):
+        return self.session.declare_subscriber(keys.key(self.twin, "entity", topic),
+                                               lambda sample: self._on_sample(sample, cls))
 
     def _on_sample(self, sample, cls) -> None:  # a Zenoh thread
         self.samples += 1
@@ -192,6 +202,9 @@ class Outbound:
             log.debug("not a message of the twin: %s of twin %r, layer %s", cls.__name__, message.twin_id,
                       message.layer.value)
             return
+        if isinstance(message, Estimate) and len(message.mean) != self.dim:
+            log.debug("an estimate of %d components, not the model's %d", len(message.mean), self.dim)
+            return
         if isinstance(message, Estimate):
             cloud = self.clouds.pop(message.step, None)
             if cloud is not None or self.no_clouds or not self.wait_for_cloud:
@@ -203,22 +216,32 @@ class Outbound:
             waiting = self.pending.pop(message.step, None)
             if waiting is not None:
                 self._publish(waiting[0], cloud_points_of(message))
-            elif not self.wait_for_cloud:  # the pose went out already
-                stamp = self.cloud_stamps.pop(message.step, (message.stamp.sec, message.stamp.nsec))
-                # Nobody reads the particles: the cloud is not decoded (a core's time the next pose may need).
-                if self.pub["particles"].get_subscription_count():
-                    points = cloud_points_of(message)
-                    self.pub["particles"].publish(pose_array_cdr(*stamp, self.frame,
-                                                                 pose_set_particles(points, self.mapping, self.dim)))
-            else:
+            elif not self.wait_for_cloud and message.step in self.cloud_stamps:  # the pose went out already
+                stamp = self.cloud_stamps.pop(message.step)
+                points = cloud_points_of(message)
+                self.pub["particles"].publish(pose_array_cdr(*stamp, self.frame,
+                                                             pose_set_particles(points, self.mapping, self.dim)))
+            else:  # before its estimate (a Zenoh thread of its own may serve it first): out with the estimate
                 self.clouds[message.step] = cloud_points_of(message)
                 while len(self.clouds) > 100:
                     self.clouds.popitem(last=False)
         self._expire()
 
     def tick(self) -> None:
+        """The executor's thread, at least every 0.1 s: estimates that waited too long for their cloud go out;
+        the cloud is taken from the twin while the particles have a subscriber, and left when none has."""
         with self.lock:
             self._expire()
+        if self.wait_for_cloud or self.closed:
+            return
+        wanted = self.pub["particles"].get_subscription_count() > 0
+        if wanted and self.cloud_subscriber is None:
+            self.cloud_subscriber = self._subscribe("cloud", PointCloud)
+        elif not wanted and self.cloud_subscriber is not None:
+            subscriber, self.cloud_subscriber = self.cloud_subscriber, None
+            subscriber.undeclare()
+            with self.lock:
+                self.cloud_stamps.clear()
 
     def _expire(self) -> None:
         now = time.monotonic()
@@ -227,7 +250,7 @@ class Outbound:
             self._publish(self.pending.pop(step)[0], None)
 
     def _publish(self, estimate: Estimate, points) -> None:
-        poses = pose_set(estimate, points, self.mapping)
+        poses = pose_set(estimate, points, self.mapping, self.covariances)
         stamp = self.stamps.get(tuple(estimate.observation or ()))
         sec, nsec = stamp if stamp is not None else (estimate.stamp.sec, estimate.stamp.nsec)
         self.pub["pose"].publish(pose_cdr(sec, nsec, self.frame, poses))
@@ -261,8 +284,9 @@ class Outbound:
             for step in sorted(self.pending):
                 self._publish(self.pending[step][0], None)
             self.pending.clear()
-        for subscriber in self.subscribers:
-            subscriber.undeclare()
+        for subscriber in self.subscribers + [self.cloud_subscriber]:
+            if subscriber is not None:
+                subscriber.undeclare()
         deadline = time.monotonic() + acked
         for publisher in self.pub.values():
             while not publisher.wait_for_all_acked(Duration(seconds=0.5)) and time.monotonic() < deadline:
@@ -458,10 +482,10 @@ def bridge_arguments(parser: argparse.ArgumentParser, defaults: bool = True) -> 
                        help="frame_id of the published headers (default: map)")
     group.add_argument("--ros2-depth", type=int, default=depth, metavar="N",
                        help="QoS history depth, in and out (default: 100)")
-    group.add_argument("--ros2-covariance", choices=("cloud", "diagonal"), default=None,
-                       help="the pose's covariance: 'cloud' waits for the step's particle cloud for the covariances "
-                            "between components (when two mapped components are in the cloud: x[0], x[1], x[2]); "
-                            "'diagonal' publishes the pose with its estimate, variances only (default: cloud)")
+    group.add_argument("--ros2-covariance", choices=("full", "diagonal"), default=None,
+                       help="the pose's covariance: 'full', the weighted covariances between the mapped components "
+                            "(the estimate's for a state of 2 to 8 components; beyond, the step's particle cloud's, "
+                            "which the pose then waits for); 'diagonal', the variances only (default: full)")
     group.add_argument("--ros2-best-effort", action="store_true",
                        help="QoS best effort instead of reliable (in and out), as sensor drivers often publish")
 

@@ -5,9 +5,10 @@ and, for a state of 2 or more dimensions, y = x[1]). For each step:
 
 - ``pose``: ``geometry_msgs/msg/PoseWithCovarianceStamped``; the position and yaw are the estimate's
   weighted means; the covariance (6 x 6, row-major, x y z roll pitch yaw) holds the estimate's weighted
-  variances on the diagonal and, between components the particle cloud carries (x[0], x[1], x[2]), the
-  weighted covariances of the cloud's particles (every particle when N <= the entity's --cloud-points,
-  1000 by default); rows of axes not mapped are zero.
+  variances on the diagonal and the weighted covariances between the mapped components: the estimate's
+  own (``Estimate.covariance``, a state of 2 to 8 components), else, between components the particle
+  cloud carries (x[0], x[1], x[2]), those of the cloud's particles (every particle when N <= the
+  entity's --cloud-points, 1000 by default); rows of axes not mapped are zero.
 - ``particles``: ``geometry_msgs/msg/PoseArray`` of the cloud's particles (components beyond x[2] are 0).
 - ``ess``, ``ps``: ``std_msgs/msg/Float64``; ``degraded``: ``std_msgs/msg/Bool``; ``observation``:
   ``std_msgs/msg/Float64MultiArray`` (the values filtered at that step).
@@ -25,7 +26,7 @@ import struct
 import numpy as np
 
 from dtpf.messages.foxglove import PointCloud
-from dtpf.messages.models import Estimate
+from dtpf.messages.models import MAX_COVARIANCE_DIM, Estimate
 
 __all__ = ["AXES", "TOPICS", "PoseSet", "bool_cdr", "cloud_covariances", "cloud_points_of", "float64_array_cdr",
            "float64_cdr", "parse_pose", "pose_array_cdr", "pose_cdr", "pose_set", "pose_set_particles"]
@@ -75,9 +76,16 @@ def _cloud_column(component: int, dim: int) -> int | None:
 
 
 def cloud_covariances(mapping: dict[str, int], dim: int) -> bool:
-    """Whether the particle cloud gives the pose a covariance between two components: two mapped components
-    the cloud carries. Otherwise the pose's covariance is the estimate's variances alone."""
-    return sum(_cloud_column(component, dim) is not None for component in mapping.values()) >= 2
+    """Whether the pose's covariances come from the particle cloud: the estimate carries none (a state of
+    more than MAX_COVARIANCE_DIM components) and two distinct mapped components are in the cloud."""
+    if 2 <= dim <= MAX_COVARIANCE_DIM:
+        return False
+    return len({component for component in mapping.values() if _cloud_column(component, dim) is not None}) >= 2
+
+
+def pair_index(i: int, j: int, dim: int) -> int:
+    """Where the covariance of components i < j sits in ``Estimate.covariance`` (pairs row by row)."""
+    return i * (2 * dim - i - 1) // 2 + (j - i - 1)
 
 
 class PoseSet:
@@ -89,8 +97,10 @@ class PoseSet:
         self.position, self.yaw, self.covariance, self.particles = position, yaw, covariance, particles
 
 
-def pose_set(estimate: Estimate, points: np.ndarray | None, mapping: dict[str, int]) -> PoseSet:
-    """The pose of ``estimate`` with its covariance, and (``points``: the step's cloud) the particles' poses."""
+def pose_set(estimate: Estimate, points: np.ndarray | None, mapping: dict[str, int],
+             covariances: bool = True) -> PoseSet:
+    """The pose of ``estimate`` with its covariance, and (``points``: the step's cloud) the particles' poses.
+    ``covariances`` False: the variances alone (``--ros2-covariance diagonal``)."""
     dim = len(estimate.mean)
     position = [0.0, 0.0, 0.0]
     for axis, row in (("x", 0), ("y", 1), ("z", 2)):
@@ -100,7 +110,8 @@ def pose_set(estimate: Estimate, points: np.ndarray | None, mapping: dict[str, i
     covariance = np.zeros((6, 6), dtype=np.float64)
     columns = {axis: _cloud_column(component, dim) for axis, component in mapping.items()}
     weighted = None
-    if points is not None and len(points):
+    pairs = estimate.covariance if covariances else None
+    if covariances and pairs is None and points is not None and len(points):
         w = points[:, 3]
         total = w.sum()
         if total > 0 and np.isfinite(total):
@@ -111,6 +122,12 @@ def pose_set(estimate: Estimate, points: np.ndarray | None, mapping: dict[str, i
     for i, a in enumerate(axes):
         covariance[AXES[a], AXES[a]] = float(estimate.var[mapping[a]])
         for b in axes[i + 1:]:
+            ia, ib = mapping[a], mapping[b]
+            if ia == ib or pairs is not None:  # one component twice: its variance; else the estimate's
+                value = float(estimate.var[ia]) if ia == ib else pairs[pair_index(min(ia, ib), max(ia, ib), dim)]
+                if covariances:
+                    covariance[AXES[a], AXES[b]] = covariance[AXES[b], AXES[a]] = value
+                continue
             if weighted is None or columns[a] is None or columns[b] is None:
                 continue
             ca, cb = columns[a], columns[b]

@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import subprocess
 import sys
+from collections import OrderedDict
 
 import numpy as np
 import pytest
@@ -332,3 +333,147 @@ def test_the_bridge_formats_an_observation_that_decodes_as_the_one_pydantic_buil
         expected = Observation(run_id="run-7", twin_id=Shell.config.twin, step=step, layer=Layer.SENSOR,
                                stamp=Time(sec=1_700_000_000 + step, nsec=999_999_999), values=values)
         assert decode(payload, Observation) == expected
+
+
+class _FakePublisher:
+    def __init__(self):
+        self.sent, self.subscribers = [], 0
+
+    def get_subscription_count(self):
+        return self.subscribers
+
+    def publish(self, data):
+        self.sent.append(data)
+
+
+class _FakeNode:
+    def __init__(self):
+        self.publishers = {}
+
+    def create_publisher(self, cls, topic, profile):
+        return self.publishers.setdefault(topic.rsplit("/", 1)[1], _FakePublisher())
+
+
+class _FakeSubscriber:
+    def __init__(self, declared, key):
+        self.declared, self.key = declared, key
+
+    def undeclare(self):
+        del self.declared[self.key]
+
+
+class _FakeSession:
+    def __init__(self):
+        self.declared = {}  # key -> callback
+
+    def declare_subscriber(self, key, callback):
+        assert key not in self.declared, f"{key} declared twice"
+        self.declared[key] = callback
+        return _FakeSubscriber(self.declared, key)
+
+    def deliver(self, key, payload: bytes) -> bool:
+        """A sample on ``key`` to its subscriber; False when nothing subscribes to it."""
+        if key not in self.declared:
+            return False
+        self.declared[key](type("Sample", (), {"payload": type("Payload", (), {"to_bytes": lambda _: payload})()})())
+        return True
+
+
+def _outbound(monkeypatch, dim: int, pose: str | None = None):
+    from types import SimpleNamespace
+
+    from dtpf.scripts.ros2 import bridge
+
+    monkeypatch.setattr(bridge, "message_class", lambda msgtype: msgtype)
+    monkeypatch.setattr(bridge, "qos", lambda args: None)
+    node, session = _FakeNode(), _FakeSession()
+    args = SimpleNamespace(ros2_pose=pose, ros2_namespace=None, ros2_frame="map", ros2_covariance=None,
+                           ros2_depth=100, ros2_best_effort=False)
+    outbound = bridge.Outbound(node, session, RunConfig(twin="fake"), dim, args, OrderedDict())
+    return outbound, node.publishers, session
+
+
+def _estimate_and_cloud(step: int, dim: int, rng):
+    import base64
+
+    from dtpf.entity.cloud import FIELDS, POINT_STRIDE, cloud_points
+    from dtpf.entity.filter import covariances, moments
+    from dtpf.messages.codec import encode
+    from dtpf.messages.foxglove import PackedElementField, PointCloud
+    from dtpf.messages.models import Estimate, Layer, Time
+
+    particles = rng.normal(size=(200, dim))
+    weights = np.full(200, 1 / 200)
+    mean, var = moments(particles, weights)
+    pairs = covariances(particles, weights, mean)
+    header = dict(run_id="run", twin_id="fake", step=step, layer=Layer.ENTITY)
+    estimate = Estimate(**header, stamp=Time(sec=1000 + step, nsec=5), mean=mean.tolist(), var=var.tolist(),
+                        lower=(mean - 1).tolist(), upper=(mean + 1).tolist(), ess=200.0, ess_ratio=1.0,
+                        resampled=True, degraded=False, covariance=None if pairs is None else pairs.tolist())
+    points = cloud_points(particles, weights, 1000)
+    cloud = PointCloud(**header, stamp=Time(sec=7, nsec=0), timestamp=Time(sec=7, nsec=0), frame_id="state",
+                       point_stride=POINT_STRIDE,
+                       fields=[PackedElementField(name=name, offset=offset, type=8) for name, offset in FIELDS],
+                       data=base64.b64encode(points.tobytes()).decode("ascii"))
+    return estimate, encode(estimate), encode(cloud)
+
+
+def _pose_stamps(publisher) -> list[int]:
+    """The header stamps (seconds) of the PoseWithCovarianceStamped / PoseArray CDR bytes ``publisher`` sent."""
+    return [int.from_bytes(data[4:8], "little", signed=True) for data in publisher.sent]
+
+
+def test_the_bridge_takes_the_twins_cloud_only_while_the_particles_have_a_subscriber(monkeypatch):
+    """A pose of two of four components goes out with its estimate, its covariance the estimate's; the cloud is
+    taken only while someone reads the particles, which then carry their estimate's stamp, the cloud served
+    before or after its estimate; an estimate of another dimension is left alone."""
+    rng = np.random.default_rng(8)
+    outbound, published, session = _outbound(monkeypatch, dim=4)
+    estimate_key, cloud_key = "dtpf/fake/entity/estimate", "dtpf/fake/entity/cloud"
+    assert list(session.declared) == [estimate_key]
+
+    estimate, first, cloud = _estimate_and_cloud(1, 4, rng)
+    assert session.deliver(estimate_key, first) and not session.deliver(cloud_key, cloud)
+    assert _pose_stamps(published["pose"]) == [1001] and published["particles"].sent == []
+    covariance = TYPESTORE.deserialize_cdr(published["pose"].sent[0],
+                                           "geometry_msgs/msg/PoseWithCovarianceStamped").pose.covariance
+    assert covariance[1] == covariance[6] == estimate.covariance[0]
+
+    published["particles"].subscribers = 1
+    outbound.tick()
+    assert cloud_key in session.declared
+    _, second, cloud = _estimate_and_cloud(2, 4, rng)
+    session.deliver(estimate_key, second)
+    session.deliver(cloud_key, cloud)             # after its estimate: out at once
+    _, third, cloud = _estimate_and_cloud(3, 4, rng)
+    session.deliver(cloud_key, cloud)             # before its estimate: out with it
+    assert _pose_stamps(published["particles"]) == [1002]
+    session.deliver(estimate_key, third)
+    assert _pose_stamps(published["pose"]) == [1001, 1002, 1003]
+    assert _pose_stamps(published["particles"]) == [1002, 1003]
+
+    _, other, _ = _estimate_and_cloud(4, 3, rng)  # three components: not the model's four
+    session.deliver(estimate_key, other)
+    assert len(published["pose"].sent) == 3
+
+    published["particles"].subscribers = 0
+    outbound.tick()
+    assert list(session.declared) == [estimate_key]
+
+
+def test_beyond_eight_components_the_pose_waits_for_its_cloud(monkeypatch):
+    """An estimate of 9 components carries no covariances: a pose of x[0] and x[1] waits for the step's cloud,
+    whose weighted covariance it then carries."""
+    rng = np.random.default_rng(9)
+    outbound, published, session = _outbound(monkeypatch, dim=9)
+    estimate_key, cloud_key = "dtpf/fake/entity/estimate", "dtpf/fake/entity/cloud"
+    assert set(session.declared) == {estimate_key, cloud_key}
+    estimate, payload, cloud = _estimate_and_cloud(1, 9, rng)
+    assert estimate.covariance is None
+    session.deliver(estimate_key, payload)
+    assert published["pose"].sent == []
+    session.deliver(cloud_key, cloud)
+    assert _pose_stamps(published["pose"]) == [1001]
+    covariance = TYPESTORE.deserialize_cdr(published["pose"].sent[0],
+                                           "geometry_msgs/msg/PoseWithCovarianceStamped").pose.covariance
+    assert covariance[1] == covariance[6] != 0.0

@@ -54,6 +54,8 @@ class RunData:
     #: (T,) int64 nanoseconds since the Unix epoch: each step's time, the stamp of its estimate (a rosbag2
     #: log's receive times); None: the estimates carry their publish time.
     stamps: np.ndarray | None = None
+    #: What was wrong with the file and how it was read anyway (a rosbag2 log cut short), or None.
+    problem: str | None = None
 
     def __post_init__(self):
         if self.truth is not None and self.known_truth is None:
@@ -138,7 +140,7 @@ def observations_of(config, model: StateSpaceModel) -> RunData | None:
         whole = table.covers(model.dim)
         return RunData(table.observations, table.truth if whole else None, table.source,
                        known_truth=table.truth, truth_components=table.truth_components,
-                       truth_columns=table.truth_columns, stamps=table.stamps)
+                       truth_columns=table.truth_columns, stamps=table.stamps, problem=table.problem)
     truth, observations = model.simulate(config.steps, stream(config.seed, config.twin, 0, "scenario"))
     return RunData(np.asarray(observations, dtype=np.float64), np.asarray(truth, dtype=np.float64),
                    f"simulation of {config.model_ref}")

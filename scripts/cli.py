@@ -58,8 +58,8 @@ def cmd_run(args: argparse.Namespace) -> int:
 
     # run() reads the file once; T is its rows unless --steps is smaller
     config = fit_simulation(config_from_args(args), args)
-    _note_cut_bag(config)
-    result = run(config, progress=None if args.quiet else ProgressBar())
+    result = run(config, progress=None if args.quiet else ProgressBar(),
+                 note=lambda problem: print(f"dtpf: note: {problem}", file=sys.stderr))
     ps = result.ps
     ps_text = "off" if not config.preprocess else f"{np.nanmin(ps):g} .. {np.nanmax(ps):g}"
     lines = [
@@ -210,17 +210,6 @@ def _ros2_options(args: argparse.Namespace) -> list[str]:
     if getattr(args, "ros2_best_effort", False):
         words.append("--ros2-best-effort")
     return words
-
-
-def _note_cut_bag(config) -> None:
-    """Say on stderr when the run's rosbag2 log was cut short and is read up to the cut."""
-    from dtpf.entity import rosbag
-    from dtpf.entity.sources import read_table
-
-    if config.observation_file is not None and (config.topic is not None or rosbag.is_bag(config.observation_file)):
-        problem = read_table(config, steps=1).problem
-        if problem is not None:
-            print(f"dtpf: note: {problem}", file=sys.stderr)
 
 
 def _note_partial_truth(config, model) -> None:

@@ -172,9 +172,10 @@ def build(config: RunConfig, observations, model=None, innovation: bool = False)
                           preprocessor=twin, innovation=innovation, jitter=config.jitter)
 
 
-def run(config: RunConfig, progress=None, model=None) -> RunResult:
+def run(config: RunConfig, progress=None, model=None, note=None) -> RunResult:
     """Filter the run's observations (simulated, or from its file); ``progress(step, total)`` is
-    called after each step. The model is checked on a probe first unless ``model`` is given.
+    called after each step, ``note(problem)`` before the first when the file was read despite a problem
+    (a rosbag2 log cut short). The model is checked on a probe first unless ``model`` is given.
 
     Raises ValueError for a live run (it needs the sensor's Zenoh: ``dtpf launch``).
     """
@@ -184,6 +185,8 @@ def run(config: RunConfig, progress=None, model=None) -> RunResult:
     if model is None:
         model = sources.load_model(config)
     data = sources.observations_of(config, model)
+    if note is not None and data.problem is not None:
+        note(data.problem)
     result = RunResult(config, data.known_truth, data.observations, truth_components=data.truth_components,
                        truth_columns=data.truth_columns)
     pf = build(config, data.observations, model, innovation=data.known_truth is None)

@@ -227,6 +227,23 @@ def covariances(particles: np.ndarray, weights: np.ndarray, mean: np.ndarray) ->
     return full[np.triu_indices(d, 1)]
 
 
+def moments_and_covariances(particles: np.ndarray, weights: np.ndarray
+                            ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """:func:`moments` and :func:`covariances` in one pass over the centred particles: the weighted mean and
+    variances (d,), and the covariances between components (None unless 2 <= d <= MAX_COVARIANCE_DIM).
+    With covariances, sum_n (sqrt(w_n) c_n)(sqrt(w_n) c_n)^T gives them all, the variances on its diagonal
+    (N = 1e5, d = 4: 1.7 ms against 1.0 for the variances alone and 2.8 for both apart)."""
+    d = particles.shape[1]
+    if not 2 <= d <= MAX_COVARIANCE_DIM:
+        mean, var = moments(particles, weights)
+        return mean, var, None
+    mean = weights @ particles
+    scaled = particles - mean
+    scaled *= np.sqrt(weights)[:, None]
+    full = scaled.T @ scaled
+    return mean, np.diagonal(full).copy(), full[np.triu_indices(d, 1)]
+
+
 def moments(particles: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Weighted mean and variance per dimension: (d,), (d,)."""
     mean = weights @ particles
@@ -510,8 +527,7 @@ class ParticleFilter:
                         raise ValueError(f"unknown jitter {answer.jitter!r} in the twin's answer")
                     move = answer.jitter
 
-        mean, var = moments(target_particles, target_weights)
-        covariance = covariances(target_particles, target_weights, mean)
+        mean, var, covariance = moments_and_covariances(target_particles, target_weights)
         half = Z95 * np.sqrt(var)
         ancestors = None
         parents = self.parents

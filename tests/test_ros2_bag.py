@@ -274,7 +274,7 @@ def test_the_pose_covariance_is_the_estimates_own_between_any_two_mapped_compone
     """Pose rows x, y, z, yaw of state components 3, 0, 2, 3: each pair's covariance from the estimate's
     row-by-row pairs, one component twice its variance, nothing off the diagonal with --ros2-covariance
     diagonal; the weighted covariances are those of the particles (the filter's covariances())."""
-    from dtpf.entity.filter import covariances
+    from dtpf.entity.filter import covariances, moments, moments_and_covariances
     from dtpf.messages.models import Estimate, Layer, Time
     from dtpf.scripts.ros2 import convert
 
@@ -289,6 +289,15 @@ def test_the_pose_covariance_is_the_estimates_own_between_any_two_mapped_compone
     np.testing.assert_allclose(pairs, [full[i, j] for i in range(d) for j in range(i + 1, d)], rtol=1e-12)
     assert covariances(particles[:, :1], weights, mean[:1]) is None
     assert covariances(np.zeros((5, 9)), np.full(5, 0.2), np.zeros(9)) is None
+    # What the filter computes, in one pass: the same numbers, and moments() itself outside 2 <= d <= 8.
+    fused_mean, fused_var, fused_pairs = moments_and_covariances(particles, weights)
+    np.testing.assert_allclose(fused_mean, mean, rtol=1e-14)
+    np.testing.assert_allclose(fused_var, np.diag(full), rtol=1e-12)
+    np.testing.assert_allclose(fused_pairs, pairs, rtol=1e-12)
+    for wide in (particles[:, :1], np.hstack([particles, particles, particles[:, :1]])):
+        expected_mean, expected_var = moments(wide, weights)
+        got = moments_and_covariances(wide, weights)
+        assert got[2] is None and (got[0] == expected_mean).all() and (got[1] == expected_var).all()
 
     var = np.diag(full)
     estimate = Estimate(run_id="r", twin_id="t", step=1, stamp=Time(sec=1, nsec=0), layer=Layer.ENTITY,

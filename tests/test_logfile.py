@@ -442,3 +442,23 @@ def test_fast_crc_is_zlibs_crc32_and_mcap_files_check_with_plain_zlib(tmp_path):
     finally:
         crc.use_fast_crc()
     assert messages == [data[step:] for step in range(5)]
+
+
+def test_the_recording_benchmark_replays_a_launch_log_through_the_recorders_admission(launched, tmp_path):
+    """``python -m dtpf.scripts.bench.recording --replay LOG``: per step (the log's estimates), the time of each
+    part of the recorder's work on the log's own messages; a log without an estimate is named."""
+    from dtpf.scripts.bench.recording import replay
+
+    messages = len(read_log(launched).messages)
+    lines = replay(launched, 1)
+    assert lines[0].startswith(f"{launched}: {messages:,} messages, {CONFIG.steps} steps")
+    rows = {line.split(" | ")[0].lstrip("| "): float(line.split(" | ")[1].rstrip(" |")) for line in lines[4:]}
+    assert set(rows) == {"decode (the admission's part)", "write, lz4 chunks", "write, no compression",
+                         "admission and write, lz4 (the recorder while a set is at most 64 KiB)",
+                         "admission and write, no compression"}
+    assert all(value > 0 for value in rows.values())
+    empty = tmp_path / "empty.mcap"
+    with McapRecording(empty, compression="none") as recording:
+        recording.write("dtpf/t-log/system/status", b"{}")
+    with pytest.raises(SystemExit, match="no estimate in the log"):
+        replay(empty, 1)

@@ -12,10 +12,15 @@ Chunks are uncompressed, as the recorder's ``auto`` picks above 64 KiB.
 Methods alternate within every repetition; the file is rewritten from empty
 for each and deleted after. Medians.
 
+``--replay LOG`` instead times the recorder's own work on a log's real messages, in this process, with no
+Zenoh: the recorder's admission (each message decoded and checked as a service would, :class:`Admission`)
+and the MCAP writer, with lz4 chunks and without, per step (the log's messages / its estimates).
+
 Run from the repository root::
 
     python -m dtpf.scripts.bench.recording                    # N = 1e3 .. 1e6
     python -m dtpf.scripts.bench.recording --sizes 1e5 --steps 50
+    python -m dtpf.scripts.bench.recording --replay runs/ungm.mcap
 """
 from __future__ import annotations
 
@@ -66,6 +71,70 @@ def time_writes(payload: bytes, steps: int, fast: bool, folder: Path) -> float:
     return statistics.median(times)
 
 
+class _Shell:
+    """What :class:`~dtpf.scripts.record.Admission` asks of its service: counts, the run, no shape; a message
+    it rejects is counted here (a log the recorder wrote holds none it would reject)."""
+
+    def __init__(self):
+        self.received = self.rejected = 0
+        self.shape = None
+        self.config = None
+
+    def reject(self, reason: str, detail: str = "", key=None) -> None:
+        self.rejected += 1
+
+
+def replay(path: Path, repeats: int) -> list[str]:
+    """The table of ``--replay``: ms per step of each part of the recorder's work on the log's messages."""
+    from types import SimpleNamespace
+
+    from dtpf.messages.codec import decode_for_key
+    from dtpf.recording.logfile import read_log
+    from dtpf.scripts.record import Admission
+
+    items = [SimpleNamespace(key=m.topic, payload=bytes(m.data)) for m in read_log(path).messages]
+    steps = sum(1 for item in items if item.key.endswith("/entity/estimate"))
+    if not steps:
+        raise SystemExit(f"{path}: no estimate in the log: nothing to count steps by")
+    crc.use_fast_crc()
+
+    def admit_and_write(compression: str, folder: Path) -> float:
+        admission = Admission(_Shell(), all_twins=True)
+        start = time.perf_counter()
+        with McapRecording(folder / "replay.mcap", compression=compression) as recording:
+            for item in items:
+                admission.record(recording, item)
+        return time.perf_counter() - start
+
+    def write(compression: str, folder: Path) -> float:
+        start = time.perf_counter()
+        with McapRecording(folder / "replay.mcap", compression=compression) as recording:
+            for item in items:
+                recording.write(item.key, item.payload)
+        return time.perf_counter() - start
+
+    def decode(_: str, folder: Path) -> float:
+        start = time.perf_counter()
+        for item in items:
+            decode_for_key(item.key, item.payload)
+        return time.perf_counter() - start
+
+    parts = [("decode (the admission's part)", decode, "-"), ("write, lz4 chunks", write, "lz4"),
+             ("write, no compression", write, "none"), ("admission and write, lz4 (the recorder while a set is at most 64 KiB)",
+                                                        admit_and_write, "lz4"),
+             ("admission and write, no compression", admit_and_write, "none")]
+    times: dict[str, list[float]] = {name: [] for name, _, _ in parts}
+    with tempfile.TemporaryDirectory(prefix="dtpf-bench-replay-") as folder:
+        for repeat in range(repeats):
+            for name, fn, compression in (parts if repeat % 2 == 0 else parts[::-1]):
+                times[name].append(fn(compression, Path(folder)))
+    lines = [f"{path}: {len(items):,} messages, {steps:,} steps ({len(items) / steps:.1f} messages a step, "
+             f"{sum(len(i.payload) for i in items) / steps / 1e3:.1f} kB a step); medians over {repeats} "
+             f"repetitions", "", "| part | ms / step |", "|---|---|"]
+    lines += [f"| {name} | {statistics.median(t) / steps * 1e3:.3f} |" for name, t in times.items()]
+    return lines
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="python -m dtpf.scripts.bench.recording", description=__doc__.split("\n\n")[0])
     parser.add_argument("--sizes", nargs="+", type=parse_size, default=[1_000, 10_000, 100_000, 1_000_000],
@@ -73,7 +142,12 @@ def main(argv=None) -> int:
     parser.add_argument("--steps", type=int, default=100, help="steps recorded per method and repetition "
                                                                  "(default: %(default)s)")
     parser.add_argument("--repeats", type=int, default=3, help="repetitions (default: %(default)s)")
+    parser.add_argument("--replay", type=Path, default=None, metavar="LOG",
+                        help="time the recorder's admission and writer on this log's messages instead")
     args = parser.parse_args(argv)
+    if args.replay is not None:
+        print("\n".join(replay(args.replay, args.repeats)))
+        return 0
     if not crc.FAST:
         parser.exit(1, "zlib-ng is not installed: nothing to compare (pip install zlib-ng)\n")
     print(f"# python {platform.python_version()}, mcap {mcap.__version__}, {os.cpu_count()} CPUs")

@@ -19,17 +19,17 @@ Run ``python -m dtpf.scripts.record --help`` for the options.
 from __future__ import annotations
 
 import argparse
-import base64
 import time
 
 import zenoh
 
 from dtpf.entity import model_ref
 from dtpf.messages import keys
-from dtpf.messages.admission import RunShape, kind_of
-from dtpf.messages.codec import MessageError, decode_for_key, encode
+from dtpf.messages.admission import RunShape
+from dtpf.messages.codec import encode
 from dtpf.messages.config import RunConfig, add_run_arguments
-from dtpf.messages.models import MAX_REJECTED_SAMPLE, Estimate, Layer, Rejected, ServiceState, Status
+from dtpf.messages.models import Layer, ServiceState, Status
+from dtpf.recording.admission import Admission
 from dtpf.recording.logfile import what_it_holds
 from dtpf.recording.writer import COMPRESSION, EXIT_LOG_WRITE, LogWriteError, McapRecording, auto_compression
 from dtpf.shell.bus import add_zenoh_arguments
@@ -134,12 +134,6 @@ def _record(shell: ServiceShell, recording: McapRecording, pattern: str, compres
     return 0
 
 
-#: Rejected payloads the recorder keeps a sample of: in all, and of one kind of reason.
-MAX_SAMPLES, MAX_SAMPLES_PER_KIND = 1000, 10
-#: Estimates of one (key, step) the recorder keeps; the (key, step) pairs it counts them for, newest kept.
-MAX_COPIES, MAX_TRACKED_STEPS = 8, 1 << 16
-
-
 class Silences:
     """When a twin's messages stop and when they come back, said in the recorder's log.
 
@@ -200,62 +194,6 @@ class Silences:
 
 #: Most twins :class:`Silences` follows.
 MAX_TWINS = 10_000
-
-
-class Admission:
-    """What the recorder writes: the run's valid messages; a bounded sample of the rest."""
-
-    def __init__(self, shell: ServiceShell, all_twins: bool, silences: Silences | None = None):
-        self.shell = shell
-        self.all_twins = all_twins
-        self.silences = silences
-        self.samples = 0
-        self.samples_of: dict[str, int] = {}
-        self.estimate_copies: dict[tuple[str, int], int] = {}  # by (key, step), oldest first
-
-    def record(self, recording: McapRecording, item) -> bool:
-        """Write ``item`` if a service would take it (True); else count it and maybe sample it."""
-        shell = self.shell
-        shell.received += 1
-        try:
-            message = decode_for_key(item.key, item.payload)
-        except MessageError as error:
-            return self._reject(recording, item, error.reason, str(error))
-        if not self.all_twins and message.run_id != shell.config.run_id:
-            return self._reject(recording, item, "message of another run",
-                                f"a message of run {message.run_id!r} on {item.key}, recording run "
-                                f"{shell.config.run_id!r}")
-        misfit = shell.shape.misfit(message) if shell.shape is not None else None
-        if misfit is not None:
-            return self._reject(recording, item, misfit.kind, misfit.detail)
-        if isinstance(message, Estimate):
-            # Without access control a forger can publish a well-formed estimate of any step, early or
-            # twice. Every one is kept, in the order received, so a forgery never costs the real estimate
-            # its place; the log tools say which steps had more than one (scripts.logs). Only copies past
-            # MAX_COPIES of one step are refused, so a flood of one step cannot grow the log without bound.
-            copies = self.estimate_copies.get((item.key, message.step), 0)
-            if copies >= MAX_COPIES:
-                return self._reject(recording, item, "too many estimates of one step",
-                                    f"estimate {copies + 1} of step {message.step} on {item.key}")
-            if len(self.estimate_copies) >= MAX_TRACKED_STEPS:
-                del self.estimate_copies[next(iter(self.estimate_copies))]
-            self.estimate_copies[item.key, message.step] = copies + 1
-        recording.write(item.key, item.payload)
-        if self.silences is not None:
-            self.silences.heard(message)
-        return True
-
-    def _reject(self, recording: McapRecording, item, reason: str, detail: str) -> bool:
-        shell = self.shell
-        shell.reject(reason, detail, key=item.key)
-        kind = kind_of(reason)
-        if self.samples < MAX_SAMPLES and self.samples_of.get(kind, 0) < MAX_SAMPLES_PER_KIND:
-            self.samples += 1
-            self.samples_of[kind] = self.samples_of.get(kind, 0) + 1
-            sample = Rejected(**shell.header(0), key=item.key[:300], reason=detail[:500], size=len(item.payload),
-                              sample=base64.b64encode(item.payload[:MAX_REJECTED_SAMPLE]).decode("ascii"))
-            recording.write(keys.key_for(sample), encode(sample))
-        return False
 
 
 def build_parser() -> argparse.ArgumentParser:

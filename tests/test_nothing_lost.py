@@ -139,9 +139,9 @@ def test_dtpf_verify_reproduces_one_of_a_steps_competing_commands_and_says_which
 
 
 def test_the_recorder_keeps_at_most_a_bounded_number_of_copies_of_one_step():
-    from dtpf.scripts import record
+    from dtpf.recording import admission
 
-    assert 2 <= record.MAX_COPIES <= 64 and record.MAX_TRACKED_STEPS >= 1 << 12
+    assert 2 <= admission.MAX_COPIES <= 64 and admission.MAX_TRACKED_STEPS >= 1 << 12
 
 
 # --- a log that cannot be written --------------------------------------------------------------------------

@@ -72,7 +72,7 @@ def time_writes(payload: bytes, steps: int, fast: bool, folder: Path) -> float:
 
 
 class _Shell:
-    """What :class:`~dtpf.scripts.record.Admission` asks of its service: counts, the run, no shape; a message
+    """What :class:`~dtpf.recording.admission.Admission` asks of its service: counts, the run, no shape; a message
     it rejects is counted here (a log the recorder wrote holds none it would reject)."""
 
     def __init__(self):
@@ -90,7 +90,7 @@ def replay(path: Path, repeats: int) -> list[str]:
 
     from dtpf.messages.codec import decode_for_key
     from dtpf.recording.logfile import read_log
-    from dtpf.scripts.record import Admission
+    from dtpf.recording.admission import Admission
 
     items = [SimpleNamespace(key=m.topic, payload=bytes(m.data)) for m in read_log(path).messages]
     steps = sum(1 for item in items if item.key.endswith("/entity/estimate"))

@@ -341,6 +341,27 @@ def test_the_quick_evaluation_prints_every_variant_and_a_verdict_per_cell(capsys
     assert "every target met by choose: " in out and "every target met by choose, plain base: " in out
 
 
+def test_the_evaluation_runs_the_chooser_on_other_bases_with_their_verdicts(capsys, monkeypatch):
+    """``--bases regularised`` adds the chooser on that base (``--choose-base regularised``) as a variant of
+    its own, with a verdict per cell; an arm that does not exist is one line."""
+    from dtpf.scripts.paper import evaluate_chooser
+
+    monkeypatch.setattr(evaluate_chooser, "VARIANTS", dict(evaluate_chooser.VARIANTS))
+    monkeypatch.setattr(evaluate_chooser, "CHOOSERS", dict(evaluate_chooser.CHOOSERS))
+    assert evaluate_chooser.main(["--cells", "range-bearing:30", "--seeds", "2", "--steps", "8", "--workers", "1",
+                                  "--bases", "regularised", "roughening"]) == 0
+    out = capsys.readouterr().out
+    assert evaluate_chooser.VARIANTS["choose, regularised base"] == dict(policy="choose", choose_base="regularised")
+    assert evaluate_chooser.CHOOSERS["choose, regularised base"] == "regularised"
+    assert "| choose, regularised base (not regularised at " in out
+    assert "- range-bearing, N = 30: choose, regularised base " in out
+    assert "every target met by choose, regularised base: " in out
+    assert out.count("- range-bearing, N = 30: choose ") == 1  # roughening is the default chooser's own base
+    with pytest.raises(SystemExit) as stop:
+        evaluate_chooser.main(["--bases", "kalman"])
+    assert stop.value.code == 2 and "--bases: unknown arm 'kalman'" in capsys.readouterr().err
+
+
 # --- over Zenoh, in the log, through dtpf verify ----------------------------------
 
 

@@ -68,6 +68,18 @@ VARIANTS: dict[str, dict] = {
     CHOOSE_PLAIN: dict(policy="choose", choose_base="plain"),
 }
 KALMAN = "Kalman (exact)"
+
+
+def add_base(arm: str) -> str:
+    """Add the chooser on base ``arm`` (``--choose-base ARM``) to the variants (``--bases``): its label."""
+    from dtpf.messages.names import ARMS
+
+    if arm not in ARMS:
+        raise ValueError(f"unknown arm {arm!r}; expected one of {', '.join(ARMS)}")
+    label = CHOOSE if arm == CHOOSERS[CHOOSE] else CHOOSE_PLAIN if arm == "plain" else f"choose, {arm} base"
+    VARIANTS[label] = dict(policy="choose", choose_base=arm)
+    CHOOSERS[label] = arm
+    return label
 #: The fixed methods the chooser is compared with (the traditional resamplers and the cures).
 FIXED = (*TRADITIONAL, *CURES)
 #: (scenario, N) cells of the evaluation.
@@ -311,10 +323,18 @@ def main(argv=None) -> int:
                         help="with --csv and --resume: drop these variants' rows from the file first, so that they "
                              "are run again for every seed (after a change to one of them, e.g. --rerun choose)")
     parser.add_argument("--from-csv", type=Path, default=None, help="only rebuild the tables from this CSV file")
+    parser.add_argument("--bases", nargs="+", default=(), metavar="ARM",
+                        help="also run the chooser on these base arms (--choose-base ARM), each a variant "
+                             "'choose, ARM base' with its verdicts")
     parser.add_argument("--quick", action="store_true", help="6 seeds, T = 25, N = 50 on every scenario: a smoke run")
     parser.add_argument("--cost", action="store_true",
                         help="only time the system layer per step at N = 1e3 and 1e5 against the entity's filter")
     args = parser.parse_args(argv)
+    for arm in args.bases:
+        try:
+            add_base(arm)
+        except ValueError as error:
+            parser.error(f"--bases: {error}")
     if args.cost:
         print("\n".join(cost()))
         return 0

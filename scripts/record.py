@@ -63,11 +63,15 @@ def main(config: RunConfig, zenoh_config: zenoh.Config, args: argparse.Namespace
             return 2
         try:
             with recording:
-                return _record(shell, recording, pattern, compression, args)
+                code = _record(shell, recording, pattern, compression, args)
         except LogWriteError as error:
             shell.state, shell.last_error = ServiceState.FAILED, f"{error}; {what_it_holds(error.path)}"
             shell.log.error("%s", shell.last_error)
             return EXIT_LOG_WRITE
+        # The log is finished: a Zenoh close that outlasts the exit watchdog's grace (a loaded machine)
+        # cannot make the run's exit code say otherwise.
+        shell.watchdog.settle(code)
+        return code
 
 
 def _record(shell: ServiceShell, recording: McapRecording, pattern: str, compression: str,

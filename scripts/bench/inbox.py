@@ -24,6 +24,7 @@ import platform
 import statistics
 import subprocess
 import sys
+import threading
 import time
 from importlib.metadata import version
 
@@ -78,6 +79,15 @@ def receive(port: int, kind: str, count: int, size: int, gap: float) -> float:
             return subscriber.recv().payload.to_bytes()
     sender = subprocess.Popen([sys.executable, "-P", "-m", "dtpf.scripts.bench.inbox", "--publish", str(port),
                                "--count", str(count), "--size", str(size), "--gap", str(gap)])
+
+    def end_if_the_sender_died() -> None:  # a channel's recv() has no timeout: it must not wait for ever
+        sender.wait()
+        time.sleep(2.0)
+        try:
+            session.put(KEY, END)
+        except zenoh.ZError:  # the run ended and closed its session
+            pass
+    threading.Thread(target=end_if_the_sender_died, daemon=True).start()
     got, start = 0, None
     deadline = time.monotonic() + 60 + count * gap * 3
     try:

@@ -365,15 +365,15 @@ def main(argv=None) -> int:
     # ROS 2 hops, the observation in and the pose out: what those cost with a relay that does nothing is the
     # least a bridge can add.
     floor = [float(np.percentile(r, 50)) for r in runs["floor-ros2"]]
+    floor_p50 = statistics.median(floor)
     print(f"\nfloor of what the bridge adds: ROS 2 there and back, a relay that does nothing: "
-          f"{statistics.median(floor):.3f} ms at p50 ({min(floor):.3f}-{max(floor):.3f} over rounds)")
+          f"{floor_p50:.3f} ms at p50 ({min(floor):.3f}-{max(floor):.3f} over rounds)")
     ok = True
     for path in ("ros2", "ros2-particles"):
         added, low, high = _paired(runs, path, "native")
         ok = ok and added <= TARGET_ADDED_P50_MS if path == "ros2" else ok
         print(f"{LABELS[path]} adds {added:.3f} ms at p50 ({low:.3f}-{high:.3f} over rounds), "
-              f"{added / statistics.median(floor):.2f} x the floor; target <= {TARGET_ADDED_P50_MS} ms: "
-              f"{verdict(added, statistics.median(floor))}")
+              f"{added / floor_p50:.2f} x the floor; target <= {TARGET_ADDED_P50_MS} ms: {verdict(added, floor_p50)}")
     return 0 if ok else 1
 
 

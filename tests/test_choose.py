@@ -1,6 +1,7 @@
 """The choosing policy: the twin runs every arm on its copies and puts the best in force."""
 from __future__ import annotations
 
+import csv
 import math
 
 import numpy as np
@@ -339,6 +340,59 @@ def test_the_quick_evaluation_prints_every_variant_and_a_verdict_per_cell(capsys
         for chooser in evaluate_chooser.CHOOSERS:
             assert f"- {scenario}, N = 50: {chooser} " in out
     assert "every target met by choose: " in out and "every target met by choose, plain base: " in out
+
+
+def test_the_hindsight_reference_takes_per_seed_the_arm_whose_run_was_likeliest(tmp_path):
+    """The hindsight row: per seed the error of the arm whose fixed filter had the highest summed log
+    predictive; its share of seeds in the row's name; the sums go through the CSV and back; a run
+    without them (an older CSV) has no such row."""
+    from dtpf.scripts.paper import evaluate_chooser as ev
+
+    arms = list(ev.ARM_VARIANTS)
+    by_seed = {}
+    for seed in range(4):
+        picked = arms[seed % 2 + 3]  # roughening on even seeds, regularised on odd ones
+        by_seed[seed] = {label: dict(error=10.0 + seed + i, ms=0.1, evidence=(0.0 if label == picked else -5.0 - i))
+                         for i, label in enumerate([*ev.VARIANTS])}
+    errors, share = ev.hindsight(by_seed)
+    assert errors == {s: by_seed[s][arms[s % 2 + 3]]["error"] for s in range(4)}
+    assert share == {"plain": 0.0, "dt-relative": 0.0, "dt-paper": 0.0, "roughening": 0.5, "regularised": 0.5}
+    rows = {row["variant"]: row for row in ev.cell_rows(by_seed)}
+    expected = np.mean([errors[s] - by_seed[s]["systematic"]["error"] for s in range(4)])
+    assert rows[ev.HINDSIGHT]["vs_systematic"] == pytest.approx(expected)
+    assert "(roughening 50%, regularised 50% of runs; not causal)" in ev.table("ungm", 100, 4, list(rows.values()))
+    path = tmp_path / "runs.csv"
+    with open(path, "w", newline="") as handle:
+        csv.writer(handle).writerows([ev.CSV_FIELDS, *([
+            "ungm", 100, s, label, f["error"], f["ms"], "", f["evidence"]]
+            for s, runs in by_seed.items() for label, f in runs.items())])
+    assert ev.hindsight(ev.read_csv(path)[("ungm", 100)]) == (errors, share)
+    del by_seed[0]["regularised"]["evidence"]
+    assert ev.hindsight(by_seed) is None and ev.HINDSIGHT not in {r["variant"] for r in ev.cell_rows(by_seed)}
+
+
+def test_an_arm_from_step_j_is_in_force_from_j_on_and_the_base_before_without_evidence(monkeypatch, capsys):
+    """``--from-step 4 --from-arms regularised``: roughening's filter number for number up to step 4 (the
+    arm of step k is the decision of step k - 1), regularised from the decision of step 3 on, no copies run."""
+    from dtpf.scripts.paper import evaluate_chooser as ev
+
+    monkeypatch.setattr(ev, "VARIANTS", dict(ev.VARIANTS))
+    monkeypatch.setattr(ev, "FROM_STEP", {})
+    label = ev.add_from_step("regularised", 4)
+    assert label == "regularised from step 4" and ev.FROM_STEP[label] == ("regularised", 4)
+    task = ev.Task("range-bearing", 60, 5, 12)
+    options, model = ev.scenario_model("range-bearing")
+    _, z = simulate(ev.task_config(task, options), model)
+    pf = ev.build_variant(task, label, model, options, z)
+    steps = list(pf)
+    rough = list(ev.build_variant(task, "roughening", model, options, z))
+    assert [d.arm for d in pf.preprocessor.system.decisions] == ["roughening"] * 2 + ["regularised"] * 10
+    assert not pf.preprocessor.system.needs_particles and not pf.preprocessor.system.forecasts[-1].arm_evidence
+    assert all(np.array_equal(a.mean, b.mean) for a, b in zip(steps[:4], rough[:4]))
+    assert not np.array_equal(steps[4].mean, rough[4].mean)
+    with pytest.raises(SystemExit) as stop:
+        ev.main(["--from-step", "1"])
+    assert stop.value.code == 2 and "--from-step: an arm of" in capsys.readouterr().err
 
 
 def test_the_evaluation_runs_the_chooser_on_other_bases_with_their_verdicts(capsys, monkeypatch):

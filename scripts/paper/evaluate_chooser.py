@@ -12,6 +12,11 @@ comparisons are paired by seed) the in-process pipeline runs:
   puts in force the one the real observations favour (``--policy choose``, docs/guides/policies.md);
 - the Kalman filter where it is exact (``drift``, ``drift+100``, ``switching``).
 
+Beside them, a reference that is not a method: per seed, the arm (plain, either DT rule, roughening,
+regularised) whose fixed filter gave the seed's observations the highest likelihood (the sum over the run of
+log p(z_k | z_1:k-1), which every run records), and that arm's error. It chooses with hindsight, once per run,
+from the observations alone: what choosing one arm per run from the observations could reach at best.
+
 Scenarios: ``ungm``, ``drift``, ``drift+100``, ``range-bearing`` and ``video`` as in
 :mod:`dtpf.scripts.paper.evaluate_guard`, and ``switching`` (:class:`dtpf.entity.models.SensorSwitchModel`:
 a drifting constant whose sensor's sd drops from 1 to 0.01 at step 51, so the best cure changes).
@@ -23,6 +28,8 @@ method::
     python -m dtpf.scripts.paper.evaluate_chooser --csv runs/chooser.csv     # 1000 seeds per cell
     python -m dtpf.scripts.paper.evaluate_chooser --csv runs/chooser.csv --resume  # go on after a cut
     python -m dtpf.scripts.paper.evaluate_chooser --quick                     # 6 seeds, T = 25
+    python -m dtpf.scripts.paper.evaluate_chooser --csv runs/chooser.csv --resume --cells drift+100:100 \
+        --from-step 2 4 11 --from-arms dt-relative    # an arm from step J on, without evidence (not causal)
 
 Progress goes to stderr, the tables to stdout; ``--csv`` keeps every run's figures, and
 ``--from-csv`` rebuilds the tables from such a file.
@@ -47,6 +54,8 @@ from dtpf.scripts.console import TaskProgress
 from dtpf.scripts.inprocess import build, simulate
 from dtpf.scripts.paper import evaluate_guard
 from dtpf.scripts.paper.common import mean_ci, significance
+from dtpf.system.layer import SystemLayer
+from dtpf.system.policy import ChoosePS
 
 TRADITIONAL, RELATIVE, PAPER = evaluate_guard.TRADITIONAL, evaluate_guard.RELATIVE, evaluate_guard.PAPER
 #: The fixed cures, by label.
@@ -68,6 +77,11 @@ VARIANTS: dict[str, dict] = {
     CHOOSE_PLAIN: dict(policy="choose", choose_base="plain"),
 }
 KALMAN = "Kalman (exact)"
+#: Not a method: per seed, the arm whose fixed filter gave the run's observations the highest likelihood.
+HINDSIGHT = "hindsight: the arm that predicted the run best"
+#: The fixed filters of the chooser's arms (plain, the two DT rules, roughening, regularised), by label.
+ARM_VARIANTS = {"systematic": "plain", "DT relative rule, PS 0": "dt-relative", "DT paper rule, PS 0.81": "dt-paper",
+                "roughening": "roughening", "regularised": "regularised"}
 
 
 def add_base(arm: str) -> str:
@@ -80,6 +94,44 @@ def add_base(arm: str) -> str:
     VARIANTS[label] = dict(policy="choose", choose_base=arm)
     CHOOSERS[label] = arm
     return label
+#: Not methods: "ARM from step J" puts ARM in force from step J on and the chooser's base before it, without
+#: looking at any evidence (``--from-step``): label -> (ARM, J).
+FROM_STEP: dict[str, tuple[str, int]] = {}
+
+
+class ArmFromStep(ChoosePS):
+    """The base arm up to step j - 1 and ``arm`` from step j on, decided without evidence (no copies run).
+
+    A chooser's decision at step k applies from k + 1 and rests on observations scored by then, so no chooser
+    that waits for evidence puts an arm in force before step 3; this is the best such a chooser could do
+    with that arm, had it known the arm in advance.
+    """
+
+    simulates = False
+    uses_evidence = False
+
+    def __init__(self, arm: str, start: int, base: str = CHOOSERS[CHOOSE]):
+        super().__init__(arms=(arm,), base=base)
+        self.target, self.start = arm, int(start)
+
+    def decide(self, step: int, forecast) -> object:
+        arm = self.target if step + 1 >= self.start else self.base
+        return self._decision(step, arm, f"{self.target} from step {self.start}", {})
+
+
+def add_from_step(arm: str, start: int) -> str:
+    """Add "ARM from step J" (``--from-step``) to the variants: its label."""
+    from dtpf.messages.names import ARMS
+
+    if arm not in ARMS or int(start) < 2:
+        raise ValueError(f"an arm of {', '.join(ARMS)} from a step >= 2 (step 1 runs the base arm), got "
+                         f"{arm!r} from {start!r}")
+    label = f"{arm} from step {int(start)}"
+    VARIANTS[label] = dict(policy="choose")
+    FROM_STEP[label] = (arm, int(start))
+    return label
+
+
 #: The fixed methods the chooser is compared with (the traditional resamplers and the cures).
 FIXED = (*TRADITIONAL, *CURES)
 #: (scenario, N) cells of the evaluation.
@@ -113,15 +165,26 @@ def task_config(task: Task, options: dict, **variant) -> RunConfig:
                      **variant)
 
 
+def build_variant(task: Task, label: str, model, options: dict, observations: np.ndarray):
+    """The in-process filter of one variant on the task's observations."""
+    pf = build(task_config(task, options, **VARIANTS[label]), observations, model)
+    if label in FROM_STEP:  # the same twin, its system layer replaced by one that decides without evidence
+        pf.preprocessor.system = SystemLayer(ArmFromStep(*FROM_STEP[label]), seed=task.seed,
+                                             twin=pf.preprocessor.system.twin)
+    return pf
+
+
 def run_variant(task: Task, label: str, model, options: dict, truth: np.ndarray, observations: np.ndarray) -> dict:
     """One variant on the task's data set (shared by every variant)."""
-    pf = build(task_config(task, options, **VARIANTS[label]), observations, model)
+    pf = build_variant(task, label, model, options, observations)
     start = time.perf_counter()
     steps = list(pf)
     elapsed = time.perf_counter() - start
     means = np.array([s.mean for s in steps])
+    # sum_k log p(z_k | z_1:k-1): the filter's estimate of the log-likelihood of the run's observations.
+    evidence = float(np.sum([s.log_predictive for s in steps]))
     figures = dict(error=evaluate_guard._errors(task.scenario, means, truth[: len(steps)]),
-                   ms=1e3 * elapsed / len(steps))
+                   ms=1e3 * elapsed / len(steps), evidence=evidence if not math.isnan(evidence) else -math.inf)
     twin = pf.preprocessor
     if label in CHOOSERS and twin is not None:
         arms = [d.arm for d in twin.decisions[:-1]]  # the arm in force at steps 2 .. T
@@ -153,11 +216,31 @@ def _num(value: float) -> str:
     return f"{value:.4g}"
 
 
+def hindsight(by_seed: dict[int, dict[str, dict]]) -> tuple[dict[int, float], dict[str, float]] | None:
+    """Per seed, the error of the arm whose fixed filter gave that seed's observations the highest likelihood
+    (its sum of log p(z_k | z_1:k-1)), and the share of seeds each arm was picked on; None without those sums.
+
+    Not a method a run can use (it picks after seeing every observation, from five filters run to the end):
+    it is what a choice of one arm per run, made from the observations alone, could reach at best.
+    """
+    picks: dict[int, str] = {}
+    for seed, runs in by_seed.items():
+        if not all("evidence" in runs.get(label, {}) for label in ARM_VARIANTS):
+            return None
+        picks[seed] = max(ARM_VARIANTS, key=lambda label: runs[label]["evidence"])  # ties: the first, systematic
+    share = {ARM_VARIANTS[label]: sum(p == label for p in picks.values()) / len(picks) for label in ARM_VARIANTS}
+    return {seed: by_seed[seed][label]["error"] for seed, label in picks.items()}, share
+
+
 def cell_rows(by_seed: dict[int, dict[str, dict]]) -> list[dict]:
     """One row per variant of one (scenario, N) cell: error, difference vs systematic (paired) with CIs."""
     seeds = sorted(by_seed)
     labels = [label for label in [*VARIANTS, KALMAN] if label in by_seed[seeds[0]]]
     error = {label: np.array([by_seed[s][label]["error"] for s in seeds]) for label in labels}
+    picked = hindsight(by_seed)
+    if picked is not None:
+        labels.append(HINDSIGHT)
+        error[HINDSIGHT] = np.array([picked[0][s] for s in seeds])
     rows = []
     for label in labels:
         m, h = mean_ci(error[label])
@@ -166,12 +249,14 @@ def cell_rows(by_seed: dict[int, dict[str, dict]]) -> list[dict]:
         # label - chooser, paired by seed: +1 where the chooser is significantly better.
         significant_vs = {chooser: significance(*mean_ci(error[label] - error[chooser])) if label != chooser else 0
                           for chooser in CHOOSERS if chooser in error}
-        ms = [by_seed[s][label].get("ms") for s in seeds]
+        ms = [by_seed[s][label].get("ms") if label != HINDSIGHT else None for s in seeds]
         rows.append(dict(variant=label, error=m, error_ci=h, vs_systematic=d, vs_systematic_ci=dh,
                          significant=significance(d, dh) if label != "systematic" else 0,
                          vs_choose=c, vs_choose_ci=ch, significant_vs=significant_vs,
                          ms=float(np.mean(ms)) if ms[0] is not None else math.nan,
-                         off_plain=float(np.mean([by_seed[s][label].get("off_plain", math.nan) for s in seeds]))))
+                         off_plain=float(np.mean([by_seed[s].get(label, {}).get("off_plain", math.nan)
+                                                  for s in seeds])),
+                         share=picked[1] if label == HINDSIGHT else None))
     return rows
 
 
@@ -188,6 +273,11 @@ def table(scenario: str, n: int, seeds: int, rows: list[dict]) -> str:
         name = row["variant"]
         if name in CHOOSERS and not math.isnan(row["off_plain"]):
             name += f" (not {CHOOSERS[name]} at {100 * row['off_plain']:.0f}% of steps)"
+        if name in FROM_STEP:
+            name += f" ({CHOOSERS[CHOOSE]} before; not causal)"
+        if row.get("share"):
+            name += " (" + ", ".join(f"{arm} {100 * share:.0f}%" for arm, share in row["share"].items() if share) + \
+                " of runs; not causal)"
         lines.append(f"| {name} | {_num(row['error'])} ± {_num(row['error_ci'])} | {vs} | {vc} | {ms} |")
     return "\n".join(lines)
 
@@ -211,6 +301,11 @@ def verdict(scenario: str, n: int, rows: list[dict], chooser: str = CHOOSE) -> t
         words.append(f"Best fixed method significantly better than systematic: {best['variant']} "
                      f"({_num(best['vs_systematic'])}); it closes {100 * closed:.0f}% of that gap "
                      f"({'target met' if met['80% of the gap'] else 'short of 80%'}).")
+        if HINDSIGHT in by and gap > 0:
+            after = by[HINDSIGHT]["vs_systematic"]
+            words.append(f"The arm chosen with hindsight by each run's likelihood closes {100 * -after / gap:.0f}%."
+                         if after <= 0 else f"The arm chosen with hindsight by each run's likelihood is worse than "
+                         f"systematic ({_num(after)}).")
     else:
         words.append("No fixed method is significantly better than systematic.")
     if scenario in CHANGING:
@@ -221,7 +316,9 @@ def verdict(scenario: str, n: int, rows: list[dict], chooser: str = CHOOSE) -> t
     return " ".join(words), met
 
 
-CSV_FIELDS = ("scenario", "particles", "seed", "variant", "error", "ms", "off_plain")
+CSV_FIELDS = ("scenario", "particles", "seed", "variant", "error", "ms", "off_plain", "evidence")
+#: The figures of a run kept in the CSV ("evidence": its log-likelihood of the observations; absent in older files).
+FIGURES = CSV_FIELDS[4:]
 
 
 def read_csv(path: Path) -> dict[tuple[str, int], dict[int, dict]]:
@@ -232,7 +329,7 @@ def read_csv(path: Path) -> dict[tuple[str, int], dict[int, dict]]:
     with io.StringIO(text, newline="") as handle:
         for row in csv.DictReader(handle):
             try:  # a row cut short by a killed run is skipped (its seed is run again on --resume)
-                figures = {f: float(row[f]) for f in ("error", "ms", "off_plain") if row.get(f) not in (None, "")}
+                figures = {f: float(row[f]) for f in FIGURES if row.get(f) not in (None, "")}
                 int(row["particles"]), int(row["seed"])
             except (TypeError, ValueError):
                 continue
@@ -326,6 +423,11 @@ def main(argv=None) -> int:
     parser.add_argument("--bases", nargs="+", default=(), metavar="ARM",
                         help="also run the chooser on these base arms (--choose-base ARM), each a variant "
                              "'choose, ARM base' with its verdicts")
+    parser.add_argument("--from-step", nargs="+", type=int, default=(), metavar="J",
+                        help="also run each arm of --from-arms put in force from step J on (roughening before, no "
+                             "evidence looked at): what a chooser that must wait for evidence could reach at best")
+    parser.add_argument("--from-arms", nargs="+", default=("dt-relative", "regularised"), metavar="ARM",
+                        help="the arms of --from-step (default: dt-relative regularised)")
     parser.add_argument("--quick", action="store_true", help="6 seeds, T = 25, N = 50 on every scenario: a smoke run")
     parser.add_argument("--cost", action="store_true",
                         help="only time the system layer per step at N = 1e3 and 1e5 against the entity's filter")
@@ -335,6 +437,12 @@ def main(argv=None) -> int:
             add_base(arm)
         except ValueError as error:
             parser.error(f"--bases: {error}")
+    for start in args.from_step:
+        for arm in args.from_arms:
+            try:
+                add_from_step(arm, start)
+            except ValueError as error:
+                parser.error(f"--from-step: {error}")
     if args.cost:
         print("\n".join(cost()))
         return 0
@@ -398,7 +506,7 @@ def main(argv=None) -> int:
         if writer is not None:
             for label, f in figures.items():
                 writer.writerow([done.scenario, done.particles, done.seed, label,
-                                 *(f.get(name, "") for name in ("error", "ms", "off_plain"))])
+                                 *(f.get(name, "") for name in FIGURES)])
             handle.flush()
 
     scenarios = sorted({sc for sc, _ in cells})

@@ -371,6 +371,30 @@ def test_the_hindsight_reference_takes_per_seed_the_arm_whose_run_was_likeliest(
     assert ev.hindsight(by_seed) is None and ev.HINDSIGHT not in {r["variant"] for r in ev.cell_rows(by_seed)}
 
 
+def test_resuming_a_csv_written_before_the_likelihood_column_gives_it_today_s_header(tmp_path, capsys):
+    """A file without the ``evidence`` column is rewritten with today's header before rows are appended, so
+    every row sits under its own fields; a CSV of something else is a one-line error."""
+    from dtpf.scripts.paper import evaluate_chooser as ev
+
+    path = tmp_path / "old.csv"
+    old_fields = ev.CSV_FIELDS[:-1]
+    with open(path, "w", newline="") as handle:
+        csv.writer(handle).writerows([old_fields, ["drift", 20, 0, "systematic", 0.5, 0.1, ""]])
+    assert ev.main(["--csv", str(path), "--resume", "--cells", "drift:20", "--seeds", "2", "--steps", "4",
+                    "--workers", "1"]) == 0
+    rows = list(csv.DictReader(path.open(newline="")))
+    assert tuple(rows[0]) == ev.CSV_FIELDS
+    assert rows[0]["variant"] == "systematic" and rows[0]["error"] == "0.5" and rows[0]["evidence"] == ""
+    assert all(r["evidence"] not in ("", None) for r in rows[1:] if r["variant"] in ev.ARM_VARIANTS)
+    assert {r["seed"] for r in rows[1:]} == {"0", "1"}
+    capsys.readouterr()
+    other = tmp_path / "other.csv"
+    other.write_text("a,b\n1,2\n")
+    with pytest.raises(SystemExit) as stop:
+        ev.main(["--csv", str(other), "--resume", "--cells", "drift:20", "--seeds", "2"])
+    assert stop.value.code == 2 and "not a CSV of this evaluation" in capsys.readouterr().err
+
+
 def test_an_arm_from_step_j_is_in_force_from_j_on_and_the_base_before_without_evidence(monkeypatch, capsys):
     """``--from-step 4 --from-arms regularised``: roughening's filter number for number up to step 4 (the
     arm of step k is the decision of step k - 1), regularised from the decision of step 3 on, no copies run."""

@@ -351,6 +351,23 @@ def _drop_variants(path: Path, labels: set[str]) -> None:
         csv.writer(handle).writerows(kept)
 
 
+def _upgrade_header(path: Path) -> None:
+    """Rewrite a CSV written before a figure was added (an older header) with today's header, its rows
+    padded, so that rows appended on --resume sit under the header their fields match."""
+    text = path.read_text()
+    if not text.endswith("\n"):
+        text = text[: text.rfind("\n") + 1]
+    rows = list(csv.reader(io.StringIO(text, newline="")))
+    if not rows or tuple(rows[0]) == CSV_FIELDS:
+        return
+    header = rows[0]
+    if not set(header) <= set(CSV_FIELDS):
+        raise ValueError(f"{path}: not a CSV of this evaluation (its columns: {', '.join(header)})")
+    kept = [CSV_FIELDS, *([dict(zip(header, row)).get(f, "") for f in CSV_FIELDS] for row in rows[1:])]
+    with open(path, "w", newline="") as handle:
+        csv.writer(handle).writerows(kept)
+
+
 def report(cells: dict[tuple[str, int], dict[int, dict]]) -> tuple[str, bool]:
     """The tables and verdicts of ``cells``, and whether every chooser meets every target."""
     out, verdicts, all_met = [], [], dict.fromkeys(CHOOSERS, True)
@@ -476,6 +493,10 @@ def main(argv=None) -> int:
                      + (f"; unknown: {', '.join(unknown)}" if unknown else ""))
     resumed = args.resume and args.csv.exists()
     if resumed:
+        try:
+            _upgrade_header(args.csv)
+        except ValueError as error:
+            parser.error(f"--resume: {error}")
         if args.rerun:
             _drop_variants(args.csv, set(args.rerun))
         for cell, by_seed in read_csv(args.csv).items():

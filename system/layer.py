@@ -56,8 +56,10 @@ class SystemLayer:
         self.decisions: deque[PSDecision] = deque(maxlen=keep)
 
     @classmethod
-    def from_config(cls, config, twin: str | None = None, model=None, keep: int | None = None) -> "SystemLayer":
-        """The system layer of a :class:`~dtpf.messages.config.RunConfig` (``twin`` overrides its twin id).
+    def from_config(cls, config, twin: str | None = None, model=None, keep: int | None = None,
+                    policy_options: dict | None = None) -> "SystemLayer":
+        """The system layer of a :class:`~dtpf.messages.config.RunConfig` (``twin`` overrides its twin id;
+        ``policy_options``: more keyword arguments of the policy's class, e.g. ``ChoosePS(window=50)``).
 
         A simulating policy gets a predictor over the run's model (``model``, or
         the one the configuration names), resampler and preprocessing options;
@@ -68,7 +70,7 @@ class SystemLayer:
         from dtpf.system.evidence import Evidence
 
         base = {"base": config.choose_base} if config.policy == "choose" and config.choose_base else {}
-        policy = ps_policy.get(config.policy, ps=config.ps, max_change=config.ps_rate, **base)
+        policy = ps_policy.get(config.policy, ps=config.ps, max_change=config.ps_rate, **base, **(policy_options or {}))
         if policy.simulates and model is None:
             model = model_ref.resolve(config.model_ref)
         options = dict(threshold_rule=config.threshold, weight_rule=config.weight_rule, move_rule=config.move_rule)

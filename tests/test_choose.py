@@ -419,6 +419,31 @@ def test_an_arm_from_step_j_is_in_force_from_j_on_and_the_base_before_without_ev
     assert stop.value.code == 2 and "--from-step: an arm of" in capsys.readouterr().err
 
 
+def test_a_tuned_chooser_runs_with_its_setting_and_equals_the_chooser_at_the_default(monkeypatch, capsys):
+    """``--tune window=20`` (the default) runs the chooser number for number; ``--tune window=5`` runs it
+    with that window; a setting ChoosePS does not have, or refuses, is a one-line error."""
+    from dtpf.scripts.paper import evaluate_chooser as ev
+
+    for name in ("VARIANTS", "CHOOSERS", "TUNED"):
+        monkeypatch.setattr(ev, name, dict(getattr(ev, name)))
+    same, short = ev.add_tuned("window=20"), ev.add_tuned("window=5")
+    assert (same, short) == ("choose, window 20", "choose, window 5") and ev.CHOOSERS[short] == "roughening"
+    task = ev.Task("drift", 50, 2, 30)
+    options, model = ev.scenario_model("drift")
+    _, z = simulate(ev.task_config(task, options), model)
+    runs = {}
+    for label in (ev.CHOOSE, same, short):
+        pf = ev.build_variant(task, label, model, options, z)
+        runs[label] = [s.mean for s in pf]
+        assert pf.preprocessor.system.predictor.evidence.window == (5 if label == short else 20)
+    np.testing.assert_array_equal(runs[same], runs[ev.CHOOSE])
+    for bad, words in (("windows=3", "KEY=VALUE with KEY one of"), ("steady=x", "steady takes a number"),
+                       ("window=0", "window and particles must be at least 1")):
+        with pytest.raises(SystemExit) as stop:
+            ev.main(["--tune", bad])
+        assert stop.value.code == 2 and words in capsys.readouterr().err, bad
+
+
 def test_the_evaluation_runs_the_chooser_on_other_bases_with_their_verdicts(capsys, monkeypatch):
     """``--bases regularised`` adds the chooser on that base (``--choose-base regularised``) as a variant of
     its own, with a verdict per cell; an arm that does not exist is one line."""

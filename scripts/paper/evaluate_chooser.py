@@ -132,6 +132,29 @@ def add_from_step(arm: str, start: int) -> str:
     return label
 
 
+#: The chooser with other settings of ChoosePS (``--tune``): label -> its keyword arguments.
+TUNED: dict[str, dict] = {}
+#: The settings --tune may change, and their types.
+TUNABLE = {"enter": float, "leave": float, "window": int, "steady": float, "particles": int}
+
+
+def add_tuned(setting: str) -> str:
+    """Add the chooser (on its default base) with one setting of ChoosePS changed, ``KEY=VALUE``: its label."""
+    key, _, value = setting.partition("=")
+    if key not in TUNABLE:
+        raise ValueError(f"KEY=VALUE with KEY one of {', '.join(TUNABLE)}, got {setting!r}")
+    try:
+        parsed = TUNABLE[key](value)
+    except ValueError:
+        raise ValueError(f"{key} takes a number, got {value!r}") from None
+    ChoosePS(**{key: parsed})  # a value the policy refuses is refused here, before any run
+    label = f"choose, {key} {value}"
+    VARIANTS[label] = dict(policy="choose")
+    TUNED[label] = {key: parsed}
+    CHOOSERS[label] = CHOOSERS[CHOOSE]
+    return label
+
+
 #: The fixed methods the chooser is compared with (the traditional resamplers and the cures).
 FIXED = (*TRADITIONAL, *CURES)
 #: (scenario, N) cells of the evaluation.
@@ -167,7 +190,10 @@ def task_config(task: Task, options: dict, **variant) -> RunConfig:
 
 def build_variant(task: Task, label: str, model, options: dict, observations: np.ndarray):
     """The in-process filter of one variant on the task's observations."""
-    pf = build(task_config(task, options, **VARIANTS[label]), observations, model)
+    config = task_config(task, options, **VARIANTS[label])
+    pf = build(config, observations, model)
+    if label in TUNED:
+        pf.preprocessor.system = SystemLayer.from_config(config, model=model, policy_options=TUNED[label])
     if label in FROM_STEP:  # the same twin, its system layer replaced by one that decides without evidence
         pf.preprocessor.system = SystemLayer(ArmFromStep(*FROM_STEP[label]), seed=task.seed,
                                              twin=pf.preprocessor.system.twin)
@@ -445,6 +471,10 @@ def main(argv=None) -> int:
                              "evidence looked at): what a chooser that must wait for evidence could reach at best")
     parser.add_argument("--from-arms", nargs="+", default=("dt-relative", "regularised"), metavar="ARM",
                         help="the arms of --from-step (default: dt-relative regularised)")
+    parser.add_argument("--tune", nargs="+", default=(), metavar="KEY=VALUE",
+                        help="also run the chooser with one setting of ChoosePS changed, each a variant 'choose, KEY "
+                             "VALUE' with its verdicts (KEY: " + ", ".join(TUNABLE) + "; enter in nats, e.g. "
+                             "enter=4.595 for odds of 99 to 1)")
     parser.add_argument("--quick", action="store_true", help="6 seeds, T = 25, N = 50 on every scenario: a smoke run")
     parser.add_argument("--cost", action="store_true",
                         help="only time the system layer per step at N = 1e3 and 1e5 against the entity's filter")
@@ -454,6 +484,11 @@ def main(argv=None) -> int:
             add_base(arm)
         except ValueError as error:
             parser.error(f"--bases: {error}")
+    for setting in args.tune:
+        try:
+            add_tuned(setting)
+        except (ValueError, TypeError) as error:
+            parser.error(f"--tune: {error}")
     for start in args.from_step:
         for arm in args.from_arms:
             try:

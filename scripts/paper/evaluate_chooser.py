@@ -15,7 +15,8 @@ comparisons are paired by seed) the in-process pipeline runs:
 Beside them, a reference that is not a method: per seed, the arm (plain, either DT rule, roughening,
 regularised) whose fixed filter gave the seed's observations the highest likelihood (the sum over the run of
 log p(z_k | z_1:k-1), which every run records), and that arm's error. It chooses with hindsight, once per run,
-from the observations alone: what choosing one arm per run from the observations could reach at best.
+from the observations' likelihood alone: what that score would pick, for better (where the runs differ by
+luck) or worse (where a wide cloud explains the observations while its mean is far off).
 
 Scenarios: ``ungm``, ``drift``, ``drift+100``, ``range-bearing`` and ``video`` as in
 :mod:`dtpf.scripts.paper.evaluate_guard`, and ``switching`` (:class:`dtpf.entity.models.SensorSwitchModel`:
@@ -94,6 +95,8 @@ def add_base(arm: str) -> str:
     VARIANTS[label] = dict(policy="choose", choose_base=arm)
     CHOOSERS[label] = arm
     return label
+
+
 #: Not methods: "ARM from step J" puts ARM in force from step J on and the chooser's base before it, without
 #: looking at any evidence (``--from-step``): label -> (ARM, J).
 FROM_STEP: dict[str, tuple[str, int]] = {}
@@ -103,8 +106,8 @@ class ArmFromStep(ChoosePS):
     """The base arm up to step j - 1 and ``arm`` from step j on, decided without evidence (no copies run).
 
     A chooser's decision at step k applies from k + 1 and rests on observations scored by then, so no chooser
-    that waits for evidence puts an arm in force before step 3; this is the best such a chooser could do
-    with that arm, had it known the arm in advance.
+    that waits for evidence puts an arm in force before step 3; this is what such a chooser would get from
+    that arm had it known the arm in advance and entered it at step j for good.
     """
 
     simulates = False
@@ -247,7 +250,7 @@ def hindsight(by_seed: dict[int, dict[str, dict]]) -> tuple[dict[int, float], di
     (its sum of log p(z_k | z_1:k-1)), and the share of seeds each arm was picked on; None without those sums.
 
     Not a method a run can use (it picks after seeing every observation, from five filters run to the end):
-    it is what a choice of one arm per run, made from the observations alone, could reach at best.
+    it is what the likelihood alone would pick, once per run.
     """
     picks: dict[int, str] = {}
     for seed, runs in by_seed.items():
@@ -468,7 +471,7 @@ def main(argv=None) -> int:
                              "'choose, ARM base' with its verdicts")
     parser.add_argument("--from-step", nargs="+", type=int, default=(), metavar="J",
                         help="also run each arm of --from-arms put in force from step J on (roughening before, no "
-                             "evidence looked at): what a chooser that must wait for evidence could reach at best")
+                             "evidence looked at): what a chooser that must wait for evidence would get from it")
     parser.add_argument("--from-arms", nargs="+", default=("dt-relative", "regularised"), metavar="ARM",
                         help="the arms of --from-step (default: dt-relative regularised)")
     parser.add_argument("--tune", nargs="+", default=(), metavar="KEY=VALUE",

@@ -350,17 +350,23 @@ CSV_FIELDS = ("scenario", "particles", "seed", "variant", "error", "ms", "off_pl
 FIGURES = CSV_FIELDS[4:]
 
 
+def _whole_rows(path: Path) -> list[list[str]]:
+    """The CSV's rows, header first, without a last row a killed run cut short."""
+    text = path.read_text()
+    if not text.endswith("\n"):
+        text = text[: text.rfind("\n") + 1]
+    return list(csv.reader(io.StringIO(text, newline="")))
+
+
 def read_csv(path: Path) -> dict[tuple[str, int], dict[int, dict]]:
     cells: dict[tuple[str, int], dict[int, dict]] = {}
-    text = path.read_text()
-    if not text.endswith("\n"):  # a last row a killed run cut short
-        text = text[: text.rfind("\n") + 1]
-    with io.StringIO(text, newline="") as handle:
-        for row in csv.DictReader(handle):
+    rows = _whole_rows(path)
+    if rows:
+        for row in (dict(zip(rows[0], values)) for values in rows[1:]):
             try:  # a row cut short by a killed run is skipped (its seed is run again on --resume)
                 figures = {f: float(row[f]) for f in FIGURES if row.get(f) not in (None, "")}
                 int(row["particles"]), int(row["seed"])
-            except (TypeError, ValueError):
+            except (KeyError, TypeError, ValueError):
                 continue
             if "error" not in figures:
                 continue
@@ -371,10 +377,7 @@ def read_csv(path: Path) -> dict[tuple[str, int], dict[int, dict]]:
 
 def _drop_variants(path: Path, labels: set[str]) -> None:
     """Rewrite the CSV at ``path`` without the rows of ``labels`` (and without a last row cut short)."""
-    text = path.read_text()
-    if not text.endswith("\n"):
-        text = text[: text.rfind("\n") + 1]
-    rows = list(csv.reader(io.StringIO(text, newline="")))
+    rows = _whole_rows(path)
     kept = [row for i, row in enumerate(rows) if i == 0 or len(row) < 4 or row[3] not in labels]
     with open(path, "w", newline="") as handle:
         csv.writer(handle).writerows(kept)
@@ -383,10 +386,7 @@ def _drop_variants(path: Path, labels: set[str]) -> None:
 def _upgrade_header(path: Path) -> None:
     """Rewrite a CSV written before a figure was added (an older header) with today's header, its rows
     padded, so that rows appended on --resume sit under the header their fields match."""
-    text = path.read_text()
-    if not text.endswith("\n"):
-        text = text[: text.rfind("\n") + 1]
-    rows = list(csv.reader(io.StringIO(text, newline="")))
+    rows = _whole_rows(path)
     if not rows or tuple(rows[0]) == CSV_FIELDS:
         return
     header = rows[0]

@@ -167,16 +167,24 @@ def _little_endian(array: np.ndarray) -> np.ndarray:
     return array if sys.byteorder == "little" else array.astype(_DTYPE)
 
 
+_EXCLUDED_ARRAYS = frozenset(_ENVELOPE_ARRAYS)
+
+
+@functools.lru_cache(maxsize=64)  # one entry per set shape a process sends: a run has one or two
+def _arrays_json(particles_shape: tuple[int, ...], weights_shape: tuple[int, ...]) -> bytes:
+    """The ``arrays`` member of an envelope header whose arrays have these shapes."""
+    return json.dumps([
+        {"name": "particles", "dtype": _DTYPE, "shape": list(particles_shape), "offset": 0},
+        {"name": "weights", "dtype": _DTYPE, "shape": list(weights_shape), "offset": 8 * math.prod(particles_shape)},
+    ], separators=(",", ":")).encode("ascii")
+
+
 def _encode_envelope(message: ParticleSet) -> bytes:
     particles, weights = message.particles, message.weights
     # The fields go through the same pydantic serializer as JSON messages.
-    fields = message.model_dump_json(exclude=set(_ENVELOPE_ARRAYS), exclude_none=True).encode("utf-8")
-    arrays = json.dumps([
-        {"name": "particles", "dtype": _DTYPE, "shape": list(particles.shape), "offset": 0},
-        {"name": "weights", "dtype": _DTYPE, "shape": list(weights.shape), "offset": particles.nbytes},
-    ], separators=(",", ":")).encode("ascii")
-    name = json.dumps(SCHEMA_PREFIX + type(message).__name__).encode("ascii")
-    header = b'{"message":%s,"fields":%s,"arrays":%s}' % (name, fields, arrays)
+    fields = message.model_dump_json(exclude=_EXCLUDED_ARRAYS, exclude_none=True).encode("utf-8")
+    header = b'{"message":"dtpf.ParticleSet","fields":%s,"arrays":%s}' % (
+        fields, _arrays_json(particles.shape, weights.shape))
     padding = b"\0" * (-(_PREFIX.size + len(header)) % _ALIGN)
     prefix = _PREFIX.pack(MAGIC, VERSION, b"\0\0\0", len(header))
     # One copy of each array, straight into the result.

@@ -48,6 +48,8 @@ from dtpf.messages.arrays import check_particles, check_probability, check_weigh
 
 UINT32_MAX = 2**32 - 1
 
+_object_setattr = object.__setattr__
+
 #: Characters allowed in run and twin ids (they become key-expression chunks).
 ID_PATTERN = r"^[A-Za-z0-9_.-]+$"
 _ID_RE = re.compile(ID_PATTERN)
@@ -356,7 +358,14 @@ class ParticleSet(ParticleSetHeader):
             _check_lengths(header, arrays["particles"], arrays["weights"])
         except ValueError as error:
             raise ValueError(f"Value error, {error}") from None
-        return cls.model_construct(**header.__dict__, **arrays)
+        # What ``model_construct`` makes of every field given (the header's, all set, and the arrays),
+        # without its per-field loop: the header's fields are the set's fields but its arrays.
+        message = cls.__new__(cls)
+        _object_setattr(message, "__dict__", {**header.__dict__, **arrays})
+        _object_setattr(message, "__pydantic_fields_set__", set(cls.__pydantic_fields__))
+        _object_setattr(message, "__pydantic_extra__", None)
+        _object_setattr(message, "__pydantic_private__", None)
+        return message
 
     @property
     def n(self) -> int:

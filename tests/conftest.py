@@ -35,7 +35,8 @@ FILE_SECONDS = {
     "test_ros2_live.py": 28, "test_schemas.py": 28, "test_security.py": 27, "test_tracking.py": 27,
     "test_cli_habits.py": 27, "test_plot.py": 19, "test_guard.py": 19, "test_replay.py": 18,
     "test_ros2_bag.py": 17, "test_experiments.py": 17, "test_choose.py": 15, "test_newcomer.py": 14,
-    "test_foxglove_live.py": 11, "test_logfile.py": 8, "test_policy.py": 6, "test_observations.py": 4,
+    "test_foxglove_live.py": 11, "test_logfile.py": 8, "test_policy.py": 6, "test_mcap_file.py": 5,
+    "test_observations.py": 4,
     "test_rules.py": 4, "test_resampling.py": 2, "test_messages.py": 2, "test_filter.py": 2,
 }
 

@@ -2,7 +2,8 @@
 
 One channel per key expression (the MCAP topic is the key expression), every
 schema written into the file (:func:`dtpf.messages.codec.schema_for`), so a reader
-with only the ``mcap`` library and the file can decode it::
+with only the ``mcap`` library and the file can decode it. The file is written
+by :class:`dtpf.recording.mcap_file.McapWriter`::
 
     with McapRecording("run.mcap") as recording:
         recording.write("dtpf/ungm-1/entity/estimate", payload, log_time_ns)
@@ -23,15 +24,10 @@ import os
 import time
 from pathlib import Path
 
-from mcap.writer import CompressionType, Writer
-
 from dtpf.messages import keys
 from dtpf.messages.codec import message_encoding, schema_for
 from dtpf.messages.errors import DtpfError
-from dtpf.recording.crc import use_fast_crc
-
-# Chunk CRCs with zlib-ng (dtpf/recording/crc.py): the same numbers, 13x faster than CPython's zlib.
-use_fast_crc()
+from dtpf.recording.mcap_file import COMPRESSIONS, McapWriter
 
 __all__ = ["EXIT_LOG_WRITE", "LogWriteError", "McapRecording", "UNKNOWN_ENCODING"]
 
@@ -41,7 +37,8 @@ EXIT_LOG_WRITE = 3
 #: Message encoding of payloads on keys outside the topic table (no schema).
 UNKNOWN_ENCODING = "application/octet-stream"
 
-COMPRESSION = {"none": CompressionType.NONE, "lz4": CompressionType.LZ4, "zstd": CompressionType.ZSTD}
+#: Chunk compressions by name -> the name written in each chunk ("" for none).
+COMPRESSION = COMPRESSIONS
 
 #: Particle-set payload size above which ``auto`` leaves chunks uncompressed.
 AUTO_LIMIT = 64 << 10
@@ -104,7 +101,7 @@ class McapRecording:
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._file = open(self.path, "wb")
-        self._writer = Writer(self._file, chunk_size=chunk_size, compression=COMPRESSION[compression])
+        self._writer = McapWriter(self._file, chunk_size=chunk_size, compression=compression)
         self._writer.start(profile="", library="dtpf")
         self._schemas: dict[str, int] = {}
         self._channels: dict[str, int] = {}
@@ -146,8 +143,8 @@ class McapRecording:
             channel = self._channel(key)
             sequence = self._sequence.get(channel, 0)
             self._sequence[channel] = sequence + 1
-            self._writer.add_message(channel, log_time=now, data=bytes(payload), publish_time=now,
-                                     sequence=sequence)
+            # bytes(): the writer keeps the payload until its chunk is written (a bytes object is not copied).
+            self._writer.add_message(channel, now, bytes(payload), now, sequence)
         except OSError as error:
             raise self._fail(error) from None
         self.messages += 1

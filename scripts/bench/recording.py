@@ -5,8 +5,9 @@ set, each an envelope of N x (d + 1) float64 (d = 1 here). Rows:
 
 - crc32 zlib     CPython's ``zlib.crc32`` of one payload (what the mcap package uses)
 - crc32 zlib-ng  ``dtpf.recording.crc.crc32`` (zlib-ng, the same function)
-- write, mcap as shipped   ``McapRecording.write`` of both sets with mcap's own zlib CRCs
-- write, dtpf              the same with :func:`dtpf.recording.crc.use_fast_crc` (the recorder's setting)
+- write, mcap as shipped   ``mcap.writer.Writer.add_message`` of both sets, with mcap's own zlib CRCs
+- write, dtpf              ``McapRecording.write`` of both sets (the recorder's writer,
+                           :class:`dtpf.recording.mcap_file.McapWriter`, zlib-ng CRCs)
 
 Chunks are uncompressed, as the recorder's ``auto`` picks above 64 KiB. The process keeps freed large
 blocks on its heap, as the recorder does (:func:`dtpf.shell.service.keep_large_blocks`).
@@ -35,6 +36,7 @@ import zlib
 from pathlib import Path
 
 import mcap
+from mcap.writer import CompressionType, Writer
 
 from dtpf.recording import crc
 from dtpf.recording.writer import McapRecording
@@ -58,17 +60,32 @@ def time_crc(fn, payload: bytes, repeats: int) -> float:
     return statistics.median(times)
 
 
-def time_writes(payload: bytes, steps: int, fast: bool, folder: Path) -> float:
-    """Median seconds to record one step (both sets), over ``steps`` steps."""
-    crc.use_fast_crc(fast)
-    path = folder / f"bench-{fast}.mcap"
+def time_writes(payload: bytes, steps: int, ours: bool, folder: Path) -> float:
+    """Median seconds to record one step (both sets), over ``steps`` steps: with the recorder's writer
+    (``ours``) or with the mcap package's, as shipped."""
+    path = folder / f"bench-{ours}.mcap"
     times = []
-    with McapRecording(path, compression="none") as recording:
-        for _ in range(steps):
-            start = time.perf_counter()
-            for key in KEYS:
-                recording.write(key, payload)
-            times.append(time.perf_counter() - start)
+    if ours:
+        with McapRecording(path, compression="none") as recording:
+            for _ in range(steps):
+                start = time.perf_counter()
+                for key in KEYS:
+                    recording.write(key, payload)
+                times.append(time.perf_counter() - start)
+    else:
+        crc.use_fast_crc(False)
+        with open(path, "wb") as stream:
+            writer = Writer(stream, chunk_size=1 << 20, compression=CompressionType.NONE)
+            writer.start(profile="", library="bench")
+            channels = [writer.register_channel(topic=key, message_encoding="dtpf-envelope", schema_id=0)
+                        for key in KEYS]
+            for _ in range(steps):
+                start = time.perf_counter()
+                for channel in channels:
+                    now = time.time_ns()
+                    writer.add_message(channel, log_time=now, data=payload, publish_time=now)
+                times.append(time.perf_counter() - start)
+            writer.finish()
     path.unlink()
     return statistics.median(times)
 
@@ -164,8 +181,8 @@ def main(argv=None) -> int:
             crcs = {"zlib": [], "zlib-ng": []}
             writes = {False: [], True: []}
             for repeat in range(args.repeats):
-                for fast in ((False, True) if repeat % 2 == 0 else (True, False)):
-                    writes[fast].append(time_writes(payload, steps, fast, Path(folder)))
+                for ours in ((False, True) if repeat % 2 == 0 else (True, False)):
+                    writes[ours].append(time_writes(payload, steps, ours, Path(folder)))
                 crcs["zlib"].append(time_crc(zlib.crc32, payload, 50))
                 crcs["zlib-ng"].append(time_crc(crc.crc32, payload, 50))
             crc.use_fast_crc()
@@ -180,7 +197,8 @@ def main(argv=None) -> int:
         print(f"| {fmt_n(r['n'])} | {r['mb']:.3g} | {r['zlib']:.3g} | {r['zlib-ng']:.3g} | {r['plain']:.3g} | "
               f"{r['fast']:.3g} | {r['fast'] / r['plain']:.2f} |")
     print()
-    print("A step is both particle sets written by McapRecording (uncompressed chunks); medians over "
+    print("A step is both particle sets written with mcap's writer (zlib CRCs) and with the recorder's "
+          "(McapRecording, zlib-ng CRCs), uncompressed chunks; medians over "
           f"{args.repeats} repetitions, methods alternating.")
     return 0
 

@@ -36,6 +36,7 @@ def _build(particles: np.ndarray, weights: np.ndarray, step: int) -> bytes:
         weights=weights, observation=[1.0]), context=ARRAYS_CHECKED))
 
 
+#: The envelope's prefix: magic, version, reserved, header length (dtpf.messages.codec).
 _PREFIX = struct.Struct("<4sB3sI")
 
 
@@ -44,7 +45,7 @@ def _read_unchecked(payload: bytes) -> tuple[dict, np.ndarray, np.ndarray]:
     header_size = _PREFIX.unpack_from(payload)[3]
     header = json.loads(payload[_PREFIX.size:_PREFIX.size + header_size])
     start = _PREFIX.size + header_size + (-(_PREFIX.size + header_size) % 8)
-    (n, d), = (header["arrays"][0]["shape"],)
+    n, d = header["arrays"][0]["shape"]
     particles = np.frombuffer(payload, "<f8", n * d, start).reshape(n, d)
     return header, particles, np.frombuffer(payload, "<f8", n, start + 8 * n * d)
 

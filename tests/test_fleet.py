@@ -23,20 +23,39 @@ from conftest import service_args
 STEPS = 30
 
 
-def run_flags(config: RunConfig) -> list[str]:
+#: The lockstep waits of the tests whose twins must equal their solo runs. A shared service that learns a
+#: twin of a new kind compiles its kernels in its one loop (seconds on a cold numba cache and a loaded
+#: machine), and the twins it already serves wait meanwhile: the information layer's wait for a PS decision
+#: (2 s by default) then runs out, the last PS is kept, and the twin's numbers leave its solo run's. The
+#: entity waits longer than the information layer, which waits for the system layer. The other tests keep
+#: the services' default and the entity's 10 s.
+SHARED_TIMEOUT, ENTITY_TIMEOUT = 30.0, 60.0
+
+
+def run_flags(config: RunConfig, timeout: float = 10.0) -> list[str]:
     return ["--twin", config.twin, "--seed", str(config.seed), "--particles", str(config.particles),
             "--steps", str(config.steps), "--policy", config.policy, "--ps", repr(config.ps),
-            "--resampler", config.resampler, "--scenario", config.scenario, "--timeout", "10"]
+            "--resampler", config.resampler, "--scenario", config.scenario, "--timeout", str(timeout)]
 
 
-def start_shared(processes, router, pattern: str):
-    return [processes.start(layer, service_args(f"{layer}.service", router.endpoint, "--twins", pattern))
+def start_shared(processes, router, pattern: str, timeout: float | None = None):
+    flags = ["--timeout", str(timeout)] if timeout is not None else []
+    return [processes.start(layer, service_args(f"{layer}.service", router.endpoint, "--twins", pattern, *flags))
             for layer in ("information", "system")]
 
 
-def start_entity(processes, router, config: RunConfig, *extra: str):
-    return processes.start(config.twin, service_args("dtpf.entity.service", router.endpoint, *run_flags(config),
-                                                     "--wait-for", "information", "--wait-for", "system", *extra))
+def start_entity(processes, router, config: RunConfig, *extra: str, timeout: float = 10.0):
+    return processes.start(config.twin, service_args("dtpf.entity.service", router.endpoint,
+                                                     *run_flags(config, timeout), "--wait-for", "information",
+                                                     "--wait-for", "system", *extra))
+
+
+def warnings_of(processes, services, twin: str) -> str:
+    """The shared services' warnings about ``twin`` (a wait that ran out, a layer seen gone), for a failure
+    message."""
+    lines = [line for service in services for line in processes.output(service).splitlines()
+             if "WARNING" in line and f"twin {twin}:" in line]
+    return "\n".join(lines[:20]) or f"(the shared services logged no warning about {twin})"
 
 
 def estimates_by_twin(messages) -> dict[str, dict[int, Estimate]]:
@@ -63,9 +82,9 @@ def test_one_information_and_one_system_service_serve_twenty_twins_as_their_solo
     log = tmp_path / "fleet.mcap"
     recorder = processes.start("recorder", service_args("dtpf.scripts.record", router.endpoint, "--all-twins",
                                                         "--twin", "f-recorder", "-o", str(log)))
-    shared = start_shared(processes, router, "f-*")
-    entities = [start_entity(processes, router, group, "--twins", f"{group.twin}-a,{group.twin}-b")
-                for group in groups]
+    shared = start_shared(processes, router, "f-*", SHARED_TIMEOUT)
+    entities = [start_entity(processes, router, group, "--twins", f"{group.twin}-a,{group.twin}-b",
+                             timeout=ENTITY_TIMEOUT) for group in groups]
     configs = [group.model_copy(update={"twin": f"{group.twin}-{side}"}) for group in groups for side in "ab"]
     assert len(configs) == 20
     done = router.collect(lambda ms: all(len(estimates_by_twin(ms).get(c.twin, {})) == STEPS for c in configs),
@@ -79,7 +98,7 @@ def test_one_information_and_one_system_service_serve_twenty_twins_as_their_solo
         steps = got[config.twin]
         assert not any(e.degraded for e in steps.values()), config.twin
         np.testing.assert_array_equal([steps[k].mean for k in range(1, STEPS + 1)], reference.means,
-                                      err_msg=config.twin)
+                                      err_msg=f"{config.twin}\n{warnings_of(processes, shared, config.twin)}")
     # Each finished twin is dropped by the shared services: their last status for it says finished.
     everyone = {(c.twin, layer) for c in configs for layer in ("information", "system")}
     router.collect(lambda ms: _finished_twins(ms) >= everyone, timeout=60)
@@ -106,23 +125,24 @@ def test_a_killed_twin_leaves_the_others_whole_and_a_late_one_is_served(processe
     victim = RunConfig(particles=200, steps=200, seed=3, twin="k-victim")
     steady = RunConfig(particles=200, steps=STEPS, seed=4, twin="k-steady")
     late = RunConfig(particles=200, steps=STEPS, seed=5, twin="k-late")
-    start_shared(processes, router, "k-*")
-    killed = start_entity(processes, router, victim, "--rate", "20")
-    start_entity(processes, router, steady, "--rate", "20")
+    shared = start_shared(processes, router, "k-*", SHARED_TIMEOUT)
+    killed = start_entity(processes, router, victim, "--rate", "20", timeout=ENTITY_TIMEOUT)
+    start_entity(processes, router, steady, "--rate", "20", timeout=ENTITY_TIMEOUT)
     assert router.collect(lambda ms: len(estimates_by_twin(ms).get("k-victim", {})) >= 5, timeout=90)
     killed.send_signal(signal.SIGKILL)
     killed.wait(timeout=30)
     # The shared services see the entity's token go and free the twin's state (their last status says so).
     assert router.collect(lambda ms: {("k-victim", "information"), ("k-victim", "system")} <= _finished_twins(ms),
                           timeout=20)  # under forget_after (30 s): the token's going must be what frees the twin
-    start_entity(processes, router, late)
+    start_entity(processes, router, late, timeout=ENTITY_TIMEOUT)
     assert router.collect(lambda ms: all(len(estimates_by_twin(ms).get(c.twin, {})) == STEPS
                                          for c in (steady, late)), timeout=120)
     got = estimates_by_twin(router.messages)
     for config in (steady, late):
         assert not any(e.degraded for e in got[config.twin].values()), config.twin
         np.testing.assert_array_equal([got[config.twin][k].mean for k in range(1, STEPS + 1)],
-                                      inprocess.run(config).means, err_msg=config.twin)
+                                      inprocess.run(config).means,
+                                      err_msg=f"{config.twin}\n{warnings_of(processes, shared, config.twin)}")
 
 
 def test_a_fleet_drops_a_twin_whose_entity_came_and_went_between_two_looks():
@@ -475,5 +495,29 @@ def test_a_fleet_twin_says_its_status_every_second_while_it_starts_and_every_fiv
             shell.tick(ticks[-1] + i / 4)
         assert said == [ServiceState.RUNNING] * 2 and FLEET_STATUS_INTERVAL == 5.0
         shell.presence.close()
+    finally:
+        session.close()
+
+
+def test_a_shared_service_says_which_twin_each_of_its_lines_is_about(caplog):
+    # A fleet's information service serves twenty twins in one process; "step 3: no PS decision" alone
+    # does not say whose step 3 it was.
+    import logging
+
+    from dtpf.shell.bus import open_session, zenoh_config
+    from dtpf.shell.service import ServiceShell
+
+    session = open_session(zenoh_config(mode="peer", listen=["tcp/127.0.0.1:0"]))
+    try:
+        shells = [ServiceShell("information", RunConfig(twin=twin, run_id="run"), session=session)
+                  for twin in ("line-a", "line-b")]
+        with caplog.at_level(logging.INFO, logger="dtpf.information"):
+            for shell in shells:
+                shell.log.warning("step %d: no PS decision of step %d within %.1f s", 3, 2, 2.0)
+        assert [r.getMessage() for r in caplog.records if r.name == "dtpf.information"] == [
+            "twin line-a: step 3: no PS decision of step 2 within 2.0 s",
+            "twin line-b: step 3: no PS decision of step 2 within 2.0 s"]
+        for shell in shells:
+            shell.presence.close()
     finally:
         session.close()

@@ -192,6 +192,17 @@ class ExitWatchdog:
         os._exit(code)
 
 
+class _TwinLog(logging.LoggerAdapter):
+    """A layer's logger whose lines start with ``twin <id>:``."""
+
+    def __init__(self, logger: logging.Logger, twin: str):
+        super().__init__(logger, {"twin": twin})
+        self._prefix = f"twin {twin}: "
+
+    def process(self, msg, kwargs):
+        return self._prefix + str(msg), kwargs
+
+
 class ServiceShell:
     """Session, presence, publishers, counters and status of one layer process.
 
@@ -206,7 +217,10 @@ class ServiceShell:
                  session: zenoh.Session | None = None, doorbell=None):
         self.layer = keys.check_layer(layer)
         self.config = config
-        self.log = logging.getLogger(f"dtpf.{self.layer.value}")
+        self.shared = session is not None
+        log = logging.getLogger(f"dtpf.{self.layer.value}")
+        #: A process that serves many twins says which twin each line is about.
+        self.log = _TwinLog(log, config.twin) if self.shared else log
         self.received = 0
         self.rejected = 0
         self.last_error: str | None = None
@@ -229,7 +243,6 @@ class ServiceShell:
         self._lock = threading.Lock()
         self._config_json = config.model_dump_json()
         self.doorbell = doorbell
-        self.shared = session is not None
         self.watchdog = ExitWatchdog(self.log) if not self.shared else None
         self.session = session if self.shared else open_session(zenoh_config)
         self.presence = Presence(self.session, config.twin, self.layer.value, names=_LAYER_NAMES,

@@ -93,7 +93,8 @@ class TwinInformation:
         self.particle_sets = shell.inbox("entity", "particles")
         self.commands = PSInbox(shell, self.layer, config.policy)
         self.published = 0  # the last step whose weight state this process sent
-        self.system_was_alive = True
+        #: Whether the system layer was alive at the last look (None: not looked yet).
+        self.system_was_alive: bool | None = None
         #: Whether this twin's system layer has been seen alive, or waited for once. A fleet's service learns
         #: a twin while the twin's system layer may be announcing itself: its token can arrive after the
         #: first particle sets, and not waiting then would apply the old PS (and differ from the solo run).
@@ -129,17 +130,20 @@ class TwinInformation:
                         return self.deadline
                     shell.log.warning("step %d: no PS decision of step %d within %.1f s, keeping PS = %g",
                                       step, step - 1, self.timeout, self.layer.ps)
+                    self.system_known = True  # waited once for a layer not seen: not again until it is
                 self.waiting = None
-                self.system_known = True
+                # A decision that came proves the layer is there even when its token has not arrived yet
+                # (the token can come steps after its first decisions on a loaded machine): not known
+                # until the token is seen, so the next step waits for its decision too.
             self._answer(message)
 
     def _system_alive(self, step: int) -> bool:
         system_alive = "system" in self.shell.presence.alive
         self.system_known |= system_alive
         if system_alive != self.system_was_alive:
-            if system_alive:
-                self.shell.log.info("step %d: the system layer is alive, taking its PS decisions again", step)
-            else:
+            if system_alive and self.system_was_alive is not None:
+                self.shell.log.info("step %d: the system layer is alive, taking its PS decisions", step)
+            elif not system_alive and self.system_was_alive:
                 self.shell.log.warning("step %d: the system layer is gone, keeping PS = %g until it is back",
                                        step, self.layer.ps)
             self.system_was_alive = system_alive

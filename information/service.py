@@ -132,9 +132,9 @@ class TwinInformation:
                                       step, step - 1, self.timeout, self.layer.ps)
                     self.system_known = True  # waited once for a layer not seen: not again until it is
                 self.waiting = None
-                # A decision that came proves the layer is there even when its token has not arrived yet
-                # (the token can come steps after its first decisions on a loaded machine): not known
-                # until the token is seen, so the next step waits for its decision too.
+                # A decision that came shows the layer is there even when its token has not arrived yet
+                # (liveliness and samples travel separately): it is known once its token is seen, and
+                # until then the next step waits for its decision too.
             self._answer(message)
 
     def _system_alive(self, step: int) -> bool:

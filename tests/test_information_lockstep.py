@@ -38,7 +38,6 @@ class StandInInbox:
 class StandInPresence:
     def __init__(self):
         self.alive: set[str] = set()
-        self.seen: set[str] = set()
 
 
 class StandInShell:

@@ -4,6 +4,7 @@ from __future__ import annotations
 import ast
 import re
 import shutil
+import site
 import subprocess
 import sys
 import tomllib
@@ -16,6 +17,13 @@ from conftest import ROOT
 #: The repository's package folders and the names they install as.
 FOLDERS = {"entity": "dtpf.entity", "information": "dtpf.information", "system": "dtpf.system",
            "messages": "dtpf.messages", "scripts": "dtpf.scripts", "dtpf": "dtpf"}
+#: The research rooms of scripts/: the paper's reproduction and the benchmarks. Not product, so not installed;
+#: they run from a checkout (README.md, "Reproduce the paper and run the benchmarks").
+RESEARCH = ("dtpf.scripts.paper", "dtpf.scripts.bench")
+
+
+def _is_research(module: str) -> bool:
+    return any(module == room or module.startswith(room + ".") for room in RESEARCH)
 
 
 def _package_names() -> set[str]:
@@ -28,9 +36,11 @@ def _package_names() -> set[str]:
     return names
 
 
-def test_pyproject_lists_every_package_and_maps_every_folder():
+def test_pyproject_lists_every_package_but_the_research_rooms_and_maps_every_folder():
     setuptools = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]
-    assert set(setuptools["packages"]) == _package_names()
+    packages = _package_names()
+    assert set(RESEARCH) <= packages  # the exceptions name folders that exist
+    assert set(setuptools["packages"]) == {name for name in packages if not _is_research(name)}
     assert setuptools["package-dir"] == {name: folder for folder, name in FOLDERS.items() if folder != name}
 
 
@@ -51,6 +61,75 @@ def test_an_install_adds_one_import_name(installed):
     tops = {path.name for path in installed.iterdir() if not path.name.endswith((".dist-info", ".egg-info"))}
     tops.discard("bin")  # the dtpf script
     assert tops == {"dtpf"}
+
+
+def research_references(source: str, module: str) -> list[str]:
+    """What ``module``'s source imports from the research rooms, or names as a module to run or import."""
+    package = module if module.endswith(".__init__") else module.rpartition(".")[0]
+    package = package.removesuffix(".__init__")
+    found = []
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.Import):
+            names = [alias.name for alias in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                anchor = package.split(".")[: len(package.split(".")) - node.level + 1]
+                base = ".".join([*anchor, base] if base else anchor)
+            names = [base, *(f"{base}.{alias.name}" for alias in node.names)]
+        elif isinstance(node, ast.Constant) and isinstance(node.value, str):
+            # importlib.import_module("dtpf.scripts.bench.x") or [sys.executable, "-m", "dtpf.scripts.paper.y"]
+            names = [node.value] if re.fullmatch(r"[\w.]+", node.value) else []
+        else:
+            continue
+        found += [name for name in names if _is_research(name)]
+    return found
+
+
+def test_the_research_reference_reader_sees_imports_and_module_names():
+    source = ("from dtpf.scripts import bench\nfrom .paper import common\n\ndef f():\n    import dtpf.scripts.paper.x\n"
+              "    return ['-m', 'dtpf.scripts.bench.fleet', 'see dtpf.scripts.paper in a sentence']\n"
+              "from dtpf.scripts import cli, logs\n")
+    assert sorted(research_references(source, "dtpf.scripts.launch")) == [
+        "dtpf.scripts.bench", "dtpf.scripts.bench.fleet", "dtpf.scripts.paper", "dtpf.scripts.paper.common",
+        "dtpf.scripts.paper.x"]
+    assert research_references("from . import logs\nfrom .bench import x\n", "dtpf.scripts.__init__") == [
+        "dtpf.scripts.bench", "dtpf.scripts.bench.x"]
+
+
+def test_an_install_leaves_the_research_rooms_out_and_nothing_installed_names_them(installed):
+    package = installed / "dtpf"
+    assert not (package / "scripts" / "paper").exists() and not (package / "scripts" / "bench").exists()
+    assert (package / "scripts" / "cli.py").is_file() and (package / "scripts" / "logs" / "__init__.py").is_file()
+    files = sorted(package.rglob("*.py"))
+    assert len(files) >= 50
+    found = [f"{path.relative_to(installed)}: {name}" for path in files
+             for name in research_references(path.read_text(),
+                                             ".".join(path.relative_to(installed).with_suffix("").parts))]
+    assert found == [], "\n".join(found)
+
+
+def _run_installed(installed: Path, cwd: Path, *args: str) -> subprocess.CompletedProcess:
+    """``python -S *args`` with the install first on the path, then the environment's own packages.
+
+    -S keeps out the environment's .pth files, the hook of an editable install among them: what runs is
+    the install and whatever the current folder holds, as it would be beside a plain ``pip install .``.
+    """
+    packages = [path for path in [*site.getsitepackages(), site.getusersitepackages()] if Path(path).is_dir()]
+    return subprocess.run([sys.executable, "-S", *args], cwd=cwd, capture_output=True, text=True, timeout=120,
+                          env={"PYTHONPATH": ":".join([str(installed), *packages]), "PATH": ""})
+
+
+@pytest.mark.parametrize("module", ["dtpf.scripts.bench.resampling", "dtpf.scripts.paper.experiments"])
+def test_beside_an_install_the_research_runs_with_python_m_from_the_repository_root_only(installed, tmp_path,
+                                                                                         module):
+    done = _run_installed(installed, ROOT, "-m", module, "--help")
+    assert done.returncode == 0 and done.stdout.startswith(f"usage: python -m {module}"), done.stderr[-3000:]
+    # -P (or PYTHONSAFEPATH) leaves the current folder off the path, and another folder has no checkout in it.
+    room = module.rpartition(".")[0]
+    for cwd, flags in ((ROOT, ["-P"]), (tmp_path, [])):
+        done = _run_installed(installed, cwd, *flags, "-m", module, "--help")
+        assert done.returncode != 0 and f"No module named '{room}'" in done.stderr, (cwd, flags, done.stderr)
 
 
 def test_the_installed_package_imports_from_its_own_folder(installed, tmp_path):

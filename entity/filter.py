@@ -263,7 +263,8 @@ class ParticleFilter:
     n_particles : int
         N.
     resampler : str
-        Name of a traditional scheme in :data:`dtpf.entity.resampling.RESAMPLERS`.
+        A traditional scheme of :data:`dtpf.entity.resampling.RESAMPLERS`, or a reference to a user's
+        resampler (:mod:`dtpf.entity.resamplers.base`).
     resample_below : float or None
         None (default, the paper's setting): resample at every step.
         A fraction in (0, 1]: resample when ESS < resample_below * N.
@@ -274,7 +275,8 @@ class ParticleFilter:
     preprocessor : Preprocessor, optional
         Runs before each resampling (the digital twin); None: plain resampling.
     jitter : str
-        A move after each resampling (:data:`dtpf.entity.jitter.JITTERS`): "none"
+        A move after each resampling (a built-in of :data:`dtpf.entity.jitter.JITTERS` or a reference to a
+        user's move, :mod:`dtpf.entity.moves.base`): "none"
         (default, the paper), "roughening" or "regularised".
     innovation : bool
         Also compute each step's normalised innovation (where the model gives
@@ -290,8 +292,7 @@ class ParticleFilter:
                  resampler: str = "systematic", resample_below: float | None = None,
                  seed: int = 0, twin: str = "twin", preprocessor: Preprocessor | None = None,
                  innovation: bool = False, jitter: str = "none"):
-        if jitter not in jitters.JITTERS:
-            raise ValueError(f"unknown jitter {jitter!r}; expected one of {', '.join(jitters.JITTERS)}")
+        self.move = jitters.get(jitter)  # a ValueError naming the move if it is unknown or breaks the contract
         if observations is None:
             z = np.empty((0, model.obs_dim))
         else:
@@ -523,7 +524,8 @@ class ParticleFilter:
                                      f"expected {particles.shape}")
                 report = answer.report
                 if answer.jitter is not None:
-                    if answer.jitter not in jitters.JITTERS:
+                    # Only a built-in or the run's own move: a name on the wire never loads code.
+                    if answer.jitter not in jitters.JITTERS and answer.jitter != self.jitter:
                         raise ValueError(f"unknown jitter {answer.jitter!r} in the twin's answer")
                     move = answer.jitter
 
@@ -535,8 +537,9 @@ class ParticleFilter:
             ancestors = self._ancestors(k, target_weights, rng)
             self.particles = self._gather(target_particles, ancestors)
             if move != "none":
-                self.particles = jitters.apply(move, self.particles, target_particles, target_weights,
-                                               stream(self.seed, self.twin, k, "jitter"))
+                apply = self.move if move == self.jitter else jitters.get(move)
+                self.particles = apply(self.particles, target_particles, target_weights,
+                                       stream(self.seed, self.twin, k, "jitter"))
             self.log_weights.fill(0.0)
             self._log_total = float(np.log(self.n))
             self.parents = resampling.distinct(ancestors)

@@ -20,7 +20,12 @@ preprocessing against (``--jitter``)::
   covariance of the set before resampling and h the bandwidth that is
   optimal for a Gaussian density, h = (4 / (N (d + 2)))^(1 / (d + 4)).
 
-Both draw from the generator given (the filter passes
+Each is a module of :mod:`dtpf.entity.moves` (the contract is stated once in
+:mod:`dtpf.entity.moves.base`); :func:`apply` and :func:`get` also take a
+user's move by reference (``path/to/file.py:NAME``) or by the name an
+installed package registers in the entry-point group ``dtpf.moves``.
+
+Every move draws from the generator given (the filter passes
 ``stream(seed, twin, k, "jitter")``, so turning a jitter on changes no other
 random number of the run) and return a new array.
 """
@@ -28,59 +33,23 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["JITTERS", "ROUGHENING_K", "roughening", "regularised", "bandwidth", "apply"]
+from dtpf.entity.moves.regularised import bandwidth, regularised
+from dtpf.entity.moves.roughening import ROUGHENING_K, roughening
+from dtpf.messages.family import MOVES
 
-#: Names of the moves; "none" leaves the resampled set as it is (the paper).
-JITTERS = ("none", "roughening", "regularised")
-#: K of roughening (Gordon, Salmond and Smith 1993 suggest 0.2).
-ROUGHENING_K = 0.2
+__all__ = ["JITTERS", "ROUGHENING_K", "roughening", "regularised", "bandwidth", "apply", "get"]
 
-
-def roughening(resampled: np.ndarray, rng: np.random.Generator, k: float = ROUGHENING_K,
-               n: int | None = None) -> np.ndarray:
-    """The resampled set plus N(0, (K E_c N^(-1/d))^2) per component c (E_c: range of component c).
-
-    ``n``: the N of the bandwidth when it differs from the set's size (the system layer's copy of M
-    particles moves them as the entity's N would); default the set's size.
-    """
-    m, d = resampled.shape
-    n = m if n is None else int(n)
-    sigma = k * np.ptp(resampled, axis=0) * n ** (-1.0 / d)
-    return resampled + rng.standard_normal((m, d)) * sigma
+#: Names of the built-in moves; "none" leaves the resampled set as it is (the paper).
+JITTERS = tuple(MOVES.builtins())
 
 
-def bandwidth(n: int, d: int) -> float:
-    """h_opt of the Gaussian kernel: (4 / (N (d + 2)))^(1 / (d + 4)) (Musso et al. 2001, Eq. 12.12)."""
-    return (4.0 / (n * (d + 2.0))) ** (1.0 / (d + 4.0))
-
-
-def regularised(resampled: np.ndarray, particles: np.ndarray, weights: np.ndarray,
-                rng: np.random.Generator, n: int | None = None) -> np.ndarray:
-    """The resampled set plus h D eps, D the symmetric root of the weighted covariance of (particles, weights).
-
-    D is the symmetric square root of the covariance, from its eigenvalues
-    clipped at 0: a set collapsed onto one point in some direction is not
-    jittered in that direction. ``n``: the N of the bandwidth (default the set's size), as for
-    :func:`roughening`.
-    """
-    m, d = resampled.shape
-    n = m if n is None else int(n)
-    mean = weights @ particles
-    centred = particles - mean
-    cov = (centred * weights[:, None]).T @ centred
-    values, vectors = np.linalg.eigh(cov)
-    root = (vectors * np.sqrt(np.clip(values, 0.0, None))) @ vectors.T  # the symmetric root: no sign choice
-    return resampled + bandwidth(n, d) * (rng.standard_normal((m, d)) @ root)
+def get(name: str):
+    """The move ``name`` names, in the contract's form (a built-in, an installed package's, or a reference)."""
+    return MOVES.get(name)
 
 
 def apply(name: str, resampled: np.ndarray, particles: np.ndarray, weights: np.ndarray,
           rng: np.random.Generator, n: int | None = None) -> np.ndarray:
-    """The move ``name`` (:data:`JITTERS`) of the resampled set; ``particles, weights``: the set before;
+    """The move ``name`` of the resampled set; ``particles, weights``: the set before;
     ``n``: the N of the bandwidth (default the resampled set's size)."""
-    if name == "roughening":
-        return roughening(resampled, rng, n=n)
-    if name == "regularised":
-        return regularised(resampled, particles, weights, rng, n=n)
-    if name == "none":
-        return resampled
-    raise ValueError(f"unknown jitter {name!r}; expected one of {', '.join(JITTERS)}")
+    return MOVES.get(name)(resampled, particles, weights, rng, n=n)

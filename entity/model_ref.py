@@ -16,8 +16,9 @@ Wherever dtpf takes a model name, it takes a *reference* of one of four forms:
 no arguments) or a zero-argument factory returning an instance. A reference
 is a file path when the part before its last ``:`` ends with ``.py`` or
 contains a ``/`` or ``\\``. A file is imported once per process, under a
-module name derived from its resolved path, and its folder is *not* put on
-``sys.path``: a file that imports a helper next to it needs ``PYTHONPATH``.
+module name derived from its resolved path, and its folder is appended to
+``sys.path``: a file may import the helpers beside it (``from helpers import G``), while
+dtpf's own packages and the installed ones keep their precedence.
 
 The recommended import is::
 
@@ -37,23 +38,19 @@ usable ``name`` is given the reference as its name.
 """
 from __future__ import annotations
 
-import hashlib
 import importlib
 import importlib.machinery
 import importlib.metadata
 import importlib.util
 import inspect
 import numbers
-import os
 import re
-import sys
 import threading
-import traceback
-from pathlib import Path
 
 from dtpf.entity import models
 from dtpf.entity.models import StateSpaceModel
-from dtpf.messages.config import RunInputError
+from dtpf.messages import references
+from dtpf.messages.references import ReferenceLoadError
 
 __all__ = ["ModelError", "resolve", "registered_names", "is_reference", "ENTRY_POINT_GROUP"]
 
@@ -68,11 +65,9 @@ _FORMS = "a built-in name, a name registered under dtpf.models, package.module:N
 _MODULE_NAME = re.compile(r"^[A-Za-z_]\w*(\.[A-Za-z_]\w*)*$")
 
 
-class ModelError(RunInputError):
+class ModelError(ReferenceLoadError):
     """A model reference cannot be resolved, or the model it names is unusable (one-line message)."""
 
-    def __init__(self, message: str):
-        super().__init__(" ".join(str(message).split()) if "\n" in str(message) else str(message))
 
 
 def is_reference(ref: str) -> bool:
@@ -164,91 +159,33 @@ def _from_entry_point(ref: str, point: importlib.metadata.EntryPoint) -> StateSp
 
 def _entry_points() -> dict[str, importlib.metadata.EntryPoint]:
     """Entry points of dtpf.models by name; an installed package can never replace a built-in."""
-    found: dict[str, importlib.metadata.EntryPoint] = {}
-    try:
-        selected = importlib.metadata.entry_points(group=ENTRY_POINT_GROUP)
-    except Exception:  # a broken metadata folder somewhere on sys.path must not stop built-in models
-        return found
-    for point in selected:
-        found.setdefault(point.name, point)
-    return found
+    return references.entry_points(ENTRY_POINT_GROUP)
 
 
-# --- importing --------------------------------------------------------------------------------------------
+# --- importing (dtpf.messages.references) -----------------------------------------------------------------
 
 def _is_path(source: str) -> bool:
-    return source.endswith(".py") or "/" in source or "\\" in source
+    return references.is_path(source)
 
 
 def _import(module_name: str, ref: str, where: str | None = None):
-    where = where or f"model reference {ref!r}"
-    if not _MODULE_NAME.match(module_name):
-        raise ModelError(f"{where}: {module_name!r} is neither a module name (package.module) "
-                         f"nor a path to a .py file")
-    try:
-        return importlib.import_module(module_name)
-    except ModuleNotFoundError as exc:
-        missing = exc.name or ""
-        if missing and (module_name == missing or module_name.startswith(missing + ".")):
-            hint = ""
-            if missing == module_name.split(".")[0]:
-                hint = (f" (is the package installed? pip install {missing}; for a module of your own, "
-                        f"add its folder to PYTHONPATH or write path/to/{module_name.replace('.', '/')}.py:NAME)")
-            raise ModelError(f"cannot import module {module_name!r} of {where}: {_first_line(exc)}{hint}") from exc
-        raise ModelError(f"{where}: importing module {module_name!r} raised {_describe(exc)}"
-                         f"{_pip_hint(exc)}") from exc
-    except (Exception, SystemExit) as exc:
-        raise ModelError(f"{where}: importing module {module_name!r} raised {_describe(exc)}") from exc
+    return references.import_module(module_name, where or f"model reference {ref!r}", ModelError)
 
 
 def _load_file(source: str, ref: str, where: str | None = None):
-    """Import a Python file once per process, as a module named after its resolved path."""
-    where = where or f"model reference {ref!r}"
-    path = Path(os.path.expanduser(source))
-    if not path.is_absolute():
-        path = Path.cwd() / path
-    path = path.resolve()
-    if not path.exists():
-        raise ModelError(f"{where}: model file {source!r} not found (looked for {path})")
-    if not path.is_file():
-        raise ModelError(f"{where}: {source!r} is not a file ({path})")
-    digest = hashlib.sha1(str(path).encode()).hexdigest()[:12]
-    stem = re.sub(r"\W", "_", path.stem) or "model"
-    module_name = f"_dtpf_model_{stem}_{digest}"
-    module = sys.modules.get(module_name)
-    if module is not None:
-        return module
-    loader = importlib.machinery.SourceFileLoader(module_name, str(path))
-    spec = importlib.util.spec_from_file_location(module_name, path, loader=loader)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[module_name] = module  # before exec: dataclasses and pickle look the module up
-    try:
-        spec.loader.exec_module(module)
-    except (Exception, SystemExit) as exc:
-        del sys.modules[module_name]
-        raise ModelError(f"{where}: importing {source} raised {_describe(exc, path)}{_pip_hint(exc)}") from exc
-    return module
+    """Import a Python file once per process (its folder appended to sys.path: it may import modules beside it)."""
+    return references.load_file(source, where or f"model reference {ref!r}", ModelError, noun="model file")
 
 
 def _attribute(module, attr: str, shown: str, where: str):
     if not attr:
         raise ModelError(f"{where}: nothing after ':'; expected the NAME of a model in {shown}")
-    obj = module
-    for i, part in enumerate(attr.split(".")):
-        if not part.isidentifier():
-            raise ModelError(f"{where}: {attr!r} is not a Python name")
-        try:
-            obj = getattr(obj, part)
-        except AttributeError:
-            if i == 0:
-                defined = _model_like(module)
-                listing = f"it defines: {', '.join(defined)}" if defined else \
-                    "it defines no StateSpaceModel instance or subclass"
-                raise ModelError(f"{where}: {shown} has no attribute {part!r}; {listing}") from None
-            raise ModelError(f"{where}: {'.'.join(attr.split('.')[:i])} has no attribute {part!r}") from None
-        except Exception as exc:  # a property or module __getattr__ raising
-            raise ModelError(f"{where}: reading {attr} raised {_describe(exc)}") from exc
-    return obj
+    return references.attribute(module, attr, shown, where, ModelError, listing=_listing)
+
+
+def _listing(module) -> str:
+    defined = _model_like(module)
+    return f"it defines: {', '.join(defined)}" if defined else "it defines no StateSpaceModel instance or subclass"
 
 
 def _model_like(module) -> list[str]:
@@ -331,33 +268,7 @@ def dimension(model, attribute: str, where: str) -> int:
 
 # --- messages ---------------------------------------------------------------------------------------------
 
-def _first_line(exc: BaseException) -> str:
-    lines = str(exc).strip().splitlines()
-    return lines[0].strip() if lines else ""
-
-
-def _describe(exc: BaseException, path=None) -> str:
-    """``Type: first line of the message``, with the line of ``path`` where it was raised."""
-    text = f"{type(exc).__name__}: {_first_line(exc)}" if _first_line(exc) else type(exc).__name__
-    if path is not None:
-        frames = [f for f in traceback.extract_tb(exc.__traceback__) if Path(f.filename) == Path(path)]
-        if frames:
-            text += f" (at {Path(path).name} line {frames[-1].lineno})"
-        elif isinstance(exc, SyntaxError) and exc.lineno and "line" not in text:
-            text += f" (at {Path(path).name} line {exc.lineno})"
-    return text
-
-
-def _pip_hint(exc: BaseException) -> str:
-    if isinstance(exc, ModuleNotFoundError) and exc.name:
-        top = exc.name.split(".")[0]
-        return f" (is the package installed? pip install {top})"
-    return ""
-
-
-def _a(value) -> str:
-    """'an int', 'a str', 'a module', 'None'."""
-    if value is None:
-        return "None"
-    kind = type(value).__name__
-    return f"{'an' if kind[0].lower() in 'aeiou' or kind == 'ndarray' else 'a'} {kind}"
+_first_line = references.first_line
+_describe = references.describe
+_pip_hint = references.pip_hint
+_a = references.a

@@ -6,7 +6,8 @@ The recommended import is::
     ancestors = rs.systematic(weights, rng)
     particles = particles[ancestors]
 
-Every scheme has the same contract, ``ancestors = scheme(weights, rng)``:
+Every scheme has the same contract, ``ancestors = scheme(weights, rng)``
+(:mod:`dtpf.entity.resamplers.base`, where it is stated once):
 
 Parameters
 ----------
@@ -30,9 +31,13 @@ ancestors : (N,) ndarray of int64
     Index of the parent of each new particle, in non-decreasing order
     (``out`` if given).
 
-All four are unbiased: the expected number of copies of particle i is N w_i.
-They differ in the variance of that number: multinomial (largest),
-residual, stratified, systematic (smallest in practice).
+Every built-in is unbiased: the expected number of copies of particle i is
+N w_i. They differ in the variance of that number: multinomial (largest),
+residual, stratified, systematic (smallest in practice). :data:`RESAMPLERS`
+holds them by name; each is a module of :mod:`dtpf.entity.resamplers`, and
+:func:`get` also takes a user's resampler by reference
+(``path/to/file.py:NAME``, ``package.module:NAME``) or by the name an
+installed package registers in the entry-point group ``dtpf.resamplers``.
 
 Each scheme is one compiled pass (numba, :mod:`dtpf.entity._merge`) over the
 particles that hands each particle the sorted points falling below its
@@ -56,7 +61,11 @@ import numba
 import numpy as np
 
 from dtpf.entity import _merge
-from dtpf.messages.arrays import check_weights, is_plain_float64
+from dtpf.entity.resamplers.multinomial import multinomial
+from dtpf.entity.resamplers.residual import residual
+from dtpf.entity.resamplers.stratified import stratified
+from dtpf.entity.resamplers.systematic import systematic
+from dtpf.messages.family import RESAMPLERS as FAMILY
 
 __all__ = [
     "multinomial",
@@ -76,24 +85,6 @@ Resampler = Callable[..., np.ndarray]
 PARALLEL_GATHER = 1 << 17
 
 
-def _weights(weights, checked: bool) -> np.ndarray:
-    """The weights as a float64 vector: checked in full unless ``checked`` and already one."""
-    if checked and is_plain_float64(weights, 1):
-        return weights
-    return check_weights(weights)
-
-
-def _output(out, n: int) -> np.ndarray:
-    """``out`` if it can hold N ancestors (C-contiguous, writeable int64 of shape (N,)), else a ValueError."""
-    if out is None:
-        return np.empty(n, dtype=np.int64)
-    if not (isinstance(out, np.ndarray) and out.dtype == np.int64 and out.shape == (n,)
-            and out.flags.c_contiguous and out.flags.writeable):
-        raise ValueError(f"out must be a writeable C-contiguous int64 array of shape ({n},), got "
-                         f"{getattr(out, 'dtype', type(out).__name__)} {getattr(out, 'shape', '')}")
-    return out
-
-
 def inverse_cdf(points, weights) -> np.ndarray:
     """Ancestors of sorted ``points`` in [0, 1): for each, the first i with cumsum(W)[i] > point.
 
@@ -111,60 +102,6 @@ def inverse_cdf(points, weights) -> np.ndarray:
     p = np.ascontiguousarray(points, dtype=np.float64)
     return _merge.inverse_cdf(p, np.ascontiguousarray(weights, dtype=np.float64),
                               np.empty(p.size, dtype=np.int64))
-
-
-def _exponential_merge(w: np.ndarray, rng: np.random.Generator, out: np.ndarray, plain, inline) -> np.ndarray:
-    """``inline(w, words, out)`` on numpy's PCG64 stepped in the compiled pass, its state written back where
-    ``rng.standard_exponential`` would leave it; ``plain(w, rng, out)`` for any other generator."""
-    words = _merge.pcg_state(rng)
-    if words is None:
-        return plain(w, rng, out)
-    inline(w, words, out)
-    _merge.set_pcg_state(rng, words)
-    return out
-
-
-def multinomial(weights, rng: np.random.Generator, *, out=None, checked: bool = False) -> np.ndarray:
-    """Multinomial resampling: N i.i.d. draws from W, via ordered uniforms (Eq. 26).
-
-    Eq. 26 builds the order statistics of M uniforms by the recursion
-    u_M = v^(1/M), u_j = u_(j+1) v_j^(1/j). The same joint law comes from
-    normalised partial sums of M + 1 standard exponentials ("uniform
-    spacings"), which costs one exponential draw and one add per point
-    instead of a log, a division and an exp; both are O(M). The draws are
-    ``rng.standard_exponential(N + 1)``'s, made in the compiled pass.
-    """
-    w = _weights(weights, checked)
-    return _exponential_merge(w, rng, _output(out, w.size), _merge.multinomial, _merge.multinomial_pcg)
-
-
-def stratified(weights, rng: np.random.Generator, *, out=None, checked: bool = False) -> np.ndarray:
-    """Stratified resampling: one uniform in each stratum [(j-1)/N, j/N) (Eq. 27); draws ``rng.random(N)``."""
-    w = _weights(weights, checked)
-    out = _output(out, w.size)
-    words = _merge.pcg_state(rng)
-    if words is None:
-        return _merge.stratified(w, rng.random(w.size), out)
-    _merge.stratified_pcg(w, words, out)  # draws the uniforms as it merges, from a copy of the state
-    rng.bit_generator.advance(w.size)  # where rng.random(N) leaves the PCG64
-    return out
-
-
-def systematic(weights, rng: np.random.Generator, *, out=None, checked: bool = False) -> np.ndarray:
-    """Systematic resampling (Kitagawa 1996): Eq. 27 with one uniform shared by all strata; draws ``rng.random()``."""
-    w = _weights(weights, checked)
-    return _merge.systematic(w, rng.random(), _output(out, w.size))
-
-
-def residual(weights, rng: np.random.Generator, *, out=None, checked: bool = False) -> np.ndarray:
-    """Residual resampling (Liu and Chen 1998).
-
-    Particle i first gets floor(N w_i) copies; the R remaining offspring are
-    drawn multinomially (Eq. 26) from the residual weights
-    N w_i - floor(N w_i), normalised; draws ``rng.standard_exponential(R + 1)``.
-    """
-    w = _weights(weights, checked)
-    return _exponential_merge(w, rng, _output(out, w.size), _merge.residual, _merge.residual_pcg)
 
 
 def gather(particles: np.ndarray, ancestors: np.ndarray, out: np.ndarray | None = None, *,
@@ -194,20 +131,11 @@ def distinct(ancestors: np.ndarray) -> int:
     return int(_merge.distinct(ancestors))
 
 
-#: Registry of the traditional schemes by name.
-RESAMPLERS: dict[str, Resampler] = {
-    "multinomial": multinomial,
-    "stratified": stratified,
-    "systematic": systematic,
-    "residual": residual,
-}
+#: The built-in schemes by name (every module of :mod:`dtpf.entity.resamplers`).
+RESAMPLERS: dict[str, Resampler] = FAMILY.builtins()
 
 
 def get(name: str) -> Resampler:
-    """The resampling scheme called ``name``, or a ValueError listing the valid names."""
-    try:
-        return RESAMPLERS[name]
-    except (KeyError, TypeError):
-        raise ValueError(
-            f"unknown resampler {name!r}; expected one of {', '.join(RESAMPLERS)}"
-        ) from None
+    """The resampler ``name`` names: a built-in, an installed package's, or a user's reference; a
+    ValueError (:class:`~dtpf.messages.references.ReferenceLoadError`) listing the valid names."""
+    return FAMILY.get(name)

@@ -25,7 +25,7 @@ from dtpf.entity.model_check import load_checked
 from dtpf.entity.model_ref import ModelError
 from dtpf.entity.models import StateSpaceModel
 from dtpf.entity.observations import ObservationTable, read_observations
-from dtpf.messages import names
+from dtpf.messages import family
 from dtpf.messages.streams import stream
 
 __all__ = ["RunData", "load_model", "observations_of", "read_table", "sampling_need", "ModelError"]
@@ -73,7 +73,7 @@ def sampling_need(config, *, sensor: bool = False) -> str | bool:
     """Why this run needs ``sample_observation`` (a text for the error), or False."""
     if sensor:
         return "dtpf sensor (it simulates observations)"
-    if config.preprocess and config.policy in names.SIMULATING_POLICIES:
+    if config.preprocess and family.POLICIES.trait(config.policy, "samples_observations", False):
         return f"the system layer's policy {config.policy!r} (it simulates observations)"
     return False
 

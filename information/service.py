@@ -18,7 +18,7 @@ import zenoh
 
 from dtpf.entity import sources
 from dtpf.information.layer import ARMS, InformationLayer
-from dtpf.messages import names
+from dtpf.messages import family, names
 from dtpf.messages.admission import RunShape
 from dtpf.messages.config import RunConfig, add_run_arguments
 from dtpf.messages.models import ARRAYS_CHECKED, ParticleSet, ParticleSetKind, PSCommand, WeightState
@@ -45,15 +45,15 @@ class PSInbox:
 
     def problem(self, command: PSCommand) -> str | None:
         """Why ``command`` does not fit this run's policy, or None."""
-        choosing = self.policy == "choose"
+        choosing = family.POLICIES.trait(self.policy, "chooses_arms", False)
         if command.arm is None:
-            return "the choose policy names an arm in every decision" if choosing else None
+            return f"the {self.policy} policy names an arm in every decision" if choosing else None
         if not choosing:
             return f"an arm ({command.arm}) from a run whose policy is {self.policy}"
         arm = ARMS[command.arm]
-        if command.policy != "choose" or command.ps != arm.ps or command.preprocess != arm.preprocess:
+        if command.policy != self.policy or command.ps != arm.ps or command.preprocess != arm.preprocess:
             return (f"arm {arm.name} with policy {command.policy}, PS {command.ps:g}, preprocess "
-                    f"{command.preprocess} (the arm's: choose, PS {arm.ps:g}, preprocess {arm.preprocess})")
+                    f"{command.preprocess} (the arm's: {self.policy}, PS {arm.ps:g}, preprocess {arm.preprocess})")
         return None
 
     def drain(self) -> bool:
@@ -86,9 +86,9 @@ class TwinInformation:
         self.layer = InformationLayer(model, ps=config.ps, threshold_rule=config.threshold,
                                       weight_rule=config.weight_rule, seed=config.seed, twin=config.twin,
                                       move_rule=config.move_rule,
-                                      preprocess=config.policy not in names.POLICIES_STARTING_OFF,
+                                      preprocess=family.POLICIES.trait(config.policy, "initial_preprocess", True),
                                       arm=(config.choose_base or names.DEFAULT_CHOOSE_BASE)
-                                      if config.policy == "choose" else None)
+                                      if family.POLICIES.trait(config.policy, "chooses_arms", False) else None)
         shell.expect(RunShape.of(config, model))
         self.particle_sets = shell.inbox("entity", "particles")
         self.commands = PSInbox(shell, self.layer, config.policy)
@@ -101,7 +101,7 @@ class TwinInformation:
         self.system_known = False
         self.waiting: ParticleSet | None = None  # a set waiting for the decision of the step before
         #: Whether a set waits for the decision of the step before (not for a policy that never changes PS).
-        self.waits_for_decisions = config.policy not in names.CONSTANT_POLICIES
+        self.waits_for_decisions = not family.POLICIES.trait(config.policy, "constant", False)
         self.deadline = 0.0
         self.layer.warm_up(config.particles)  # before the entity can send step 1
 

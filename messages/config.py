@@ -15,20 +15,11 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from dtpf.messages import names
-from dtpf.messages.errors import DtpfError
+from dtpf.messages import family, names
+from dtpf.messages.errors import RunInputError
 
 __all__ = ["RunConfig", "RunInputError", "ID_PATTERN", "add_run_arguments", "config_from_args"]
 
-
-class RunInputError(DtpfError, ValueError):
-    """What the user gave a run cannot be used: an option, a model, an observation file. A service exits 2
-    with the one-line message, no traceback (dtpf.entity.model_ref.ModelError,
-    dtpf.entity.observations.ObservationError). ``validation``: pydantic's error behind a bad option."""
-
-    def __init__(self, message: str, *, validation: ValidationError | None = None):
-        super().__init__(message)
-        self.validation = validation
 
 #: Run and twin ids: safe inside a Zenoh key expression and a file name.
 ID_PATTERN = r"^[A-Za-z0-9_.-]+$"
@@ -83,8 +74,11 @@ class RunConfig(BaseModel):
     steps: int | None = Field(100, ge=1, description="Number of time points T (k = 1 .. T). With observations "
                               "from a file: at most this many of its rows (None: every row); live: stop "
                               "after this many steps (None: when the stream ends).")
-    resampler: str = Field("systematic", description="Traditional resampling scheme run after preprocessing: "
-                                                      "multinomial, stratified, systematic or residual.")
+    resampler: str = Field("systematic", max_length=family.MAX_REFERENCE, description="Traditional resampling "
+                           "scheme run after preprocessing: a built-in (multinomial, residual, stratified, "
+                           "systematic, ...), a name an installed package registers in the entry-point group "
+                           "'dtpf.resamplers', or your own f(weights, rng) -> ancestors as 'path/to/file.py:NAME' "
+                           "or 'package.module:NAME'.")
     resample_below: float | None = Field(None, gt=0.0, le=1.0, description="Resample when ESS < this "
                                          "fraction of N; None resamples at every step (the paper).")
     preprocess: bool = Field(True, description="Run the digital-twin preprocessing (Eq. 28-30) before "
@@ -97,11 +91,15 @@ class RunConfig(BaseModel):
                                                  "'paper' (Eq. 29-30 as printed) or 'relative' (a fraction of "
                                                  "x_l - x_m, at most the set's weighted spread: translation "
                                                  "invariant; not the paper's).")
-    jitter: Literal[names.JITTERS] = Field("none", description="After resampling, the entity moves each "
-                                           "particle by: 'none' (the paper), 'roughening' (Gordon, Salmond and "
-                                           "Smith 1993) or 'regularised' (the kernel of the regularised particle "
-                                           "filter, Musso, Oudjane and Le Gland 2001).")
-    policy: str = Field("fixed", description="PS policy of the system layer.")
+    jitter: str = Field("none", max_length=family.MAX_REFERENCE, description="After resampling, the entity "
+                        "moves each particle by: 'none' (the paper), 'roughening' (Gordon, Salmond and Smith 1993), "
+                        "'regularised' (the kernel of the regularised particle filter, Musso, Oudjane and Le Gland "
+                        "2001), a name registered in the entry-point group 'dtpf.moves', or your own "
+                        "move(resampled, particles, weights, rng) as 'path/to/file.py:NAME'.")
+    policy: str = Field("fixed", max_length=family.MAX_REFERENCE, description="PS policy of the system layer: a "
+                        "built-in (choose, fixed, guard, guard-observed, predictive, rule), a name registered in the "
+                        "entry-point group 'dtpf.policies', or your own PSPolicy subclass as "
+                        "'path/to/file.py:NAME'.")
     choose_base: Literal[names.ARMS] | None = Field(None, description="The choosing policy's base arm: the move "
                                                     "in force when no other has the evidence, and the one every "
                                                     "other arm's evidence is against (only with policy 'choose'; "
@@ -191,16 +189,17 @@ class RunConfig(BaseModel):
     @field_validator("resampler")
     @classmethod
     def _known_resampler(cls, value: str) -> str:
-        if value not in names.RESAMPLERS:
-            raise ValueError(f"unknown resampler {value!r}; expected one of {', '.join(names.RESAMPLERS)}")
-        return value
+        return family.RESAMPLERS.check_name(value)
+
+    @field_validator("jitter")
+    @classmethod
+    def _known_move(cls, value: str) -> str:
+        return family.MOVES.check_name(value)
 
     @field_validator("policy")
     @classmethod
     def _known_policy(cls, value: str) -> str:
-        if value not in names.POLICIES:
-            raise ValueError(f"unknown PS policy {value!r}; expected one of {', '.join(names.POLICIES)}")
-        return value
+        return family.POLICIES.check_name(value)
 
     @field_validator("threshold")
     @classmethod
@@ -220,13 +219,14 @@ class RunConfig(BaseModel):
     def _policy_fits_scenario(self) -> "RunConfig":
         if self.steps is None and self.simulated:
             raise ValueError("steps: a simulated scenario needs a number of steps")
-        if self.choose_base is not None and self.policy != "choose":
+        if self.choose_base is not None and not family.POLICIES.trait(self.policy, "chooses_arms", True, load=False):
             raise ValueError(f"choose_base: a base arm ({self.choose_base}) is for policy 'choose', not "
                              f"{self.policy!r}")
         if self.model is not None:
             return self  # a user model is checked when it is loaded (dtpf.entity.model_check)
         # A simulating policy draws observations from the model; a video scenario cannot.
-        if self.policy in names.SIMULATING_POLICIES and self.scenario in names.CANNOT_SAMPLE:
+        simulates = family.POLICIES.trait(self.policy, "samples_observations", False, load=False)
+        if simulates and self.scenario in names.CANNOT_SAMPLE:
             raise ValueError(f"policy {self.policy!r} simulates observations, which scenario "
                              f"{self.scenario!r} cannot draw (the video scenario does not support the "
                              f"simulating system-layer policies rule, predictive); use policy 'fixed'")
@@ -269,12 +269,13 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--steps", "-T", type=int, default=None,
                        help=f"number of time points (default: {defaults.steps} for a simulation; every row "
                             f"of an observation file; live: until the sensor ends its stream)")
-    group.add_argument("--resampler", default=None, choices=sorted(names.RESAMPLERS),
-                       help=f"traditional resampling run after preprocessing (default: {defaults.resampler})")
-    group.add_argument("--jitter", default=None, choices=names.JITTERS,
-                       help="after resampling, move each particle: 'roughening' (Gordon, Salmond and Smith 1993), "
-                            "'regularised' (the regularised filter's kernel, Musso, Oudjane and Le Gland 2001), "
-                            f"cures of particle impoverishment (default: {defaults.jitter}, the paper)")
+    group.add_argument("--resampler", default=None, metavar="NAME",
+                       help="traditional resampling run after preprocessing: " + family.RESAMPLERS.help(
+                           "your own f(weights, rng) -> ancestors", defaults.resampler))
+    group.add_argument("--jitter", "--move", dest="jitter", default=None, metavar="NAME",
+                       help="after resampling, move each particle (cures of particle impoverishment): "
+                            + family.MOVES.help("your own move(resampled, particles, weights, rng) -> moved",
+                                                f"{defaults.jitter}, the paper"))
     group.add_argument("--resample-below", type=float, default=None, metavar="FRACTION",
                        help="resample only when ESS < FRACTION * N (default: every step, as the paper)")
     group.add_argument("--seed", type=int, default=None, help=f"root seed (default: {defaults.seed})")
@@ -290,11 +291,9 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--move-rule", default=None, choices=names.MOVE_RULES,
                        help="how small particles are moved: 'paper' (Eq. 29-30), 'relative' (translation invariant, "
                             f"not the paper's; see docs/guides/policies.md) (default: {defaults.move_rule})")
-    group.add_argument("--policy", default=None, choices=sorted(names.POLICIES),
-                       help="PS policy of the system layer: 'fixed' (the paper's), 'rule' and 'predictive' (adapt PS "
-                            "to the predicted degradation), 'guard' (preprocess only where the twin's simulation "
-                            "predicts it lowers the error), 'guard-observed' (only while the real observations "
-                            f"favour it); see docs/guides/policies.md (default: {defaults.policy})")
+    group.add_argument("--policy", default=None, metavar="NAME",
+                       help="PS policy of the system layer (docs/guides/policies.md): " + family.POLICIES.help(
+                           "your own PSPolicy subclass", defaults.policy))
     group.add_argument("--choose-base", default=None, choices=names.ARMS, metavar="ARM",
                        help="with --policy choose: the arm in force when no other has the evidence, and the one the "
                             f"others are scored against ({', '.join(names.ARMS)}; default: {names.DEFAULT_CHOOSE_BASE})")

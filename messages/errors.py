@@ -31,8 +31,19 @@ error                       raised for                                      base
 """
 from __future__ import annotations
 
-__all__ = ["DtpfError"]
+__all__ = ["DtpfError", "RunInputError"]
 
 
 class DtpfError(Exception):
     """Something dtpf was given is wrong; the message says what, in one line."""
+
+
+class RunInputError(DtpfError, ValueError):
+    """What the user gave a run cannot be used: an option, a model, a component, an observation file. A service
+    exits 2 with the one-line message, no traceback (dtpf.entity.model_ref.ModelError,
+    dtpf.messages.references.ReferenceLoadError, dtpf.entity.observations.ObservationError). ``validation``:
+    pydantic's error behind a bad option."""
+
+    def __init__(self, message: str, *, validation=None):
+        super().__init__(message)
+        self.validation = validation

@@ -43,7 +43,7 @@ from pydantic import (
     model_validator,
 )
 
-from dtpf.messages import names
+from dtpf.messages import family, names
 from dtpf.messages.arrays import check_particles, check_probability, check_weights, is_plain_float64
 
 UINT32_MAX = 2**32 - 1
@@ -296,7 +296,7 @@ class ParticleSetHeader(Message):
         default=None, ge=1, le=UINT32_MAX, description="Number of distinct particles this set descends from "
                                                         "(distinct ancestors of the last resampling); absent "
                                                         "before the first resampling.")
-    jitter: Literal[names.JITTERS] | None = Field(
+    jitter: Literal[tuple(family.MOVES.builtins())] | None = Field(
         default=None, description="Preprocessed sets: the move the entity applies after resampling this set, "
                                   "the arm the system layer chose (absent: the run's own --jitter).")
 

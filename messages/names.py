@@ -4,9 +4,11 @@ A :class:`~dtpf.messages.config.RunConfig` travels in every Status message and
 every log, so the names it may hold are part of the contract, here, where
 the contract's readers can check them without loading a layer. Each layer
 implements the names of its own room and a test holds the two equal
-(``tests/test_layout.py``): the entity its resamplers and built-in
-scenarios, the information layer its threshold and weight rules, the system
-layer its policies.
+(``tests/test_layout.py``): the entity its built-in scenarios, the
+information layer its threshold, weight and move rules and the choosing
+policy's arms. Resamplers, moves after resampling and PS policies are
+families (:mod:`dtpf.messages.family`): their names are read from their
+registries, never listed here.
 """
 from __future__ import annotations
 
@@ -14,8 +16,8 @@ import functools
 import importlib.metadata
 import sys
 
-__all__ = ["SCENARIOS", "MODEL_ENTRY_POINTS", "CANNOT_SAMPLE", "RESAMPLERS", "THRESHOLD_RULES", "WEIGHT_RULES", "MOVE_RULES", "JITTERS",
-           "POLICIES", "SIMULATING_POLICIES", "POLICIES_STARTING_OFF", "CONSTANT_POLICIES", "ARMS", "scenario_names"]
+__all__ = ["SCENARIOS", "MODEL_ENTRY_POINTS", "CANNOT_SAMPLE", "THRESHOLD_RULES", "WEIGHT_RULES", "MOVE_RULES",
+           "ARMS", "scenario_names"]
 
 #: Built-in scenarios (dtpf.entity.models): Eq. 35 with 25, Eq. 35 as printed (0.25), the tracking video, and a
 #: slowly drifting constant with precise observations (where particles impoverish; not in the paper), and the
@@ -25,25 +27,12 @@ SCENARIOS = ("ungm", "ungm-printed", "video", "drift", "switching", "moving")
 MODEL_ENTRY_POINTS = "dtpf.models"
 #: Built-in scenarios whose model cannot draw observations (no simulating policy with them).
 CANNOT_SAMPLE = frozenset({"video"})
-#: Traditional resampling schemes (dtpf.entity.resampling).
-RESAMPLERS = ("multinomial", "residual", "stratified", "systematic")
 #: Named rules for the threshold W of Eq. 28 (dtpf.information.rules); a number is allowed too.
 THRESHOLD_RULES = ("neff", "inverse-n")
 #: Weights of processed particles (dtpf.information.rules).
 WEIGHT_RULES = ("inherit", "likelihood")
 #: How small particles are moved (dtpf.information.rules): the paper's Eq. 29-30, or the translation-invariant rule.
 MOVE_RULES = ("paper", "relative")
-#: What the entity does to the particles after resampling (dtpf.entity.jitter): nothing (the paper), roughening
-#: (Gordon, Salmond and Smith 1993) or the regularised filter's kernel (Musso, Oudjane and Le Gland 2001).
-JITTERS = ("none", "roughening", "regularised")
-#: PS policies of the system layer (dtpf.system.policy), and those that simulate observations (sample_observation).
-POLICIES = ("choose", "fixed", "guard", "guard-observed", "predictive", "rule")
-SIMULATING_POLICIES = frozenset({"guard", "predictive", "rule"})
-#: Policies whose first step is not preprocessed (the information layer starts with preprocessing off).
-POLICIES_STARTING_OFF = frozenset({"guard", "guard-observed", "choose"})
-#: Policies whose every decision is the run's own PS, preprocessing on: the information layer does not wait
-#: for their decision of the step before (it knows it), so the system layer is off the lockstep's path.
-CONSTANT_POLICIES = frozenset({"fixed"})
 #: The moves the choosing policy picks from (dtpf.information.layer.ARMS): plain resampling, DT preprocessing
 #: with the relative or the paper's rule, roughening, the regularised kernel.
 ARMS = ("plain", "dt-relative", "dt-paper", "roughening", "regularised")

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from dtpf.entity import sources
-from dtpf.messages import names
+from dtpf.messages import family
 from dtpf.messages.config import add_run_arguments, config_from_args
 from dtpf.scripts.console import ProgressBar, run_command
 from dtpf.scripts.sensor import sensor_command
@@ -87,7 +87,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         f"PS range        {ps_text}",
         *([f"preprocessed    {sum(s.report is not None and s.report.n_processed > 0 for s in result.steps)} of "
            f"{len(result.steps)} steps moved particles (policy {config.policy}: off elsewhere)"]
-          if config.preprocess and config.policy in names.POLICIES_STARTING_OFF else []),
+          if config.preprocess and not family.POLICIES.trait(config.policy, "initial_preprocess", True) else []),
         f"degraded steps  {result.degraded}",
         f"time            {result.elapsed:.3f} s ({1e3 * result.elapsed / max(1, len(result.steps)):.3f} ms/step)",
     ]
@@ -366,6 +366,8 @@ def build_parser() -> argparse.ArgumentParser:
     foxglove_layout.register(commands)
     secure.register(commands)
     router.register(commands)
+    from dtpf.scripts import compare
+    compare.register(commands)
     from dtpf.scripts.ros2 import bridge as ros2_bridge, export as ros2_export
     ros2_export.register(commands)
     ros2_bridge.register(commands)

@@ -69,13 +69,14 @@ class SystemLayer:
         from dtpf.system import policy as ps_policy
         from dtpf.system.evidence import Evidence
 
-        base = {"base": config.choose_base} if config.policy == "choose" and config.choose_base else {}
-        policy = ps_policy.get(config.policy, ps=config.ps, max_change=config.ps_rate, **base, **(policy_options or {}))
+        cls_ = ps_policy.policy_class(config.policy)
+        base = {"base": config.choose_base} if cls_.chooses_arms and config.choose_base else {}
+        policy = cls_(ps=config.ps, max_change=config.ps_rate, **base, **(policy_options or {}))
         if policy.simulates and model is None:
             model = model_ref.resolve(config.model_ref)
         options = dict(threshold_rule=config.threshold, weight_rule=config.weight_rule, move_rule=config.move_rule)
         evidence = Evidence(model, config.ps, **options) if policy.uses_evidence else None
-        if isinstance(policy, ps_policy.ChoosePS):
+        if policy.chooses_arms:
             from dtpf.system.choose import ArmEvidence
             evidence = ArmEvidence(model, policy.arms, n=config.particles, threshold_rule=config.threshold,
                                    particles=policy.particles, window=policy.window)

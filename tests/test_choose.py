@@ -26,8 +26,9 @@ CHOSEN = RunConfig(scenario="drift", policy="choose", choose_base="plain", parti
 
 def test_the_arms_the_contract_names_are_the_arms_the_layers_implement():
     assert names.ARMS == tuple(ARMS)
-    assert "choose" in names.POLICIES and "choose" in names.POLICIES_STARTING_OFF
-    assert "choose" not in names.SIMULATING_POLICIES  # no sample_observation: it runs on the video
+    from dtpf.system.policy import POLICIES
+    assert POLICIES["choose"] is ChoosePS and not ChoosePS.initial_preprocess and ChoosePS.chooses_arms
+    assert not ChoosePS.samples_observations  # no sample_observation: it runs on the video
     assert ChoosePS().arms == names.ARMS
 
 

@@ -258,7 +258,7 @@ def test_a_filter_with_jitter_draws_only_from_its_own_stream():
     np.testing.assert_array_equal(plain[0].ancestors, rough[0].ancestors)
     # From step 2 on the particles differ by the jitter the first resampling got.
     assert not np.array_equal(plain[1].particles, rough[1].particles)
-    with pytest.raises(ValueError, match="unknown jitter 'shake'"):
+    with pytest.raises(ValueError, match="unknown move 'shake'"):
         ParticleFilter(model, z, 10, jitter="shake")
 
 

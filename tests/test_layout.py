@@ -150,21 +150,14 @@ def test_the_rooms_of_scripts_import_the_commands_never_each_other_and_the_produ
 
 
 def test_the_contract_names_what_the_layers_implement():
-    from dtpf.entity import models, resampling
+    from dtpf.entity import models
     from dtpf.information import rules
     from dtpf.messages import names
-    from dtpf.system import policy
 
     assert set(names.SCENARIOS) == set(models.MODELS)
     assert names.CANNOT_SAMPLE == {name for name in models.MODELS if not models.get(name).samples_observations}
-    assert set(names.RESAMPLERS) == set(resampling.RESAMPLERS)
     assert set(names.THRESHOLD_RULES) == set(rules.THRESHOLD_RULES)
     assert set(names.WEIGHT_RULES) == set(rules.WEIGHT_RULES)
-    assert set(names.POLICIES) == set(policy.POLICIES)
-    assert names.SIMULATING_POLICIES == {name for name, cls in policy.POLICIES.items() if cls.samples_observations}
-    assert names.POLICIES_STARTING_OFF == {name for name, cls in policy.POLICIES.items()
-                                           if not cls.initial_preprocess}
-    assert names.CONSTANT_POLICIES == {name for name, cls in policy.POLICIES.items() if cls.constant}
     assert set(names.MOVE_RULES) == set(rules.MOVE_RULES)
-    from dtpf.entity import jitter
-    assert set(names.JITTERS) == set(jitter.JITTERS)
+    from dtpf.information import layer
+    assert set(names.ARMS) == set(layer.ARMS)

@@ -141,7 +141,7 @@ def test_the_installed_package_imports_from_its_own_folder(installed, tmp_path):
     assert done.returncode == 0, done.stderr[-3000:]
     where, modules = done.stdout.splitlines()
     assert Path(where).is_relative_to(installed)
-    assert modules == "dtpf.entity.resampling dtpf.scripts.inprocess dtpf.recording.logfile"
+    assert modules == "dtpf.entity.resamplers.systematic dtpf.scripts.inprocess dtpf.recording.logfile"
 
 
 def test_the_public_api_names_what_it_exports():

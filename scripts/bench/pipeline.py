@@ -172,9 +172,9 @@ def _inprocess_child(n: int, steps: int, seed: int) -> int:
 
 def run_floor(config: RunConfig, plan: dict[str, int]) -> float:
     """Seconds per step of one twin's stand-ins passing ``plan``'s messages (steps 10..T)."""
-    from dtpf.messages import names
+    from dtpf.messages import family
     result = fleet_floor.one_run(1, "inbox", config.steps, 1, plan=plan,
-                                 waits=config.policy not in names.CONSTANT_POLICIES)
+                                 waits=not family.POLICIES.trait(config.policy, "constant", False))
     if "stalled" in result:
         raise RuntimeError(f"floor at N={config.particles} stalled after {result['stalled']} of {config.steps} "
                            "estimates")

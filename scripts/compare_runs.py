@@ -1,0 +1,129 @@
+"""The runs of ``dtpf compare``: each (variant, seed) filtered in one process, on worker processes.
+
+A run is :func:`dtpf.scripts.inprocess.run` of its configuration; its figure is the mean squared error
+against the truth when the run knows it, else the mean log predictive likelihood per step. Each worker
+first runs every variant a few steps on a few particles, so numba's kernels are loaded before any run
+is timed, and ignores Ctrl-C: the parent stops the workers and keeps what has finished::
+
+    run_all(tasks, workers=2, warm=[config, ...], on_row=print)
+"""
+from __future__ import annotations
+
+import math
+import multiprocessing
+import signal
+from dataclasses import dataclass
+
+import numpy as np
+
+from dtpf.entity import sources
+from dtpf.messages.config import RunConfig
+from dtpf.scripts.compare_csv import RunRow
+
+__all__ = ["MSE", "LOG_PREDICTIVE", "Task", "RunFailed", "run_task", "run_all", "warm_up"]
+
+#: The metric's names, as the CSV keeps them.
+MSE, LOG_PREDICTIVE = "mse", "log_predictive"
+#: The warm-up of a worker: this many particles and steps of each variant.
+WARM_PARTICLES, WARM_STEPS = 50, 3
+
+
+@dataclass(frozen=True)
+class Task:
+    """One run to make: a variant's label, spec and settings, and the run's configuration (with its seed)."""
+
+    label: str
+    spec: str
+    settings: str
+    config: RunConfig
+
+
+class RunFailed(RuntimeError):
+    """A run raised: which variant and seed, and what it said (one line)."""
+
+
+@dataclass(frozen=True)
+class _Failure:
+    label: str
+    seed: int
+    message: str
+
+
+#: The models of this process by (scenario, model): loaded (and checked in the parent) once.
+_MODELS: dict[tuple[str, str | None], object] = {}
+
+
+def _model(config: RunConfig):
+    key = (config.scenario, config.model)
+    if key not in _MODELS:
+        _MODELS[key] = sources.load_model(config, check=False)
+    return _MODELS[key]
+
+
+def run_task(task: Task) -> RunRow | _Failure:
+    """The row of one run (a failure, not an exception, when the run raises: the parent names it)."""
+    from dtpf.scripts.inprocess import run
+
+    try:
+        result = run(task.config, model=_model(task.config))
+    except Exception as error:  # a user's model or file may raise anything; the parent reports it
+        message = " ".join(f"{type(error).__name__}: {error}".split())
+        return _Failure(task.label, task.config.seed, message)
+    if result.has_truth:
+        metric, value = MSE, result.mse
+    else:
+        metric, value = LOG_PREDICTIVE, float(np.mean(result.log_predictive))
+    steps = len(result.steps)
+    return RunRow(task.label, task.spec, task.settings, task.config.seed, metric, float(value), result.mean_ess,
+                  steps, 1e3 * result.elapsed / steps if steps else math.nan)
+
+
+def warm_up(configs: list[RunConfig]) -> None:
+    """Run each configuration on a few particles and steps: numba's kernels load, the models too. A
+    configuration that raises is passed over: its runs will say what is wrong."""
+    from dtpf.scripts.inprocess import run
+
+    for config in configs:
+        small = dict(particles=min(config.particles, WARM_PARTICLES),
+                     steps=min(config.steps or WARM_STEPS, WARM_STEPS))
+        try:
+            run(config.model_copy(update=small), model=_model(config))
+        except Exception:  # noqa: BLE001 - a worker that died here would be started again and again
+            continue
+
+
+def _start_worker(configs: list[RunConfig]) -> None:
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
+    warm_up(configs)
+
+
+def run_all(tasks: list[Task], workers: int, warm: list[RunConfig], on_row) -> None:
+    """Run every task, calling ``on_row(row)`` in this process as each ends; raises :class:`RunFailed` for a
+    run that raised, after stopping the others. ``workers`` 1 runs them here; more, in worker processes
+    (forkserver where there is one, else spawn), each warmed with ``warm`` first. A KeyboardInterrupt stops
+    the workers at once; the rows given to ``on_row`` so far are all that finished."""
+    if not tasks:
+        return
+    if workers <= 1:
+        warm_up(warm)
+        for task in tasks:
+            on_row(_checked(run_task(task)))
+        return
+    method = "forkserver" if "forkserver" in multiprocessing.get_all_start_methods() else "spawn"
+    pool = multiprocessing.get_context(method).Pool(min(workers, len(tasks)), initializer=_start_worker,
+                                                     initargs=(warm,))
+    try:
+        for outcome in pool.imap_unordered(run_task, tasks):
+            on_row(_checked(outcome))
+        pool.close()
+    except BaseException:
+        pool.terminate()
+        raise
+    finally:
+        pool.join()
+
+
+def _checked(outcome: RunRow | _Failure) -> RunRow:
+    if isinstance(outcome, _Failure):
+        raise RunFailed(f"variant {outcome.label!r}, seed {outcome.seed}: {outcome.message}")
+    return outcome

@@ -33,7 +33,7 @@ def _problems(error: ValidationError, flags: bool = False) -> str:
         name = "-".join(str(part) for part in loc) if flags else ".".join(str(part) for part in loc)
         return (f"--{name.replace('_', '-')}" if flags else name) + ": "
 
-    return "; ".join(where(e["loc"]) + e["msg"] for e in error.errors())
+    return "; ".join(where(e["loc"]) + e["msg"].removeprefix("Value error, ") for e in error.errors())
 
 
 class RunConfig(BaseModel):

@@ -36,6 +36,7 @@ Resolved members are cached per name or reference in each process.
 from __future__ import annotations
 
 import importlib
+import importlib.util
 import pkgutil
 import threading
 from dataclasses import dataclass
@@ -44,7 +45,7 @@ from pathlib import Path
 from dtpf.messages import references
 from dtpf.messages.references import ReferenceLoadError
 
-__all__ = ["Family", "Member", "RESAMPLERS", "MOVES", "POLICIES", "THRESHOLDS", "FAMILIES", "MAX_REFERENCE"]
+__all__ = ["Family", "Member", "component_records", "code_file", "CODE_FIELDS", "RESAMPLERS", "MOVES", "POLICIES", "THRESHOLDS", "FAMILIES", "MAX_REFERENCE"]
 
 #: The longest name or reference a run configuration or a message may carry.
 MAX_REFERENCE = 4096
@@ -232,6 +233,59 @@ def _summary(obj) -> str:
     return doc.splitlines()[0].strip().rstrip(".") if doc else ""
 
 
+def code_file(reference: str, group: str | None = None) -> Path | None:
+    """The file a reference's code lives in, found without importing it: ``path.py`` of ``path.py:NAME``
+    (relative to the current directory), the module's file of ``package.module:NAME``, the module of an
+    entry point of ``group`` for a plain name; None when none is found (a built-in, a missing file)."""
+    if references.is_reference(reference):
+        source = reference.rpartition(":")[0]
+        if references.is_path(source):
+            path = references.resolved_path(source)
+            return path if path.is_file() else None
+        module = source
+    elif group is not None:
+        point = references.entry_points(group).get(reference)
+        if point is None:
+            return None
+        module = point.value.split(":")[0].strip()
+        if references.is_path(module):
+            path = references.resolved_path(module)
+            return path if path.is_file() else None
+    else:
+        return None
+    try:
+        spec = importlib.util.find_spec(module)
+    except (ImportError, ValueError):
+        return None
+    origin = getattr(spec, "origin", None)
+    return Path(origin) if origin and Path(origin).is_file() else None
+
+
+#: The run configuration fields that may name a user's code, with the entry-point group of their plain names.
+CODE_FIELDS = {"model": "dtpf.models", "resampler": "dtpf.resamplers", "jitter": "dtpf.moves",
+               "threshold": "dtpf.thresholds", "policy": "dtpf.policies"}
+
+
+def component_records(config) -> list[dict]:
+    """Each field of ``config`` that names code other than dtpf's own: ``{field, reference, sha256}``, the
+    digest of the file as found now (None when no file is found). Built-in names give no record."""
+    records = []
+    for field, group in CODE_FIELDS.items():
+        value = getattr(config, field, None)
+        if not isinstance(value, str) or not value:
+            continue
+        if not references.is_reference(value):
+            if value not in references.entry_points(group):
+                continue  # a built-in (or a number, for the threshold)
+            family = next((f for f in FAMILIES.values() if f.group == group), None)
+            if family is not None and value in family.builtins():
+                continue  # an installed package never replaces a built-in
+        path = code_file(value, group)
+        records.append({"field": field, "reference": value,
+                        "sha256": references.file_sha256(path) if path is not None else None})
+    return records
+
+
 #: Traditional resampling schemes: ``ancestors = resample(weights, rng)`` (dtpf.entity.resamplers).
 RESAMPLERS = Family("resampler", "dtpf.entity.resamplers", "dtpf.resamplers")
 #: Moves after resampling: ``moved = move(resampled, particles, weights, rng)`` (dtpf.entity.moves).
@@ -242,4 +296,4 @@ THRESHOLDS = Family("threshold rule", "dtpf.information.thresholds", "dtpf.thres
 POLICIES = Family("PS policy", "dtpf.system.policies", "dtpf.policies")
 
 #: Every family by the RunConfig field that names its member.
-FAMILIES = {"resampler": RESAMPLERS, "jitter": MOVES, "policy": POLICIES}
+FAMILIES = {"resampler": RESAMPLERS, "jitter": MOVES, "threshold": THRESHOLDS, "policy": POLICIES}

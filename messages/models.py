@@ -554,6 +554,24 @@ class NamedCount(BaseModel):
     count: Count = Field(description="How many times.")
 
 
+class Component(BaseModel):
+    """A user's code a run names (its model, resampler, move, threshold rule or policy), as a log keeps it so that
+    a re-run can tell whether the code changed (:func:`dtpf.messages.family.component_records`)."""
+
+    model_config = STRICT_CONFIG
+
+    field: str = Field(max_length=32, pattern=r"^[a-z_]+$", description="The run configuration field that names "
+                                                                       "it: model, resampler, jitter, threshold, policy.")
+    reference: str = Field(max_length=4096, description="The reference as the run gives it (path/to/file.py:NAME, "
+                                                        "package.module:NAME or an entry-point name).")
+    sha256: str | None = Field(default=None, pattern=r"^[0-9a-f]{64}$",
+                               description="SHA-256 of the file its code was loaded from, when one was found.")
+
+
+#: Most components a status lists (one per field of the run configuration that may name code).
+MAX_COMPONENTS = 8
+
+
 class Status(Message):
     """Health of one layer process, published periodically and on change."""
 
@@ -569,6 +587,9 @@ class Status(Message):
                     "so a log says how to re-run its layers.")
     detail: str | None = Field(default=None, max_length=1000,
                                description="What the process is doing or waiting for, in words.")
+    components: list[Component] = Field(
+        default_factory=list, max_length=MAX_COMPONENTS,
+        description="The user's code the run names, with the SHA-256 of each file as this process found it.")
     observations: ObservationCounts | None = Field(
         default=None, description="A live entity's observation intake: accepted, rejected by reason, the "
                                   "last sequence number (a restarted sensor continues after it).")

@@ -79,7 +79,7 @@ def import_module(module_name: str, where: str, error: type[ReferenceLoadError] 
         raise error(f"{where}: importing module {module_name!r} raised {describe(exc)}") from exc
 
 
-def _resolved_path(source: str) -> Path:
+def resolved_path(source: str) -> Path:
     path = Path(os.path.expanduser(source))
     if not path.is_absolute():
         path = Path.cwd() / path
@@ -93,7 +93,7 @@ def load_file(source: str, where: str, error: type[ReferenceLoadError] = Referen
     Its folder is appended to ``sys.path`` (once), so the file may import the modules beside it; anything
     of the same name on the path before it (dtpf, the standard library, installed packages) wins.
     """
-    path = _resolved_path(source)
+    path = resolved_path(source)
     if not path.exists():
         raise error(f"{where}: {noun} {source!r} not found (looked for {path})")
     if not path.is_file():

@@ -316,7 +316,7 @@ def test_services_reject_bad_configuration_at_startup():
     completed = subprocess.run([sys.executable, "-m", "dtpf.information.service", "--resampler", "best"],
                                cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert completed.returncode == 2
-    assert "invalid choice: 'best'" in completed.stderr
+    assert "--resampler: unknown resampler 'best'; expected one of multinomial," in completed.stderr
     completed = subprocess.run([sys.executable, "-m", "dtpf.system.service", "--ps", "1.5"],
                                cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert completed.returncode == 2

@@ -29,12 +29,12 @@ import time
 import zenoh
 from threadpoolctl import threadpool_limits
 
-from dtpf.messages import keys
+from dtpf.messages import family, keys
 from dtpf.messages.admission import RunShape, kind_of
 from dtpf.messages.codec import MessageError, decode_for_key, encode
 from dtpf.messages.config import RunConfig
 from dtpf.messages.errors import DtpfError
-from dtpf.messages.models import Layer, Message, NamedCount, ServiceState, Status
+from dtpf.messages.models import Component, Layer, Message, NamedCount, ServiceState, Status
 from dtpf.shell.bus import DEFAULT_MAX_ITEMS, BusError, Inbox, Presence, Received, open_session, publisher
 
 __all__ = ["ServiceShell", "add_service_arguments", "run_service"]
@@ -242,6 +242,7 @@ class ServiceShell:
         self._inboxes: list[Inbox] = []
         self._lock = threading.Lock()
         self._config_json = config.model_dump_json()
+        self._components = [Component(**record) for record in family.component_records(config)]
         self.doorbell = doorbell
         self.watchdog = ExitWatchdog(self.log) if not self.shared else None
         self.session = session if self.shared else open_session(zenoh_config)
@@ -416,7 +417,7 @@ class ServiceShell:
             return Status(**self.header(0), layer=self.layer, state=self.state, pid=os.getpid(),
                           received=self.received, rejected=self.rejected, last_error=self.last_error,
                           peers_alive=sorted(self.presence.alive & _LAYER_NAMES), config_json=self._config_json,
-                          detail=self.detail, observations=counts, queued=sum(len(inbox) for inbox in self._inboxes),
+                          detail=self.detail, components=self._components, observations=counts, queued=sum(len(inbox) for inbox in self._inboxes),
                           rejections=self.rejections.most_common(),
                           rejected_on=self.rejected_on.most_common())
 

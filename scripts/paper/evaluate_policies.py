@@ -22,7 +22,9 @@ the filter then saw) and draws PS over time for a typical run::
     python -m dtpf.scripts.paper.evaluate_policies              # 200 seeds, N in {100, 500, 1000}
     python -m dtpf.scripts.paper.evaluate_policies --quick      # 10 seeds, N = 100: a smoke run
 
-Progress goes to stderr, the tables to stdout.
+Progress goes to stderr, the tables to stdout. The variants are ``dtpf compare`` variants and the
+statistics are its own (:mod:`dtpf.scripts.compare_stats`): the MSE and difference columns of a cell
+are what ``dtpf compare`` prints for it, the command printed at the end of the report.
 """
 from __future__ import annotations
 
@@ -37,21 +39,25 @@ from pathlib import Path
 import numpy as np
 
 from dtpf.messages.config import RunConfig
+from dtpf.scripts.compare_stats import mean_interval, paired_difference
+from dtpf.scripts.compare_variants import Variant, parse_variant
 from dtpf.scripts.inprocess import build, simulate
 
-#: Variants by label: RunConfig options.
-VARIANTS: dict[str, dict] = {
-    "systematic": dict(preprocess=False, resampler="systematic"),
-    "multinomial": dict(preprocess=False, resampler="multinomial"),
-    "stratified": dict(preprocess=False, resampler="stratified"),
-    "residual": dict(preprocess=False, resampler="residual"),
-    "DT, PS = 0": dict(policy="fixed", ps=0.0),
-    "DT, PS = 0.5": dict(policy="fixed", ps=0.5),
-    "DT, PS = 0.81": dict(policy="fixed", ps=0.81),
-    "DT, PS = 1": dict(policy="fixed", ps=1.0),
-    "DT, rule": dict(policy="rule", ps=0.81),
-    "DT, predictive": dict(policy="predictive", ps=0.81),
-}
+#: The variants, as ``dtpf compare --variant`` reads them (LABEL:FIELD=VALUE,...).
+VARIANT_SPECS = (
+    "systematic:preprocess=false,resampler=systematic",
+    "multinomial:preprocess=false,resampler=multinomial",
+    "stratified:preprocess=false,resampler=stratified",
+    "residual:preprocess=false,resampler=residual",
+    "DT, PS = 0:policy=fixed,ps=0",
+    "DT, PS = 0.5:policy=fixed,ps=0.5",
+    "DT, PS = 0.81:policy=fixed,ps=0.81",
+    "DT, PS = 1:policy=fixed,ps=1",
+    "DT, rule:policy=rule,ps=0.81",
+    "DT, predictive:policy=predictive,ps=0.81",
+)
+#: Variants by label.
+VARIANTS: dict[str, Variant] = {variant.label: variant for variant in map(parse_variant, VARIANT_SPECS)}
 BASELINE = "systematic"
 PAPER = "DT, PS = 0.81"
 FIGURES = ("mse", "ess", "distinct", "low_ess_steps", "ms_per_step")
@@ -93,24 +99,21 @@ def run_variant(config: RunConfig) -> dict:
 
 def _warm_up() -> None:
     """Load every compiled function in a worker, so no run's time per step includes it."""
-    for options in VARIANTS.values():
-        run_variant(RunConfig(particles=50, steps=3, **options))
+    for variant in VARIANTS.values():
+        run_variant(variant.config(RunConfig(particles=50, steps=3), seed=0))
 
 
 def run_task(task: Task) -> tuple[Task, dict[str, dict]]:
-    results = {}
-    for label, options in VARIANTS.items():
-        config = RunConfig(scenario=task.scenario, particles=task.particles, seed=task.seed, steps=task.steps,
-                           **options)
-        results[label] = run_variant(config)
+    base = RunConfig(scenario=task.scenario, particles=task.particles, steps=task.steps)
+    results = {label: run_variant(variant.config(base, seed=task.seed)) for label, variant in VARIANTS.items()}
     return task, results
 
 
-def mean_ci(values) -> tuple[float, float]:
-    """Mean and half-width of its 95% normal interval."""
-    values = np.asarray(values, dtype=np.float64)
-    half = 1.96 * float(values.std(ddof=1)) / math.sqrt(values.size) if values.size > 1 else math.nan
-    return float(values.mean()), half
+def compare_command(scenario: str, particles: int, seeds: int, steps: int, baseline: str = BASELINE) -> str:
+    """The ``dtpf compare`` command that gives the MSE and difference columns of one cell."""
+    variants = " ".join(f"--variant '{spec}'" for spec in VARIANT_SPECS)
+    return (f"dtpf compare --scenario {scenario} -n {particles} -T {steps} --seeds {seeds} {variants} "
+            f"--baseline '{baseline}'")
 
 
 def _fmt(value: float, half: float, digits: int) -> str:
@@ -127,9 +130,10 @@ def table(cells: dict[tuple[str, int], dict[int, dict[str, dict]]]) -> str:
         paper = np.array([by_seed[s][PAPER]["mse"] for s in seeds])
         for label in VARIANTS:
             get = {f: np.array([by_seed[s][label][f] for s in seeds]) for f in FIGURES}
-            m, h = mean_ci(get["mse"])
-            diff = "-" if label == BASELINE else _fmt(*mean_ci(get["mse"] - base), digits)
-            vs_paper = _fmt(*mean_ci(get["mse"] - paper), digits) if label.startswith("DT") and label != PAPER else "-"
+            m, h = mean_interval(get["mse"])
+            diff = "-" if label == BASELINE else _fmt(*paired_difference(get["mse"], base), digits)
+            vs_paper = _fmt(*paired_difference(get["mse"], paper), digits) \
+                if label.startswith("DT") and label != PAPER else "-"
             lines.append(f"| {scenario} | {n} | {label} | {_fmt(m, h, digits)} | {diff} | {vs_paper} "
                          f"| {get['ess'].mean():.1f} "
                          f"| {get['distinct'].mean():.3f} | {get['low_ess_steps'].mean():.1f} "
@@ -232,6 +236,10 @@ def main(argv=None) -> int:
     print(predictor_table(cells))
     which = plot_typical(cells, args.plot, args.steps)
     print(f"\nPS over time: {args.plot} ({which}).")
+    scenario, n = next(iter(cells))
+    print(f"\nThe MSE and the differences against systematic of a cell (here {scenario}, N = {n}) with dtpf compare "
+          f"(add --baseline '{PAPER}' for the other column):\n\n    "
+          f"{compare_command(scenario, n, args.seeds, args.steps)}")
     print(f"\n({elapsed:.0f} s on {args.workers} workers)")
     return 0
 

@@ -103,11 +103,14 @@ def _decimals(half: float) -> int:
 
 def format_interval(value: float, half: float) -> str:
     """``value ± half`` with three significant digits of the half-width and the value to the same decimals
-    (``25.08 ± 1.53``, ``4.369 ± 0.152``); the value alone (4 significant digits) when the half is unknown."""
+    (``25.08 ± 1.53``, ``4.369 ± 0.152``); ``0 ± 0`` when every value is the same; the value alone (4 significant
+    digits) when the half is unknown."""
     if not math.isfinite(value):
         return "-"
     if not math.isfinite(half):
         return f"{value:.4g}"
+    if half == 0:  # every value the same (a variant identical to the baseline)
+        return f"{value:.4g} ± 0"
     digits = _decimals(half)
     return f"{value:.{digits}f} ± {half:.{digits}f}"
 
@@ -118,6 +121,8 @@ def format_change(change: float, half: float) -> str:
         return "-"
     if not math.isfinite(half):
         return f"{change:+.3g}%"
+    if half == 0:
+        return f"{change:+.3g}% ± 0%"
     digits = max(0, _decimals(half) - 1)  # two significant digits of a percentage's half-width
     return f"{change:+.{digits}f}% ± {half:.{digits}f}%"
 

@@ -74,6 +74,7 @@ def test_intervals_print_three_digits_of_the_half_width():
     assert stats.format_interval(4.36912, 0.15231) == "4.369 ± 0.152"
     assert stats.format_interval(0.0021, 0.0312) == "0.0021 ± 0.0312"
     assert stats.format_interval(3.0, math.nan) == "3"
+    assert stats.format_interval(0.0, 0.0) == "0 ± 0" and stats.format_change(0.0, 0.0) == "+0% ± 0%"
     assert stats.format_change(11.94, 6.61) == "+11.9% ± 6.6%"
     assert stats.format_change(-0.4, 0.45) == "-0.40% ± 0.45%"
 

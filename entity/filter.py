@@ -50,7 +50,7 @@ from dtpf.messages.errors import DtpfError
 from dtpf.messages.models import MAX_COVARIANCE_DIM
 from dtpf.messages.streams import stream
 
-__all__ = ["ParticleFilter", "FilterStep", "PendingStep", "Preprocessor", "Preprocessed", "PreprocessReport", "FilterError"]
+__all__ = ["ParticleFilter", "FilterStep", "PendingStep", "Preprocessor", "Preprocessed", "FilterError"]
 
 #: z value of a two-sided 95% normal interval.
 Z95 = 1.959963984540054
@@ -61,36 +61,13 @@ class FilterError(DtpfError, ValueError):
 
 
 @dataclass(frozen=True)
-class PreprocessReport:
-    """What one preprocessing did.
-
-    Attributes
-    ----------
-    threshold : float
-        W of Eq. 28.
-    n_large : int
-        M, particles with weight > W (kept unchanged).
-    n_processed : int
-        N - M, particles moved by Eq. 29-30.
-    n_mixed : int
-        Processed particles that took the first branch of Eq. 30 (u <= PS).
-    n_plain : int
-        Processed particles that took the second branch (u > PS).
-    ps : float
-        The degree factor used.
-    """
-
-    threshold: float
-    n_large: int
-    n_processed: int
-    n_mixed: int
-    n_plain: int
-    ps: float
-
-
-@dataclass(frozen=True)
 class Preprocessed:
-    """What a preprocessor hands back: the set to resample, and its report."""
+    """What a preprocessor hands back: the set to resample, and its report.
+
+    The filter keeps ``report`` in its step without reading it: the information layer's
+    ``PreprocessReport`` in process, the preprocessed set's message over Zenoh (both carry W, M, N - M,
+    the branches of Eq. 30 and PS).
+    """
 
     particles: np.ndarray
     weights: np.ndarray

@@ -27,7 +27,7 @@ import zenoh
 
 from dtpf.entity import sources
 from dtpf.entity.cloud import FIELDS, POINT_STRIDE, cloud_points
-from dtpf.entity.filter import ParticleFilter, PendingStep, Preprocessed, PreprocessReport
+from dtpf.entity.filter import ParticleFilter, PendingStep, Preprocessed
 from dtpf.entity.intake import ObservationIntake
 from dtpf.messages.admission import RunShape
 from dtpf.messages.codec import encode_with_base64
@@ -105,10 +105,10 @@ class ZenohTwin:
             if answer.step != step:
                 shell.log.debug("ignored a late preprocessed set of step %d at step %d", answer.step, step)
                 continue
-            report = PreprocessReport(answer.threshold, answer.n_large, answer.n_processed,
-                                      answer.n_mixed, answer.n_plain, answer.ps)
             try:
-                return Preprocessed(answer.particles, answer.weights, report, checked=True,
+                # The report: the message, which carries its fields (threshold, n_large, n_processed, n_mixed,
+                # n_plain, ps); the filter keeps it without reading it, the estimate takes its PS.
+                return Preprocessed(answer.particles, answer.weights, answer, checked=True,
                                     jitter=answer.jitter), False
             except ValueError as error:  # the shell checked the shape; anything else is counted too
                 shell.reject("preprocessed set the filter cannot take", f"step {step}: {error}",

@@ -29,6 +29,8 @@ from dtpf.entity.models import StateSpaceModel
 from dtpf.information import rules
 from dtpf.information.mirror import WeightSummary, summarise
 from dtpf.messages.arrays import check_probability
+from dtpf.messages.family import THRESHOLDS
+from dtpf.messages.names import MOVE_RULE_REGISTRY, WEIGHT_RULE_REGISTRY
 from dtpf.messages.streams import stream
 
 __all__ = ["InformationLayer", "InformationOutput", "Arm", "ARMS"]
@@ -94,7 +96,8 @@ class InformationLayer:
     ps : float
         PS in force until the system layer says otherwise.
     threshold_rule, weight_rule, move_rule :
-        Options of :func:`dtpf.information.rules.preprocess`.
+        Options of :func:`dtpf.information.rules.preprocess`. A threshold rule that names a user's
+        code is loaded and tried here (:class:`~dtpf.messages.references.ReferenceLoadError`, one line).
     seed, twin :
         Key of the random streams: step k draws from
         ``stream(seed, twin, k, "information")``.
@@ -116,13 +119,11 @@ class InformationLayer:
         #: The chosen arm in force (None: the run's own preprocessing options).
         self.arm: Arm | None = None
         self.pending: list[tuple[int, float, bool, Arm | None]] = []
+        if isinstance(threshold_rule, str):
+            THRESHOLDS.get(threshold_rule)  # a user's rule is loaded and tried on a small set here, not at step 1
         self.threshold_rule = threshold_rule
-        if weight_rule not in rules.WEIGHT_RULES:
-            raise ValueError(f"unknown weight rule {weight_rule!r}; expected one of {', '.join(rules.WEIGHT_RULES)}")
-        self.weight_rule = weight_rule
-        if move_rule not in rules.MOVE_RULES:
-            raise ValueError(f"unknown move rule {move_rule!r}; expected one of {', '.join(rules.MOVE_RULES)}")
-        self.move_rule = move_rule
+        self.weight_rule = WEIGHT_RULE_REGISTRY.check_name(weight_rule)
+        self.move_rule = MOVE_RULE_REGISTRY.check_name(move_rule)
         self.seed = seed
         self.twin = twin
         self._ahead: tuple[int, np.random.Generator] | None = None

@@ -45,30 +45,38 @@ Interpretations the paper leaves open, each an option:
 
 - ``threshold``: ``"neff"`` (default; the paper: "W is usually selected as
   the N_eff value"): W is the (k+1)-th largest weight with k = round(ESS),
-  so k particles are large; ``"inverse-n"``: W = 1/N; or a float W.
+  so k particles are large; ``"inverse-n"``: W = 1/N; a user's rule
+  ``W = rule(weights)`` named by ``path/to/file.py:NAME``; or a float W.
+  The rules are a family (:mod:`dtpf.information.thresholds`).
 - ``weight_rule``: ``"inherit"`` (default): processed particles keep their
   old weights, the paper moves positions only; ``"likelihood"``: the weight
   is re-evaluated at the new position,
   w_l <- w_l p(z | x_tilde_l) / p(z | x_l), then all weights renormalised.
   A particle whose weight underflowed to exactly 0 stays at 0.
+
+The weight rules and the move rules are registries of built-ins
+(:mod:`dtpf.information.weight_rules`, :mod:`dtpf.information.move_rules`):
+their names are read from there. The move rules' code is here, beside the
+compiled split and random stream they share.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable, Literal
+from typing import Callable
 
 import numba
 import numpy as np
 
-from dtpf.entity.filter import PreprocessReport  # the filter's contract: what it receives
+from dtpf.information.report import PreprocessReport
 from dtpf.information.select import RADIX_MIN, kth_largest
 from dtpf.messages.arrays import check_probability, check_set
+from dtpf.messages.family import THRESHOLDS
+from dtpf.messages.names import MOVE_RULE_REGISTRY, WEIGHT_RULE_REGISTRY
 
 __all__ = [
-    "THRESHOLD_RULES",
-    "WEIGHT_RULES",
-    "MOVE_RULES",
     "apply_relative",
+    "move_paper",
+    "move_relative",
     "spread",
     "PreprocessReport",
     "PreprocessResult",
@@ -80,10 +88,17 @@ __all__ = [
     "unprocessed",
 ]
 
-THRESHOLD_RULES = ("neff", "inverse-n")
-WEIGHT_RULES = ("inherit", "likelihood")
-#: How a small particle is moved: the paper's Eq. 29-30, or the translation-invariant rule (module docstring).
-MOVE_RULES = ("paper", "relative")
+
+
+def __getattr__(name: str):
+    # WEIGHT_RULES and MOVE_RULES: the names of the two registries (dtpf.messages.names) as tuples, read when
+    # asked for, so that importing this module does not import the rules' packages (whose modules import it).
+    if name == "WEIGHT_RULES":
+        return tuple(WEIGHT_RULE_REGISTRY.names())
+    if name == "MOVE_RULES":
+        return tuple(MOVE_RULE_REGISTRY.names())
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
 
 LogLikelihood = Callable[[np.ndarray], np.ndarray]
 
@@ -100,33 +115,28 @@ class PreprocessResult:
 def threshold(weights: np.ndarray, rule: str | float = "neff") -> float:
     """The threshold W of Eq. 28 for normalised ``weights``.
 
-    ``"neff"``: with k = round(1 / sum w^2) (Eq. 25) clipped to [1, N], W is
-    the (k+1)-th largest weight, so the k heaviest particles are large (ties
-    at W count as small). With k = N every positive weight is large: W = 0.
-    ``"inverse-n"``: W = 1 / N. A float is used as W itself.
+    ``rule`` names a member of the threshold rules' family
+    (:mod:`dtpf.information.thresholds`): ``"neff"``: with k = round(1 / sum w^2)
+    (Eq. 25) clipped to [1, N], W is the (k+1)-th largest weight, so the k
+    heaviest particles are large (ties at W count as small); with k = N every
+    positive weight is large: W = 0. ``"inverse-n"``: W = 1 / N. A reference
+    ``path/to/file.py:NAME`` names a user's ``W = rule(weights)``. A number is
+    used as W itself. An unknown name, or a user's rule that fails its
+    contract, raises :class:`~dtpf.messages.references.ReferenceLoadError` (a
+    ValueError) in one line.
     """
     return _threshold(weights, rule)[0]
 
 
 def _threshold(weights: np.ndarray, rule: str | float) -> tuple[float, int]:
-    """(W, the most weights that can exceed it): k for "neff", N otherwise."""
-    w = weights
-    n = w.size
+    """(W, the most weights that can exceed it): the family's member's split (k for "neff", N for
+    "inverse-n" and a user's rule), or a number and N."""
     if isinstance(rule, str):
-        if rule == "neff":
-            k = min(max(round(1.0 / float(np.dot(w, w))), 1), n)
-            if k >= n:
-                return 0.0, n
-            return kth_largest(w, k + 1), k
-        if rule == "inverse-n":
-            return 1.0 / n, n
-        raise ValueError(
-            f"unknown threshold rule {rule!r}; expected one of {', '.join(THRESHOLD_RULES)} or a number"
-        )
+        return THRESHOLDS.get(rule)(weights)
     value = float(rule)
     if not np.isfinite(value) or value < 0:
         raise ValueError(f"threshold W must be a finite non-negative number, got {rule!r}")
-    return value, n
+    return value, weights.size
 
 
 @numba.njit(cache=True, nogil=True)
@@ -383,9 +393,12 @@ def apply_relative(x_m: np.ndarray, x_l: np.ndarray, r: np.ndarray, u: np.ndarra
     return x_m + factors[:, None] * cap * diff
 
 
-def _move_relative(x: np.ndarray, w: np.ndarray, limit: float, ps: float, rng: np.random.Generator):
-    """(new particles or None, W, M, N - M, mixed) of the relative rule: the same split and draws as
-    the paper's rule (:func:`draws`, after the seed words of :func:`_seed`)."""
+def move_relative(x: np.ndarray, w: np.ndarray, threshold_rule: str | float, ps: float,
+                  rng: np.random.Generator):
+    """(new particles or None, W, M, N - M, mixed) of the relative rule (the move rule "relative",
+    :mod:`dtpf.information.move_rules`): the same split and draws as the paper's rule (:func:`draws`,
+    after the seed words of :func:`_seed`)."""
+    limit, _ = _threshold(w, threshold_rule)
     small = np.flatnonzero(w <= limit)
     large = np.flatnonzero(w > limit)
     if large.size == 0 or small.size == 0:
@@ -412,10 +425,11 @@ def _preprocess_small(x, w, threshold_rule, ps, rng):
     """:func:`preprocess`'s numbers for N < SMALL_SET and a PCG64, in one compiled call: (new particles
     or None, W, M, N - M, mixed). The four seed words are drawn first and given back (the PCG64 steps
     back 4) when nothing is moved, so ``rng`` ends where the general path leaves it."""
-    n = w.size
-    if isinstance(threshold_rule, str) and threshold_rule == "neff":
-        k = min(max(round(1.0 / float(np.dot(w, w))), 1), n)
-        limit, rank, capacity = 0.0, (n - k - 1 if k < n else -1), (k if k < n else n)
+    member = THRESHOLDS.get(threshold_rule) if isinstance(threshold_rule, str) else None
+    order = getattr(member, "order", None)
+    if order is not None:  # W selected in the compiled call (neff: the (k+1)-th largest weight)
+        limit = 0.0
+        rank, capacity = order(w)
     else:
         (limit, capacity), rank = _threshold(w, threshold_rule), -1
     out, limit, n_large, n_small, n_mixed = _rules(x, w, limit, rank, capacity, ps, _seed(rng))
@@ -423,6 +437,21 @@ def _preprocess_small(x, w, threshold_rule, ps, rng):
         rng.bit_generator.advance(-4 % 2 ** 128)
         return None, float(limit), int(n_large), 0, 0
     return out, float(limit), int(n_large), int(n_small), int(n_mixed)
+
+
+def move_paper(x: np.ndarray, w: np.ndarray, threshold_rule: str | float, ps: float, rng: np.random.Generator):
+    """(new particles or None, W, M, N - M, mixed) of Eq. 29-30 as printed (the move rule "paper",
+    :mod:`dtpf.information.move_rules`): one compiled call for a small set drawn from a PCG64, else the
+    split, then the moves in blocks (the same numbers)."""
+    if w.size < SMALL_SET and type(rng.bit_generator) is np.random.PCG64:
+        return _preprocess_small(x, w, threshold_rule, ps, rng)
+    limit, capacity = _threshold(w, threshold_rule)
+    small_idx, large_rows, new_particles = _split(w, limit, x, capacity)
+    n_small, n_large = small_idx.size, large_rows.shape[0]
+    if n_large == 0 or n_small == 0:
+        return None, limit, n_large, 0, 0
+    n_mixed = int(_move_blocked(x, small_idx, large_rows, ps, _seed(rng), new_particles))
+    return new_particles, limit, n_large, n_small, n_mixed
 
 
 def unprocessed(particles, weights, ps: float, *, threshold_rule: str | float = "neff",
@@ -448,7 +477,7 @@ def preprocess(
     rng: np.random.Generator,
     *,
     threshold_rule: str | float = "neff",
-    weight_rule: Literal["inherit", "likelihood"] = "inherit",
+    weight_rule: str = "inherit",
     log_likelihood: LogLikelihood | None = None,
     checked: bool = False,
     move_rule: str = "paper",
@@ -465,10 +494,10 @@ def preprocess(
         Seeds the rules' stream: four 64-bit words start a xoshiro256**
         generator that gives, for each small particle in index order, the
         position of x_m in the large set, then r, then u (see :func:`draws`).
-    threshold_rule : "neff", "inverse-n" or float
+    threshold_rule : "neff", "inverse-n", a reference to a user's rule, or float
         How W of Eq. 28 is chosen; see :func:`threshold`.
     weight_rule : "inherit" or "likelihood"
-        Weights of processed particles; see the module docstring.
+        Weights of processed particles (:mod:`dtpf.information.weight_rules`); see the module docstring.
     log_likelihood : callable, optional
         ``(M, d) -> (M,)`` log p(z_k | x); required by ``"likelihood"``.
     checked : bool
@@ -477,7 +506,8 @@ def preprocess(
         only their dtype, rank and lengths are checked again.
     move_rule : "paper" or "relative"
         Eq. 29-30 as printed (default), or the translation-invariant rule
-        of the module docstring; both use the same split and random numbers.
+        of the module docstring (:mod:`dtpf.information.move_rules`); both use
+        the same split and random numbers.
 
     Returns
     -------
@@ -487,39 +517,16 @@ def preprocess(
     """
     x, w = check_set(particles, weights, checked=checked)
     ps = check_probability(ps, "PS")
-    if weight_rule not in WEIGHT_RULES:
-        raise ValueError(f"unknown weight rule {weight_rule!r}; expected one of {', '.join(WEIGHT_RULES)}")
-    if weight_rule == "likelihood" and log_likelihood is None:
-        raise ValueError("weight rule 'likelihood' needs the observation's log_likelihood")
-    if move_rule not in MOVE_RULES:
-        raise ValueError(f"unknown move rule {move_rule!r}; expected one of {', '.join(MOVE_RULES)}")
+    weigh = WEIGHT_RULE_REGISTRY.get(weight_rule)
+    needs_likelihood = getattr(weigh, "needs_likelihood", False)
+    if needs_likelihood and log_likelihood is None:
+        raise ValueError(f"weight rule {weight_rule!r} needs the observation's log_likelihood")
+    move = MOVE_RULE_REGISTRY.get(move_rule)
 
-    if move_rule == "relative":
-        limit, _ = _threshold(w, threshold_rule)
-        new_particles, limit, n_large, n_small, n_mixed = _move_relative(x, w, limit, ps, rng)
-    elif w.size < SMALL_SET and type(rng.bit_generator) is np.random.PCG64:
-        new_particles, limit, n_large, n_small, n_mixed = _preprocess_small(x, w, threshold_rule, ps, rng)
-    else:
-        limit, capacity = _threshold(w, threshold_rule)
-        small_idx, large_rows, new_particles = _split(w, limit, x, capacity)
-        n_small, n_large = small_idx.size, large_rows.shape[0]
-        if n_large > 0 and n_small > 0:
-            n_mixed = int(_move_blocked(x, small_idx, large_rows, ps, _seed(rng), new_particles))
-    if n_large == 0 or n_small == 0:
+    new_particles, limit, n_large, n_small, n_mixed = move(x, w, threshold_rule, ps, rng)
+    if new_particles is None:
         report = PreprocessReport(limit, n_large, 0, 0, 0, ps)
         return PreprocessResult(x.copy(), w.copy(), report)
-
-    if weight_rule == "inherit":
-        new_weights = w.view()  # unchanged: a read-only view, not a copy
-        new_weights.flags.writeable = False
-    else:
-        with np.errstate(divide="ignore"):
-            log_w = np.log(w)
-        small_idx = np.flatnonzero(w <= limit)
-        log_small = log_w[small_idx]
-        delta = log_likelihood(new_particles[small_idx]) - log_likelihood(x[small_idx])
-        log_w[small_idx] = np.where(np.isneginf(log_small), -np.inf, log_small + delta)
-        new_weights = np.exp(log_w - log_w.max())
-        new_weights /= new_weights.sum()
+    new_weights = weigh(w, limit, x, new_particles, log_likelihood if needs_likelihood else None)
     report = PreprocessReport(limit, n_large, n_small, n_mixed, n_small - n_mixed, ps)
     return PreprocessResult(new_particles, new_weights, report)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 from pathlib import Path
 from typing import Literal
 
@@ -83,14 +84,18 @@ class RunConfig(BaseModel):
                                          "fraction of N; None resamples at every step (the paper).")
     preprocess: bool = Field(True, description="Run the digital-twin preprocessing (Eq. 28-30) before "
                                                "resampling; False gives the plain traditional filter.")
-    threshold: str | float = Field("neff", description="Threshold W of Eq. 28: 'neff' (the round(ESS)+1-th "
-                                   "largest weight), 'inverse-n' (1/N) or a number.")
-    weight_rule: Literal[names.WEIGHT_RULES] = Field("inherit", description="Weights of processed "
-                                                          "particles: keep them, or re-evaluate the likelihood.")
-    move_rule: Literal[names.MOVE_RULES] = Field("paper", description="How small particles are moved: "
-                                                 "'paper' (Eq. 29-30 as printed) or 'relative' (a fraction of "
-                                                 "x_l - x_m, at most the set's weighted spread: translation "
-                                                 "invariant; not the paper's).")
+    threshold: str | float = Field("neff", description="Threshold W of Eq. 28: a built-in rule ('neff', the "
+                                   "round(ESS)+1-th largest weight; 'inverse-n', 1/N), a name an installed package "
+                                   "registers in the entry-point group 'dtpf.thresholds', your own "
+                                   "W = rule(weights) as 'path/to/file.py:NAME' or 'package.module:NAME', or a "
+                                   "number (W itself).")
+    weight_rule: str = Field("inherit", max_length=64, description="Weights of processed particles, a built-in "
+                             "rule (dtpf.information.weight_rules): 'inherit' keeps them, 'likelihood' "
+                             "re-evaluates the likelihood.")
+    move_rule: str = Field("paper", max_length=64, description="How small particles are moved, a built-in rule "
+                           "(dtpf.information.move_rules): 'paper' (Eq. 29-30 as printed) or 'relative' (a "
+                           "fraction of x_l - x_m, at most the set's weighted spread: translation invariant; not "
+                           "the paper's).")
     jitter: str = Field("none", max_length=family.MAX_REFERENCE, description="After resampling, the entity "
                         "moves each particle by: 'none' (the paper), 'roughening' (Gordon, Salmond and Smith 1993), "
                         "'regularised' (the kernel of the regularised particle filter, Musso, Oudjane and Le Gland "
@@ -204,16 +209,27 @@ class RunConfig(BaseModel):
     @field_validator("threshold")
     @classmethod
     def _known_threshold(cls, value: str | float) -> str | float:
-        THRESHOLD_RULES = names.THRESHOLD_RULES
-        if isinstance(value, str) and value not in THRESHOLD_RULES:
+        if isinstance(value, str):
             try:
                 value = float(value)
             except ValueError:
-                raise ValueError(f"unknown threshold rule {value!r}; expected one of "
-                                 f"{', '.join(THRESHOLD_RULES)} or a number") from None
-        if not isinstance(value, str) and not value >= 0:
-            raise ValueError(f"threshold W must be non-negative, got {value!r}")
-        return value
+                try:
+                    return family.THRESHOLDS.check_name(value)
+                except ValueError as error:
+                    raise ValueError(f"{error}; or a number, W itself") from None
+        if not math.isfinite(value) or value < 0:
+            raise ValueError(f"threshold W must be a finite non-negative number, got {value!r}")
+        return float(value)
+
+    @field_validator("weight_rule")
+    @classmethod
+    def _known_weight_rule(cls, value: str) -> str:
+        return names.WEIGHT_RULE_REGISTRY.check_name(value)
+
+    @field_validator("move_rule")
+    @classmethod
+    def _known_move_rule(cls, value: str) -> str:
+        return names.MOVE_RULE_REGISTRY.check_name(value)
 
     @model_validator(mode="after")
     def _policy_fits_scenario(self) -> "RunConfig":
@@ -284,13 +300,15 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     group = parser.add_argument_group("digital twin")
     group.add_argument("--no-preprocess", dest="preprocess", action="store_false", default=None,
                        help="turn the DT preprocessing off: the plain traditional filter")
-    group.add_argument("--threshold", default=None,
-                       help=f"W of Eq. 28: 'neff', 'inverse-n' or a number (default: {defaults.threshold})")
-    group.add_argument("--weight-rule", default=None, choices=names.WEIGHT_RULES,
-                       help=f"weights of processed particles (default: {defaults.weight_rule})")
-    group.add_argument("--move-rule", default=None, choices=names.MOVE_RULES,
-                       help="how small particles are moved: 'paper' (Eq. 29-30), 'relative' (translation invariant, "
-                            f"not the paper's; see docs/guides/policies.md) (default: {defaults.move_rule})")
+    group.add_argument("--threshold", default=None, metavar="RULE",
+                       help="W of Eq. 28, a number (W itself) or a rule: " + family.THRESHOLDS.help(
+                           "your own W = rule(weights)", defaults.threshold))
+    group.add_argument("--weight-rule", default=None, metavar="NAME",
+                       help="weights of processed particles: " + names.WEIGHT_RULE_REGISTRY.help(
+                           default=defaults.weight_rule))
+    group.add_argument("--move-rule", default=None, metavar="NAME",
+                       help="how small particles are moved (docs/guides/policies.md): " + names.MOVE_RULE_REGISTRY.help(
+                           default=defaults.move_rule))
     group.add_argument("--policy", default=None, metavar="NAME",
                        help="PS policy of the system layer (docs/guides/policies.md): " + family.POLICIES.help(
                            "your own PSPolicy subclass", defaults.policy))

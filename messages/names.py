@@ -5,10 +5,11 @@ every log, so the names it may hold are part of the contract, here, where
 the contract's readers can check them without loading a layer. Each layer
 implements the names of its own room and a test holds the two equal
 (``tests/test_layout.py``): the entity its built-in scenarios, the
-information layer its threshold, weight and move rules and the choosing
-policy's arms. Resamplers, moves after resampling and PS policies are
-families (:mod:`dtpf.messages.family`): their names are read from their
-registries, never listed here.
+information layer the choosing policy's arms. Resamplers, moves after
+resampling, threshold rules and PS policies are families
+(:mod:`dtpf.messages.family`), and the information layer's weight rules and
+move rules are families of built-ins only (:class:`BuiltinOnly`): their
+names are read from their registries, never listed here.
 """
 from __future__ import annotations
 
@@ -16,8 +17,10 @@ import functools
 import importlib.metadata
 import sys
 
-__all__ = ["SCENARIOS", "MODEL_ENTRY_POINTS", "CANNOT_SAMPLE", "THRESHOLD_RULES", "WEIGHT_RULES", "MOVE_RULES",
-           "ARMS", "scenario_names"]
+from dtpf.messages.family import Family
+
+__all__ = ["SCENARIOS", "MODEL_ENTRY_POINTS", "CANNOT_SAMPLE", "BuiltinOnly", "WEIGHT_RULE_REGISTRY",
+           "MOVE_RULE_REGISTRY", "ARMS", "scenario_names"]
 
 #: Built-in scenarios (dtpf.entity.models): Eq. 35 with 25, Eq. 35 as printed (0.25), the tracking video, and a
 #: slowly drifting constant with precise observations (where particles impoverish; not in the paper), and the
@@ -27,12 +30,38 @@ SCENARIOS = ("ungm", "ungm-printed", "video", "drift", "switching", "moving")
 MODEL_ENTRY_POINTS = "dtpf.models"
 #: Built-in scenarios whose model cannot draw observations (no simulating policy with them).
 CANNOT_SAMPLE = frozenset({"video"})
-#: Named rules for the threshold W of Eq. 28 (dtpf.information.rules); a number is allowed too.
-THRESHOLD_RULES = ("neff", "inverse-n")
-#: Weights of processed particles (dtpf.information.rules).
-WEIGHT_RULES = ("inherit", "likelihood")
-#: How small particles are moved (dtpf.information.rules): the paper's Eq. 29-30, or the translation-invariant rule.
-MOVE_RULES = ("paper", "relative")
+
+
+class BuiltinOnly(Family):
+    """A family of dtpf's own members only: no entry points, no reference to a user's code (the contract in
+    its package's ``base.py`` says why). Its names, ``--help`` and the run configuration's validation are read
+    from its registry, as a :class:`~dtpf.messages.family.Family`'s are."""
+
+    def __init__(self, kind: str, package: str):
+        super().__init__(kind, package, group="")
+
+    def entry_points(self) -> dict:
+        """None: an installed package cannot add a member."""
+        return {}
+
+    def check_name(self, value) -> str:
+        """``value`` if it names a built-in, else a ValueError in one line that lists the names."""
+        known = self.names()
+        if not isinstance(value, str) or value not in known:
+            raise ValueError(f"unknown {self.kind} {value!r}; expected one of {', '.join(known)} (built-in only)")
+        return value
+
+    def help(self, own: str | None = None, default=None) -> str:
+        """Every name with its summary, and the default (``own`` is not used: there is no user's member)."""
+        listed = "; ".join(f"'{name}' ({text})" if text else f"'{name}'" for name, text in self.summaries().items())
+        return f"{listed} (default: {default})"
+
+
+#: Weights of processed particles (dtpf.information.weight_rules): built-in only.
+WEIGHT_RULE_REGISTRY = BuiltinOnly("weight rule", "dtpf.information.weight_rules")
+#: How small particles are moved (dtpf.information.move_rules): the paper's Eq. 29-30, or the translation-invariant
+#: rule; built-in only.
+MOVE_RULE_REGISTRY = BuiltinOnly("move rule", "dtpf.information.move_rules")
 #: The moves the choosing policy picks from (dtpf.information.layer.ARMS): plain resampling, DT preprocessing
 #: with the relative or the paper's rule, roughening, the regularised kernel.
 ARMS = ("plain", "dt-relative", "dt-paper", "roughening", "regularised")

@@ -156,8 +156,20 @@ def test_the_contract_names_what_the_layers_implement():
 
     assert set(names.SCENARIOS) == set(models.MODELS)
     assert names.CANNOT_SAMPLE == {name for name in models.MODELS if not models.get(name).samples_observations}
-    assert set(names.THRESHOLD_RULES) == set(rules.THRESHOLD_RULES)
-    assert set(names.WEIGHT_RULES) == set(rules.WEIGHT_RULES)
-    assert set(names.MOVE_RULES) == set(rules.MOVE_RULES)
     from dtpf.information import layer
     assert set(names.ARMS) == set(layer.ARMS)
+    # The information layer's rules are registries: names written once, by the modules that implement them.
+    from dtpf.messages.family import THRESHOLDS
+    for registry, package in ((THRESHOLDS, "dtpf.information.thresholds"),
+                              (names.WEIGHT_RULE_REGISTRY, "dtpf.information.weight_rules"),
+                              (names.MOVE_RULE_REGISTRY, "dtpf.information.move_rules")):
+        members = registry.builtins()
+        assert registry.package == package and len(members) >= 2
+        assert all(obj.__module__.startswith(package + ".") for obj in members.values())
+    assert not hasattr(names, "THRESHOLD_RULES") and not hasattr(rules, "THRESHOLD_RULES")
+    assert rules.WEIGHT_RULES == tuple(names.WEIGHT_RULE_REGISTRY.names())
+    assert rules.MOVE_RULES == tuple(names.MOVE_RULE_REGISTRY.names())
+    assert names.WEIGHT_RULE_REGISTRY.entry_points() == {} and names.MOVE_RULE_REGISTRY.entry_points() == {}
+    # The arms of the choosing policy name rules the registries hold.
+    assert all(arm.weight_rule in names.WEIGHT_RULE_REGISTRY.names() and arm.move_rule in
+               names.MOVE_RULE_REGISTRY.names() for arm in layer.ARMS.values())

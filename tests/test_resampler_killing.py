@@ -61,6 +61,12 @@ def test_equal_weights_keep_every_particle(n):
     np.testing.assert_array_equal(killing(np.full(n, 1.0 / n), np.random.default_rng(3)), np.arange(n))
 
 
+def test_equal_weights_keep_every_particle_with_any_bit_generator():
+    # No particle is killed: the multinomial part draws one exponential and no point, on either path.
+    for rng in (np.random.default_rng(4), np.random.Generator(np.random.Philox(4))):
+        np.testing.assert_array_equal(killing(np.full(7, 1.0 / 7), rng), np.arange(7))
+
+
 def test_a_single_weight_of_one_takes_everything():
     w = np.zeros(10)
     w[6] = 1.0

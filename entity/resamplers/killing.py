@@ -19,8 +19,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from dtpf.entity._merge import fill_tail
-from dtpf.entity.resamplers.base import checked_weights, output_buffer
+from dtpf.entity import _merge
+from dtpf.entity.resamplers.base import checked_weights, exponential_merge, output_buffer
 from dtpf.messages.family import RESAMPLERS
 
 __all__ = ["killing"]
@@ -30,36 +30,43 @@ __all__ = ["killing"]
 def killing(weights, rng: np.random.Generator, *, out=None, checked: bool = False) -> np.ndarray:
     """Killing resampling: particle i survives with probability w_i / max w, each killed one is replaced by
     a multinomial draw (Del Moral 2004); draws ``rng.random(N)``, then ``rng.standard_exponential(K + 1)``
-    for the K killed (their sorted uniforms as normalised partial sums, Eq. 26).
+    for the K killed (their sorted uniforms as normalised partial sums, Eq. 26, as multinomial's).
 
-    The survivors and the draws are merged particle by particle, so the ancestors come out sorted.
+    The survivors (in order) and the K draws (sorted) are merged, so the ancestors come out sorted.
     """
     w = checked_weights(weights, checked)
-    target = output_buffer(out, w.size)
-    kept = rng.random(w.size) < w / w.max()
-    killed = w.size - int(np.count_nonzero(kept))
-    return _killing(w, kept, rng.standard_exponential(killed + 1), target)
+    n = w.size
+    target = output_buffer(out, n)
+    survivors = np.empty(n + 1, dtype=np.int64)
+    kept = _survivors(w, rng.random(n), survivors)
+    drawn = np.empty(n - kept + 1, dtype=np.int64)
+    exponential_merge(w, rng, drawn[:-1], _merge.multinomial, _merge.multinomial_pcg)
+    drawn[-1] = n  # past every ancestor, as survivors[kept]
+    return _merge_sorted(survivors, drawn, target)
 
 
 @numba.njit(cache=True, nogil=True)
-def _killing(weights, kept, exponentials, out):  # pragma: no cover - compiled
-    # Particle j writes itself if it survived, then the sorted points below its running sum: the
-    # uniform spacings, partial sums of the exponentials, against the running sum times their total.
-    draws = exponentials.shape[0] - 1
-    total = exponentials.sum()
-    point = exponentials[0]
-    cumulative = 0.0
-    k = 0
-    drawn = 0
-    for j in range(weights.shape[0]):
-        if kept[j]:
-            out[k] = j
-            k += 1
-        cumulative += weights[j] * total
-        while drawn < draws and point < cumulative:
-            out[k] = j
-            k += 1
-            drawn += 1
-            point += exponentials[drawn]
-    fill_tail(out, k, weights)  # draws past a running sum that ends a few ulps below 1
+def _survivors(weights, uniforms, survivors):  # pragma: no cover - compiled
+    # The particles kept, u_i < w_i / max w, in order, then N; their number. A weight of max w is kept
+    # (u < 1), one of 0 never.
+    top = weights.max()
+    kept = 0
+    for i in range(weights.shape[0]):
+        survivors[kept] = i
+        kept += uniforms[i] < weights[i] / top
+    survivors[kept] = weights.shape[0]
+    return kept
+
+
+@numba.njit(cache=True, nogil=True)
+def _merge_sorted(first, second, out):  # pragma: no cover - compiled
+    # The two sorted lists, each ending with a value above all others, merged into ``out``.
+    a = 0
+    b = 0
+    for k in range(out.shape[0]):
+        x, y = first[a], second[b]
+        take_first = x <= y
+        out[k] = x if take_first else y
+        a += take_first
+        b += not take_first
     return out

@@ -241,20 +241,23 @@ def cmd_compare(args: argparse.Namespace) -> int:
         finished.append(row)
         progress(len(finished))
 
-    before = signal.signal(signal.SIGTERM, _interrupt)
+    # Ctrl-C and SIGTERM stop the compare, also when it was started in the background of a script (a
+    # non-interactive shell starts such a job with SIGINT ignored, and Python then installs no handler).
+    before = signal.signal(signal.SIGTERM, _interrupt), signal.signal(signal.SIGINT, signal.default_int_handler)
     start = time.perf_counter()
     try:
         run_all(tasks, workers, [the_plan.configs[label] for label in the_plan.labels], keep)
     except KeyboardInterrupt:
         where = f"{args.csv} holds every finished run; the same command goes on" if store is not None else \
             "no --csv, so they are not kept"
-        print(f"\ndtpf compare: interrupted after {len(finished)} of {len(tasks)} runs; {where}", file=sys.stderr)
+        print(f"{chr(10) if progress.enabled and progress.tty else ''}dtpf compare: interrupted after {len(finished)} of {len(tasks)} runs; {where}", file=sys.stderr)
         return 130
     except RunFailed as error:
         print(f"dtpf compare: error: {error}", file=sys.stderr)
         return 1
     finally:
-        signal.signal(signal.SIGTERM, before)
+        signal.signal(signal.SIGTERM, before[0])
+        signal.signal(signal.SIGINT, before[1])
     if tasks:
         print(f"dtpf compare: {len(tasks)} runs in {time.perf_counter() - start:.1f} s on "
               f"{min(workers, len(tasks))} worker{'s' if min(workers, len(tasks)) != 1 else ''}", file=sys.stderr)

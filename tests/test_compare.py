@@ -224,11 +224,17 @@ def test_without_truth_the_metric_is_the_log_predictive_higher_is_better(tmp_pat
     assert list(table_rows(done.stdout)) == ["plain", "dt"]
 
 
+def _as_a_background_job():
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # what a non-interactive shell does to a job started with &
+
+
 def test_ctrl_c_leaves_every_finished_run_in_the_csv(tmp_path):
+    # Started as a script's background job (SIGINT ignored), as when someone runs it with & and then kill -INT.
     table = tmp_path / "c.csv"
     process = subprocess.Popen([sys.executable, "-m", "dtpf.scripts.cli", "compare", *VARIANTS, "--seeds", "500",
                                 "-n", "30", "-T", "30", "--workers", "2", "--csv", str(table)],
-                               cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                               cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                               preexec_fn=_as_a_background_job)
     try:
         deadline = time.monotonic() + 120
         while not (table.exists() and len(table.read_text().splitlines()) > 3):  # three runs written

@@ -28,9 +28,11 @@ __all__ = ["killing"]
 
 @RESAMPLERS.builtin("killing")
 def killing(weights, rng: np.random.Generator, *, out=None, checked: bool = False) -> np.ndarray:
-    """Killing resampling: particle i survives with probability w_i / max w, each killed one is replaced by
-    a multinomial draw (Del Moral 2004); draws ``rng.random(N)``, then ``rng.standard_exponential(K + 1)``
-    for the K killed (their sorted uniforms as normalised partial sums, Eq. 26, as multinomial's).
+    """Killing resampling (Del Moral 2004): each particle survives with probability w_i / max w, else a draw.
+
+    The killed are replaced by multinomial draws from W. Draws ``rng.random(N)``, then
+    ``rng.standard_exponential(K + 1)`` for the K killed (their sorted uniforms as normalised partial
+    sums, Eq. 26, as multinomial's).
 
     The survivors (in order) and the K draws (sorted) are merged, so the ancestors come out sorted.
     """

@@ -36,8 +36,9 @@ __all__ = ["ssp"]
 
 @RESAMPLERS.builtin("ssp")
 def ssp(weights, rng: np.random.Generator, *, out=None, checked: bool = False) -> np.ndarray:
-    """SSP resampling (Gerber, Chopin and Whiteley 2019): floor(N w_i) or floor(N w_i) + 1 copies of each
-    particle, negatively associated; draws ``rng.random(N - 1)``, one uniform per move.
+    """SSP resampling (Gerber, Chopin and Whiteley 2019): floor(N w_i) or +1 copies, negatively associated.
+
+    Draws ``rng.random(N - 1)``, one uniform per move of Srinivasan's process (see the module docstring).
 
     The weights are rescaled by their sum, so that the fractional parts add up to an integer (the check
     accepts sums within 1e-6 of 1); N w_i within 1e-9 below an integer counts as that integer, as in

@@ -143,6 +143,33 @@ def test_threshold_rules():
         rules.threshold(w, "median")
 
 
+def test_weight_and_move_rules_are_registries_of_built_ins_only():
+    import argparse
+
+    from dtpf.messages import names
+    from dtpf.messages.config import RunConfig, add_run_arguments
+    from dtpf.messages.references import ReferenceLoadError
+
+    parser = argparse.ArgumentParser()
+    add_run_arguments(parser)
+    text = " ".join(parser.format_help().split())
+    assert rules.WEIGHT_RULES == tuple(names.WEIGHT_RULE_REGISTRY.names()) and "likelihood" in rules.WEIGHT_RULES
+    assert rules.MOVE_RULES == tuple(names.MOVE_RULE_REGISTRY.names()) and "relative" in rules.MOVE_RULES
+    for registry, field in ((names.WEIGHT_RULE_REGISTRY, "weight_rule"), (names.MOVE_RULE_REGISTRY, "move_rule")):
+        for name, summary in registry.summaries().items():
+            assert getattr(RunConfig(**{field: name}), field) == name
+            assert f"'{name}' ({summary})" in text  # --weight-rule and --move-rule list them from the registry
+        with pytest.raises(ValueError, match=f"unknown {registry.kind} 'my.py:rule'; expected one of "
+                                             f"{', '.join(registry.names())} \\(built-in only\\)"):
+            RunConfig(**{field: "my.py:rule"})
+        with pytest.raises(ReferenceLoadError, match="built-in only"):
+            registry.get("my.py:rule")
+        with pytest.raises(ReferenceLoadError, match="built-in only"):
+            registry.contract().adapt(len, f"{registry.kind} 'my.py:rule'")
+    assert names.WEIGHT_RULE_REGISTRY.trait("likelihood", "needs_likelihood", False)
+    assert not names.WEIGHT_RULE_REGISTRY.trait("inherit", "needs_likelihood", False)
+
+
 @pytest.mark.parametrize("n", [1000, 100_000])
 @pytest.mark.parametrize("k", [1, 2, 17, 500, 1000])
 def test_kth_largest_matches_sorting(n, k):

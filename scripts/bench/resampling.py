@@ -10,7 +10,8 @@ Part 1, kernels: normalised weights -> N ancestor indices, at each N.
   the filter calls it (numba, into a buffer, weights checked where they were
   made), and the public call that checks W and allocates;
 - particles: ``particles.resampling.<scheme>(W)`` (numba; global ``np.random``,
-  seeded before it is timed);
+  seeded before it is timed); SSP and killing too (``particles.resampling.ssp``,
+  ``.killing``), which filterpy does not have;
 - filterpy: ``filterpy.monte_carlo.<scheme>_resample(W)`` (Python loops; at
   N >= 1e6 timed in one repetition only);
 - systematic + gather: dtpf's systematic, then ``dtpf.entity.resampling.gather`` on
@@ -82,7 +83,9 @@ from dtpf.information.select import kth_largest
 from dtpf.messages.config import RunConfig
 from dtpf.scripts.inprocess import build, simulate
 
-SCHEMES = ("multinomial", "stratified", "systematic", "residual")
+SCHEMES = ("multinomial", "stratified", "systematic", "residual", "ssp", "killing")
+#: The schemes filterpy.monte_carlo has (``<scheme>_resample``).
+FILTERPY_SCHEMES = ("multinomial", "stratified", "systematic", "residual")
 #: PS of the DT preprocessing, in part 1 and in (b).
 PS = 0.81
 #: Repetitions per N at the default sizes: part 1 (kernels) and part 2 (filter).
@@ -164,6 +167,8 @@ BOUNDS = {
     "stratified": ("weight pass", "uniforms"),
     "multinomial": ("weight pass", "uniforms"),
     "residual": ("weight pass", "uniforms"),
+    "ssp": ("weight pass", "uniforms"),
+    "killing": ("weight pass", "uniforms"),
     "systematic + gather": ("weight pass", "gather"),
     "preprocess": ("select", "partners"),
 }
@@ -235,7 +240,7 @@ def kernel_entries(with_filterpy: bool, threads: tuple[int, ...]) -> dict[tuple[
                 np.random.seed(seed)
                 return lambda: f(w)
             entries[scheme, "particles"] = theirs
-        if fmc is not None and with_filterpy:
+        if fmc is not None and with_filterpy and scheme in FILTERPY_SCHEMES:
             def loop(w, x, a, seed, f=getattr(fmc, f"{scheme}_resample")):
                 np.random.seed(seed)
                 return lambda: f(w)
@@ -621,7 +626,8 @@ def main(argv=None) -> int:
                     "select": "W of Eq. 28, the (k+1)-th largest weight, k = round(ESS), selected as `preprocess` does",
                     "partners": "N - k random rows of the k large (compiled loop)"}
     rows = [(f, "floor") for f in FLOORS]
-    rows += [(s, impl) for s in SCHEMES for impl in ("particles", "dtpf", "dtpf, checking", "filterpy")]
+    rows += [(s, impl) for s in SCHEMES for impl in ("particles", "dtpf", "dtpf, checking", "filterpy")
+             if impl != "filterpy" or s in FILTERPY_SCHEMES]
     rows += [("systematic + gather", "particles")] + [("systematic + gather", threads_label(t)) for t in threads]
     rows += [("preprocess", "dtpf")]
     for key in rows:

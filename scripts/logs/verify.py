@@ -21,6 +21,8 @@ from dtpf.information.layer import InformationLayer
 from dtpf.messages.config import RunConfig
 from dtpf.messages.models import ParticleSet, Status
 from dtpf.recording.logfile import Log, LogError, in_step_order, read_logs
+from dtpf.messages.family import component_records
+from dtpf.scripts.logs.rerun_entity import EntityRerun, rerun_entity
 from dtpf.scripts.logs.summary import format_ranges
 from dtpf.system.layer import SystemLayer
 from dtpf.system.predict import Snapshot
@@ -56,6 +58,10 @@ class Verification:
     competing: dict[str, list[int]] = field(default_factory=dict)
     #: Of a competing step's messages, the one the re-run reproduced (its index in file order), by (topic, step).
     used: dict[tuple[str, int], int] = field(default_factory=dict)
+    #: The entity's re-run (None: not reached, the layers' re-run found a mismatch first).
+    entity: EntityRerun | None = None
+    #: The user's code the run names whose file differs from the one the run used (or cannot be found now).
+    changed_code: list[str] = field(default_factory=list)
 
     @property
     def ok(self) -> bool:
@@ -160,7 +166,7 @@ def verify_twin(by_topic: dict[str, list], twin: str, problem: str | None = None
     statuses = [m for topic, ms in by_topic.items() if topic.startswith(f"dtpf/{twin}/") for m in ms
                 if isinstance(m, Status)]
     config = _config_of(statuses, twin)
-    result = Verification(twin, config, problem=problem)
+    result = Verification(twin, config, problem=problem, changed_code=changed_code(statuses, config))
     # The entity's sets are the re-run's input: where a step has several, the one in step order (as the
     # entity publishes them) is used.
     particle_sets, _ = in_step_order(by_topic.get(f"dtpf/{twin}/entity/particles", []))
@@ -207,7 +213,34 @@ def verify_twin(by_topic: dict[str, list], twin: str, problem: str | None = None
                 result.mismatch = mismatch
                 return result
         result.checked.append(step)
+    # Whether the entity took a step's answer is what its estimate says: the one in step order, as for its sets.
+    estimates, _ = in_step_order(by_topic.get(f"dtpf/{twin}/entity/estimate", []))
+    answers = {step: sets[result.used.get((f"dtpf/{twin}/information/preprocessed", step), 0)]
+               for step, sets in preprocessed.items()}
+    result.entity = rerun_entity(config, model, twin, particle_sets, answers, estimates)
+    if result.entity.mismatch is not None:
+        step, name, value, other = result.entity.mismatch
+        result.mismatch = Mismatch(step, f"dtpf/{twin}/entity/particles", name, value, other)
     return result
+
+
+def changed_code(statuses: list[Status], config: RunConfig) -> list[str]:
+    """The user's code the log's statuses record whose file now has another SHA-256 (or is not found)."""
+    now = {(r["field"], r["reference"]): r["sha256"] for r in component_records(config)}
+    seen, changed = set(), []
+    for status in statuses:
+        for component in status.components:
+            key = (component.field, component.reference)
+            if key in seen or component.sha256 is None:
+                continue
+            seen.add(key)
+            found = now.get(key)
+            if found != component.sha256:
+                state = "is not found" if found is None else f"has changed (SHA-256 {found[:12]}, the run's {component.sha256[:12]})"
+                word = {"jitter": "move", "policy": "PS policy", "threshold": "threshold rule"}.get(component.field,
+                                                                                                 component.field)
+                changed.append(f"the {word} {component.reference} {state}")
+    return changed
 
 
 def _compare_preprocessed(step: int, twin: str, recorded: ParticleSet, out) -> Mismatch | None:
@@ -265,7 +298,10 @@ def cmd_verify(args: argparse.Namespace) -> int:
 def _report(result: Verification, verbose: bool) -> int:
     c = result.config
     print(f"twin {result.twin}: re-running information (threshold {c.threshold}, weight rule {c.weight_rule}) "
-          f"and system (policy {c.policy}, PS {c.ps:g}) on the recorded entity particle sets")
+          f"and system (policy {c.policy}, PS {c.ps:g}) on the recorded entity particle sets, then the entity "
+          f"(resampler {c.resampler}, move {c.jitter})")
+    for change in result.changed_code:
+        print(f"note: {change} since the run: a difference may come from it")
     if verbose:
         for step in result.checked:
             print(f"step {step}: ok")
@@ -282,11 +318,20 @@ def _report(result: Verification, verbose: bool) -> int:
         print(f"competing: {topic} had more than one message at steps {format_ranges(steps)}: {how}")
     if result.mismatch is not None:
         print(f"MISMATCH {result.mismatch}")
-        if result.checked:
+        entity = result.entity
+        if entity is not None and entity.mismatch is not None:
+            print(f"the information and system layers reproduced steps {format_ranges(result.checked)}"
+                  + (f"; the entity steps {format_ranges(entity.checked)} before it" if entity.checked else ""))
+        elif result.checked:
             print(f"steps {format_ranges(result.checked)} were reproduced exactly before it")
         return 1
     print(f"OK: {len(result.checked)} steps reproduced exactly "
           f"(preprocessed sets bit for bit, weight states, PS commands)")
+    entity = result.entity
+    if entity is not None:
+        done = f"entity: {len(entity.checked)} propagated sets reproduced bit for bit (propagation, weights, " \
+               f"the resampling and move of the step before)"
+        print(done + (f"; stopped: {entity.skipped}" if entity.skipped else ""))
     return 0
 
 

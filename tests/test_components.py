@@ -1,0 +1,192 @@
+"""A user's own resampler, move and policy, from files and from an installed package, end to end.
+
+Each member is named by reference (``path/to/file.py:NAME``) or by the name an installed package registers
+in the family's entry-point group; ``dtpf run`` and ``dtpf launch`` give the same numbers with it, the log
+records its reference and file digest, and ``dtpf verify`` re-runs it (the entity's propagated sets bit for
+bit, so the resampling and the move are checked too). A model file may import the modules beside it, from
+any working directory, in ``run``, ``launch`` and a fleet.
+"""
+from __future__ import annotations
+
+import os
+import shutil
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from conftest import ROOT
+
+EXAMPLES = ROOT / "docs" / "examples"
+#: A launch on a loaded machine: the first one of a process tree may compile numba's kernels.
+LAUNCH_SECONDS = 300
+
+
+def dtpf(*args: str, cwd: Path, env: dict | None = None, timeout: float = LAUNCH_SECONDS) -> subprocess.CompletedProcess:
+    """``dtpf ARGS`` in ``cwd``; its process group is killed if it outlives ``timeout``."""
+    environment = dict(os.environ, **(env or {}))
+    process = subprocess.Popen([sys.executable, "-P", "-m", "dtpf", *args], cwd=cwd, stdout=subprocess.PIPE,
+                               stderr=subprocess.PIPE, text=True, env=environment, start_new_session=True)
+    try:
+        out, err = process.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        os.killpg(process.pid, signal.SIGKILL)
+        out, err = process.communicate()
+        raise AssertionError(f"dtpf {' '.join(args)} still running after {timeout} s:\n{err[-3000:]}") from None
+    finally:
+        if process.poll() is None:
+            os.killpg(process.pid, signal.SIGKILL)
+    return subprocess.CompletedProcess(process.args, process.returncode, out, err)
+
+
+def figures(output: str) -> list[str]:
+    """The summary lines that hold a run's numbers (not its time, log path or layout)."""
+    keep = ("RMSE", "mean ESS", "resamplings", "PS range", "degraded")
+    return [" ".join(line.split()[:3]) for line in output.splitlines() if line.strip().startswith(keep)]
+
+
+@pytest.fixture(scope="module")
+def user(tmp_path_factory) -> Path:
+    """A user's folder: the example components, and a model that imports the module beside it."""
+    folder = tmp_path_factory.mktemp("user")
+    for path in (EXAMPLES / "components").glob("*.py"):
+        shutil.copy(path, folder / path.name)
+    shutil.copy(EXAMPLES / "range_bearing.py", folder / "rb_base.py")
+    (folder / "tracked.py").write_text("from rb_base import RangeBearingTarget\n\nMODEL = RangeBearingTarget(q=0.1)\n")
+    return folder
+
+
+COMPONENTS = {
+    "resampler": ("--resampler", "resampler.py:systematic_numpy"),
+    "move": ("--move", "move.py:gaussian_shake"),
+    "policy": ("--policy", "policy.py:LowEssPS"),
+}
+
+
+@pytest.mark.parametrize("family", sorted(COMPONENTS))
+def test_a_users_member_runs_launches_with_the_same_numbers_and_verifies(user, family, tmp_path):
+    flag, reference = COMPONENTS[family]
+    args = ("-q", "-n", "300", "-T", "25", "--seed", "5", flag, str(user / reference))
+    ran = dtpf("run", *args, cwd=tmp_path)
+    assert ran.returncode == 0, ran.stderr
+    launched = dtpf("launch", *args, "-o", "run.mcap", cwd=tmp_path)
+    assert launched.returncode == 0, launched.stderr
+    assert figures(launched.stdout) == figures(ran.stdout) and len(figures(ran.stdout)) == 5
+    plain = dtpf("run", "-q", "-n", "300", "-T", "25", "--seed", "5", cwd=tmp_path)
+    if family != "resampler":  # the numpy resampler is the built-in systematic, bit for bit
+        assert figures(plain.stdout) != figures(ran.stdout)
+    else:
+        assert figures(plain.stdout) == figures(ran.stdout)
+    verified = dtpf("verify", "run.mcap", cwd=tmp_path)
+    assert verified.returncode == 0, verified.stdout + verified.stderr
+    assert "OK: 25 steps reproduced exactly" in verified.stdout
+    assert "entity: 25 propagated sets reproduced bit for bit" in verified.stdout
+
+    from dtpf.recording.logfile import read_log
+    statuses = [m for _, m in read_log(tmp_path / "run.mcap").decoded(lambda topic: topic.endswith("/status"))]
+    recorded = {(c.field, c.reference, c.sha256) for s in statuses for c in s.components}
+    import hashlib
+    digest = hashlib.sha256((user / reference.split(":")[0]).read_bytes()).hexdigest()
+    field = {"resampler": "resampler", "move": "jitter", "policy": "policy"}[family]
+    assert recorded == {(field, str(user / reference), digest)}
+
+
+def test_verify_names_a_members_file_that_changed_since_the_run(user, tmp_path):
+    move = tmp_path / "move.py"
+    shutil.copy(user / "move.py", move)
+    launched = dtpf("launch", "-q", "-n", "200", "-T", "10", "--move", "move.py:gaussian_shake", "-o", "run.mcap",
+                    cwd=tmp_path)
+    assert launched.returncode == 0, launched.stderr
+    move.write_text(move.read_text().replace("FRACTION = 0.1", "FRACTION = 0.3"))
+    verified = dtpf("verify", "run.mcap", cwd=tmp_path)
+    assert verified.returncode == 1
+    assert "note: the move move.py:gaussian_shake has changed (SHA-256" in verified.stdout
+    assert "MISMATCH step 2: dtpf/ungm-1/entity/particles particles[" in verified.stdout
+
+
+def test_a_biased_resampler_is_refused_with_its_measured_bias(user, tmp_path):
+    done = dtpf("run", "-q", "-T", "5", "--resampler", str(user / "resampler.py:greedy"), cwd=tmp_path)
+    assert done.returncode == 2
+    line = done.stderr.strip().splitlines()[-1]
+    assert "is biased: particle 0 of weight 0.3 got 8.0000 offspring on average over 4000 draws" in line
+    assert "expected N w = 2.4000" in line and "Traceback" not in done.stderr
+
+
+@pytest.mark.parametrize("source, problem", [
+    ("def f(weights, rng):\n    return [0, 1]\n", "of shape (2,), expected (8,) ancestor indices"),
+    ("def f(weights, rng):\n    return weights\n", "returned float64 values, expected integer ancestor indices"),
+    ("def f(weights, rng):\n    import numpy as np\n    return np.arange(len(weights)) + 1\n",
+     "returned an ancestor out of range: 1 .. 8, expected 0 .. 7"),
+    ("def f(weights):\n    return weights\n", None),
+    ("f = 3\n", "expected a function (weights, rng) -> ancestors, got an int"),
+])
+def test_a_resampler_that_breaks_the_contract_is_one_line(tmp_path, source, problem):
+    (tmp_path / "mine.py").write_text(source)
+    done = dtpf("run", "-q", "-T", "5", "--resampler", "mine.py:f", cwd=tmp_path, timeout=120)
+    assert done.returncode == 2, done.stdout
+    line = done.stderr.strip().splitlines()[-1]
+    assert line.startswith("dtpf run: error: resampler 'mine.py:f'") and "Traceback" not in done.stderr
+    if problem is not None:
+        assert problem in line
+
+
+def test_a_policy_that_breaks_the_contract_is_one_line(tmp_path):
+    (tmp_path / "mine.py").write_text("class P:\n    pass\n")
+    done = dtpf("run", "-q", "-T", "5", "--policy", "mine.py:P", cwd=tmp_path, timeout=120)
+    assert done.returncode == 2
+    assert "expected a subclass of dtpf.system.policy.PSPolicy, got the class P" in done.stderr
+
+
+@pytest.fixture(scope="module")
+def installed_extension(tmp_path_factory) -> Path:
+    """A package of a user's members, installed (not editable) into a folder of its own: it registers a
+    resampler and a move in dtpf's entry-point groups."""
+    source, target = tmp_path_factory.mktemp("extension"), tmp_path_factory.mktemp("site")
+    (source / "dtpf_extra").mkdir()
+    shutil.copy(EXAMPLES / "components" / "resampler.py", source / "dtpf_extra" / "resampler.py")
+    shutil.copy(EXAMPLES / "components" / "move.py", source / "dtpf_extra" / "move.py")
+    (source / "dtpf_extra" / "__init__.py").write_text("")
+    (source / "pyproject.toml").write_text(
+        '[build-system]\nrequires = ["setuptools>=77"]\nbuild-backend = "setuptools.build_meta"\n'
+        '[project]\nname = "dtpf-extra"\nversion = "1.0"\n'
+        '[project.entry-points."dtpf.resamplers"]\nnumpy-systematic = "dtpf_extra.resampler:systematic_numpy"\n'
+        '[project.entry-points."dtpf.moves"]\nshake = "dtpf_extra.move:gaussian_shake"\n'
+        '[tool.setuptools]\npackages = ["dtpf_extra"]\n')
+    done = subprocess.run([sys.executable, "-m", "pip", "install", "--quiet", "--no-deps", "--no-build-isolation",
+                           "--target", str(target), str(source)], capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-3000:]
+    return target
+
+
+def test_an_installed_packages_members_are_named_like_built_ins(installed_extension, tmp_path):
+    env = {"PYTHONPATH": str(installed_extension)}
+    helped = dtpf("run", "--help", cwd=tmp_path, env=env, timeout=120)
+    assert "'numpy-systematic'(fromdtpf_extra.resampler:systematic_numpy)" in "".join(helped.stdout.split())
+    args = ("-q", "-n", "300", "-T", "20", "--seed", "2")
+    ran = dtpf("run", *args, "--resampler", "numpy-systematic", "--move", "shake", cwd=tmp_path, env=env)
+    assert ran.returncode == 0, ran.stderr
+    launched = dtpf("launch", *args, "--resampler", "numpy-systematic", "--move", "shake", "-o", "run.mcap",
+                    cwd=tmp_path, env=env)
+    assert launched.returncode == 0, launched.stderr
+    assert figures(launched.stdout) == figures(ran.stdout)
+    verified = dtpf("verify", "run.mcap", cwd=tmp_path, env=env)
+    assert verified.returncode == 0 and "entity: 20 propagated sets reproduced" in verified.stdout
+    missing = dtpf("run", *args, "--resampler", "numpy-systematic", cwd=tmp_path, timeout=120)
+    assert missing.returncode == 2 and "unknown resampler 'numpy-systematic'" in missing.stderr
+
+
+def test_a_model_that_imports_the_module_beside_it_runs_from_any_folder(user, tmp_path):
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    model = os.path.relpath(user / "tracked.py", elsewhere) + ":MODEL"
+    args = ("-q", "--model", model, "-n", "200", "-T", "15", "--seed", "1")
+    ran = dtpf("run", *args, cwd=elsewhere)
+    assert ran.returncode == 0, ran.stderr
+    launched = dtpf("launch", *args, "-o", "run.mcap", cwd=elsewhere)
+    assert launched.returncode == 0, launched.stderr
+    assert figures(launched.stdout) == figures(ran.stdout) and len(figures(ran.stdout)) == 5
+    fleet = dtpf("launch", *args, "--twins", "2", "--entities", "1", "-o", "fleet.mcap", cwd=elsewhere)
+    assert fleet.returncode == 0, fleet.stderr
+    assert not (elsewhere / "rb_base.py").exists()

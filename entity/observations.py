@@ -256,7 +256,7 @@ class ObservationTable:
 def read_observations(path, *, obs_dim: int | None = None, state_dim: int | None = None,
                       steps: int | None = None, observation_columns: list[str] | None = None,
                       truth_columns: list[str] | None = None,
-                      time_column: str | None = None) -> ObservationTable:
+                      time_column: str | None = None, kind: str | None = None) -> ObservationTable:
     """Read the observations in ``path`` (.csv, .npy or .npz); see the module docstring.
 
     Parameters
@@ -277,6 +277,9 @@ def read_observations(path, *, obs_dim: int | None = None, state_dim: int | None
         (``truth_columns=[]``: no truth). By default, roles come from the names.
     time_column : str, optional
         CSV only: the time column, by exact name.
+    kind : str, optional
+        ".csv", ".npy" or ".npz": read the file as that kind whatever its extension (default: by the
+        extension).
 
     Returns
     -------
@@ -295,7 +298,7 @@ def read_observations(path, *, obs_dim: int | None = None, state_dim: int | None
     steps = _check_count(steps, "steps")
     explicit = _check_roles(observation_columns, truth_columns, time_column)
     name = _show(source)
-    suffix = os.path.splitext(source)[1]
+    suffix = os.path.splitext(source)[1] if kind is None else kind
     kind = suffix.lower()
     if kind not in _SUFFIXES:
         raise ObservationError(f"{name}: unknown observation file type {suffix!r}; expected .csv, .npy or .npz",

@@ -86,12 +86,20 @@ def _check_simulation(config, model: StateSpaceModel) -> None:
 
 
 def read_table(config, model: StateSpaceModel | None = None, *, steps: int | None = None) -> ObservationTable:
-    """The run's observation file as a table: a CSV, .npy or .npz, or a rosbag2 log (folder or .mcap) read
-    on ``config.topic`` by ``config.ros2_fields`` (:mod:`dtpf.entity.rosbag`). ``model`` checks the
+    """The run's observation file as a table: read by the run's ``reader`` (:mod:`dtpf.entity.readers`: a
+    built-in or a user's own), else by the file's kind: a CSV, .npy or .npz, or a rosbag2 log (folder or
+    .mcap) read on ``config.topic`` by ``config.ros2_fields`` (:mod:`dtpf.entity.rosbag`). ``model`` checks the
     dimensions (None: not checked; a bag mapped by the model's own method loads it)."""
     from dtpf.entity import rosbag
 
     path = config.observation_file
+    if config.reader is not None:
+        if model is None:
+            from dtpf.entity import model_ref
+            model = model_ref.resolve(config.model_ref)
+        read = family.READERS.get(config.reader)
+        return read(path, obs_dim=model.obs_dim, state_dim=model.dim, steps=steps, topic=config.topic,
+                    fields=config.ros2_fields, model=model)
     if config.topic is not None or rosbag.is_bag(path):
         if model is None and config.ros2_fields is None:
             from dtpf.entity import model_ref

@@ -66,6 +66,10 @@ class RunConfig(BaseModel):
                                      "'live:KEY', a sensor publishing over Zenoh; 'ros2:TOPIC', a ROS 2 topic "
                                      "(a bridge process feeds it to the live key); a rosbag2 log (folder or "
                                      ".mcap) with 'topic'.")
+    reader: str | None = Field(None, max_length=family.MAX_REFERENCE, description="How the observations are "
+                               "read: a built-in reader (dtpf run --help lists them), a name registered in the "
+                               "entry-point group 'dtpf.readers', or your own read(source) -> observations as "
+                               "'path/to/file.py:NAME' (None: by the file's kind).")
     topic: str | None = Field(None, max_length=1024, description="The topic of a rosbag2 log given as "
                               "observations (one message, one step).")
     ros2_fields: str | None = Field(None, max_length=4096, description="How a ROS 2 message becomes an "
@@ -76,8 +80,8 @@ class RunConfig(BaseModel):
                               "from a file: at most this many of its rows (None: every row); live: stop "
                               "after this many steps (None: when the stream ends).")
     resampler: str = Field("systematic", max_length=family.MAX_REFERENCE, description="Traditional resampling "
-                           "scheme run after preprocessing: a built-in (multinomial, residual, stratified, "
-                           "systematic, ...), a name an installed package registers in the entry-point group "
+                           "scheme run after preprocessing: a built-in (dtpf.entity.resampling.RESAMPLERS; "
+                           "dtpf run --help lists them), a name an installed package registers in the entry-point group "
                            "'dtpf.resamplers', or your own f(weights, rng) -> ancestors as 'path/to/file.py:NAME' "
                            "or 'package.module:NAME'.")
     resample_below: float | None = Field(None, gt=0.0, le=1.0, description="Resample when ESS < this "
@@ -97,12 +101,11 @@ class RunConfig(BaseModel):
                            "fraction of x_l - x_m, at most the set's weighted spread: translation invariant; not "
                            "the paper's).")
     jitter: str = Field("none", max_length=family.MAX_REFERENCE, description="After resampling, the entity "
-                        "moves each particle by: 'none' (the paper), 'roughening' (Gordon, Salmond and Smith 1993), "
-                        "'regularised' (the kernel of the regularised particle filter, Musso, Oudjane and Le Gland "
-                        "2001), a name registered in the entry-point group 'dtpf.moves', or your own "
+                        "moves each particle by a built-in move ('none', the paper's; dtpf.entity.jitter.JITTERS, which "
+                        "dtpf run --help lists), a name registered in the entry-point group 'dtpf.moves', or your own "
                         "move(resampled, particles, weights, rng) as 'path/to/file.py:NAME'.")
     policy: str = Field("fixed", max_length=family.MAX_REFERENCE, description="PS policy of the system layer: a "
-                        "built-in (choose, fixed, guard, guard-observed, predictive, rule), a name registered in the "
+                        "built-in (dtpf.system.policy.POLICIES; dtpf run --help lists them), a name registered in the "
                         "entry-point group 'dtpf.policies', or your own PSPolicy subclass as "
                         "'path/to/file.py:NAME'.")
     choose_base: Literal[names.ARMS] | None = Field(None, description="The choosing policy's base arm: the move "
@@ -201,6 +204,11 @@ class RunConfig(BaseModel):
     def _known_move(cls, value: str) -> str:
         return family.MOVES.check_name(value)
 
+    @field_validator("reader")
+    @classmethod
+    def _known_reader(cls, value: str | None) -> str | None:
+        return None if value is None else family.READERS.check_name(value)
+
     @field_validator("policy")
     @classmethod
     def _known_policy(cls, value: str) -> str:
@@ -235,6 +243,9 @@ class RunConfig(BaseModel):
     def _policy_fits_scenario(self) -> "RunConfig":
         if self.steps is None and self.simulated:
             raise ValueError("steps: a simulated scenario needs a number of steps")
+        if self.reader is not None and (self.observations is None or self.live):
+            raise ValueError(f"reader: a reader ({self.reader}) reads the observations a run is given "
+                             f"(--observations SOURCE), not a simulation or a live stream")
         if self.choose_base is not None and not family.POLICIES.trait(self.policy, "chooses_arms", True, load=False):
             raise ValueError(f"choose_base: a base arm ({self.choose_base}) is for policy 'choose', not "
                              f"{self.policy!r}")
@@ -275,6 +286,9 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
                             ".npy or .npz; one row per step; truth columns optional), or 'live' to take them "
                             "from a sensor on dtpf/<twin>/sensor/observation ('live:KEY' for another key), "
                             "'ros2:TOPIC' for a ROS 2 topic, or a rosbag2 log (folder or .mcap) with --topic")
+    group.add_argument("--reader", default=None, metavar="NAME",
+                       help="how --observations is read: " + family.READERS.help(
+                           "your own read(source) -> observations", "by the file's kind"))
     group.add_argument("--topic", default=None, metavar="TOPIC",
                        help="the topic of a rosbag2 log given to --observations (one message, one step)")
     group.add_argument("--ros2-fields", default=None, metavar="PATHS",
@@ -322,7 +336,7 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 #: The RunConfig fields the run flags set (argparse dest = field name).
-_FLAG_FIELDS = ("scenario", "model", "observations", "topic", "ros2_fields", "particles", "steps", "resampler", "resample_below",
+_FLAG_FIELDS = ("scenario", "model", "observations", "reader", "topic", "ros2_fields", "particles", "steps", "resampler", "resample_below",
                 "preprocess", "threshold", "weight_rule", "move_rule", "jitter", "policy", "choose_base", "ps", "ps_rate", "seed", "twin", "run_id")
 
 

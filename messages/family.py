@@ -1,6 +1,6 @@
 """Families of components a run names, each with one contract and one registry.
 
-dtpf's filter is built from members of five families; a run configuration
+dtpf's filter is built from members of these families; a run configuration
 names one member of each by a plain name or by a reference to the user's own
 code (:mod:`dtpf.messages.references`)::
 
@@ -11,6 +11,7 @@ code (:mod:`dtpf.messages.references`)::
     move             --jitter / --move         dtpf.entity.moves            dtpf.moves
     threshold rule   --threshold               dtpf.information.thresholds  dtpf.thresholds
     PS policy        --policy                  dtpf.system.policies         dtpf.policies
+    reader           --reader                  dtpf.entity.readers          dtpf.readers
     ===============  ========================  ===========================  ==================
 
 A family's package holds its contract in ``base.py`` and one module per
@@ -45,7 +46,8 @@ from pathlib import Path
 from dtpf.messages import references
 from dtpf.messages.references import ReferenceLoadError
 
-__all__ = ["Family", "Member", "component_records", "code_file", "CODE_FIELDS", "RESAMPLERS", "MOVES", "POLICIES", "THRESHOLDS", "FAMILIES", "MAX_REFERENCE"]
+__all__ = ["Family", "Member", "component_records", "code_file", "CODE_FIELDS", "RESAMPLERS", "MOVES", "POLICIES",
+           "THRESHOLDS", "READERS", "FAMILIES", "MAX_REFERENCE"]
 
 #: The longest name or reference a run configuration or a message may carry.
 MAX_REFERENCE = 4096
@@ -263,7 +265,7 @@ def code_file(reference: str, group: str | None = None) -> Path | None:
 
 #: The run configuration fields that may name a user's code, with the entry-point group of their plain names.
 CODE_FIELDS = {"model": "dtpf.models", "resampler": "dtpf.resamplers", "jitter": "dtpf.moves",
-               "threshold": "dtpf.thresholds", "policy": "dtpf.policies"}
+               "threshold": "dtpf.thresholds", "policy": "dtpf.policies", "reader": "dtpf.readers"}
 
 
 def component_records(config) -> list[dict]:
@@ -290,10 +292,13 @@ def component_records(config) -> list[dict]:
 RESAMPLERS = Family("resampler", "dtpf.entity.resamplers", "dtpf.resamplers")
 #: Moves after resampling: ``moved = move(resampled, particles, weights, rng)`` (dtpf.entity.moves).
 MOVES = Family("move", "dtpf.entity.moves", "dtpf.moves")
-#: Threshold rules for W of Eq. 28: ``W = rule(weights, ess)`` (dtpf.information.thresholds).
+#: Threshold rules for W of Eq. 28: ``W = rule(weights)`` (dtpf.information.thresholds).
 THRESHOLDS = Family("threshold rule", "dtpf.information.thresholds", "dtpf.thresholds")
+#: Observation readers: ``table = read(source)`` (dtpf.entity.readers).
+READERS = Family("reader", "dtpf.entity.readers", "dtpf.readers")
 #: PS policies of the system layer: classes deriving from PSPolicy (dtpf.system.policies).
 POLICIES = Family("PS policy", "dtpf.system.policies", "dtpf.policies")
 
 #: Every family by the RunConfig field that names its member.
-FAMILIES = {"resampler": RESAMPLERS, "jitter": MOVES, "threshold": THRESHOLDS, "policy": POLICIES}
+FAMILIES = {"resampler": RESAMPLERS, "jitter": MOVES, "threshold": THRESHOLDS, "policy": POLICIES,
+            "reader": READERS}

@@ -379,6 +379,8 @@ def service_command(layer: str, config: RunConfig, endpoint: str, *, timeout: fl
         command += ["--model", config.model]
     if config.observations is not None:
         command += ["--observations", config.observations]
+    if config.reader is not None:
+        command += ["--reader", config.reader]
     if config.topic is not None:
         command += ["--topic", config.topic]
     if config.ros2_fields is not None:

@@ -63,6 +63,9 @@ COMPONENTS = {
     "move": ("--move", "move.py:gaussian_shake"),
     "policy": ("--policy", "policy.py:LowEssPS"),
 }
+#: The range-bearing example's observations, space separated, for a user's reader.
+READER_ARGS = ("--model", str(EXAMPLES / "range_bearing.py:RangeBearingTarget"),
+               "--observations", str(EXAMPLES / "components" / "range_bearing.txt"))
 
 
 @pytest.mark.parametrize("family", sorted(COMPONENTS))
@@ -91,6 +94,37 @@ def test_a_users_member_runs_launches_with_the_same_numbers_and_verifies(user, f
     digest = hashlib.sha256((user / reference.split(":")[0]).read_bytes()).hexdigest()
     field = {"resampler": "resampler", "move": "jitter", "policy": "policy"}[family]
     assert recorded == {(field, str(user / reference), digest)}
+
+
+def test_a_users_reader_runs_launches_with_the_csvs_numbers_and_verifies(user, tmp_path):
+    args = ("-q", "-n", "300", "-T", "30", "--seed", "2", *READER_ARGS, "--reader", str(user / "reader.py:read_spaced"))
+    ran = dtpf("run", *args, cwd=tmp_path)
+    assert ran.returncode == 0, ran.stderr
+    launched = dtpf("launch", *args, "-o", "run.mcap", cwd=tmp_path)
+    assert launched.returncode == 0, launched.stderr
+    keep = ("log predictive", "mean ESS", "innovation")
+    numbers = [[line.split("(")[0].split() for line in out.splitlines() if line.startswith(keep)]
+               for out in (ran.stdout, launched.stdout)]
+    assert numbers[0] == numbers[1] and len(numbers[0]) == 3
+    csv = dtpf("run", "-q", "-n", "300", "-T", "30", "--seed", "2", "--model", READER_ARGS[1], "--observations",
+               str(EXAMPLES / "range_bearing_no_truth.csv"), cwd=tmp_path)
+    assert [line for line in csv.stdout.splitlines() if line.startswith("log predictive")] == \
+        [line for line in ran.stdout.splitlines() if line.startswith("log predictive")]
+    verified = dtpf("verify", "run.mcap", cwd=tmp_path)
+    assert verified.returncode == 0 and "entity: 30 propagated sets reproduced bit for bit" in verified.stdout
+
+
+@pytest.mark.parametrize("source, problem", [
+    ("def read(source):\n    return [[1.0, float('nan')]]\n", "returned a value that is not finite at row 1"),
+    ("def read(source):\n    return [[1.0, 2.0, 3.0]]\n", "returned 3 observation columns; the model observes 2"),
+    ("def read(source):\n    return {'z': [1.0]}\n", "returned a dict with keys ['z']"),
+    ("def read(source):\n    raise OSError('no such device')\n", "raised OSError: no such device"),
+])
+def test_a_reader_that_breaks_the_contract_is_one_line(tmp_path, source, problem):
+    (tmp_path / "mine.py").write_text(source)
+    done = dtpf("run", "-q", *READER_ARGS, "--reader", "mine.py:read", cwd=tmp_path, timeout=120)
+    assert done.returncode == 2, done.stdout
+    assert problem in done.stderr.strip().splitlines()[-1] and "Traceback" not in done.stderr
 
 
 def test_verify_names_a_members_file_that_changed_since_the_run(user, tmp_path):

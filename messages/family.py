@@ -232,7 +232,7 @@ class Family:
 def _summary(obj) -> str:
     """The first line of an object's docstring, without its trailing period."""
     doc = (getattr(obj, "__doc__", None) or "").strip()
-    return doc.splitlines()[0].strip().rstrip(".") if doc else ""
+    return doc.splitlines()[0].strip().rstrip(".").replace("``", "") if doc else ""
 
 
 def code_file(reference: str, group: str | None = None) -> Path | None:

@@ -66,7 +66,8 @@ def cmd_run(args: argparse.Namespace) -> int:
         f"{'model' if config.model else 'scenario':<16}{config.model_ref} (N = {config.particles}, "
         f"T = {len(result.steps)}, seed {config.seed})",
         *([f"observations    {config.observations}"] if config.observations else []),
-        f"resampling      {'DT preprocessing + ' if config.preprocess else ''}{config.resampler}",
+        f"resampling      {'DT preprocessing + ' if config.preprocess else ''}{config.resampler}"
+        f"{'' if config.jitter == 'none' else ', then the move ' + config.jitter}",
     ]
     if result.has_truth:
         covered = ""

@@ -152,8 +152,11 @@ def check_unbiased(resampler, where: str, *, draws: int = BIAS_DRAWS, seed: int 
     n = weights.size
     rng = np.random.default_rng(seed)
     counts = np.empty((draws, n))
-    for i in range(draws):
-        counts[i] = np.bincount(resampler(weights, rng), minlength=n)
+    try:
+        for i in range(draws):
+            counts[i] = np.bincount(resampler(weights, rng), minlength=n)
+    except ReferenceLoadError as error:
+        raise ReferenceLoadError(f"{error} (tried on {n} weights before the run)") from None
     zero = np.flatnonzero((weights == 0) & (counts.sum(axis=0) > 0))
     if zero.size:
         raise BiasedResamplerError(f"{where} is biased: it drew particle {int(zero[0])} of weight 0 "

@@ -223,4 +223,24 @@ def test_a_model_that_imports_the_module_beside_it_runs_from_any_folder(user, tm
     assert figures(launched.stdout) == figures(ran.stdout) and len(figures(ran.stdout)) == 5
     fleet = dtpf("launch", *args, "--twins", "2", "--entities", "1", "-o", "fleet.mcap", cwd=elsewhere)
     assert fleet.returncode == 0, fleet.stderr
+    assert "twin-steps      30 of 30" in fleet.stdout
     assert not (elsewhere / "rb_base.py").exists()
+
+
+def test_a_fleet_runs_a_users_members_in_its_shared_services_and_verifies(user, tmp_path):
+    """The shared information and system services learn each twin's members from its entity and load them."""
+    members = ("--resampler", "resampler.py:systematic_numpy", "--move", "move.py:gaussian_shake",
+               "--policy", "policy.py:LowEssPS")
+    for name in ("resampler.py", "move.py", "policy.py"):
+        shutil.copy(user / name, tmp_path / name)
+    args = ("-q", "-n", "200", "-T", "15", "--seed", "1", *members)
+    fleet = dtpf("launch", *args, "--twins", "2", "--entities", "1", "-o", "fleet.mcap", cwd=tmp_path)
+    assert fleet.returncode == 0, fleet.stderr
+    assert "degraded steps  0" in fleet.stdout and "twin-steps      30 of 30" in fleet.stdout
+    solo = dtpf("run", *args, "--twin", "ungm-1-2", cwd=tmp_path)
+    rmse = next(line.split()[1] for line in solo.stdout.splitlines() if line.startswith("RMSE"))
+    row = next(line.split() for line in fleet.stdout.splitlines() if line.startswith("ungm-1-2 "))
+    assert row[2] == rmse  # the twin's numbers are its solo run's
+    verified = dtpf("verify", "fleet.mcap", cwd=tmp_path)
+    assert verified.returncode == 0, verified.stdout + verified.stderr
+    assert "2 of 2 twins reproduced exactly" in verified.stdout

@@ -24,7 +24,11 @@ The names, by what they are for:
   :class:`StateSpaceModel` (the contract of a model; subclass it for your own),
   :func:`get_model` (a built-in model or ``"file.py:Name"`` / ``"module:Name"``);
 - resampling, ``(weights, rng) -> ancestors``: :func:`multinomial`,
-  :func:`stratified`, :func:`systematic`, :func:`residual`;
+  :func:`stratified`, :func:`systematic`, :func:`residual`, :func:`ssp`,
+  :func:`killing` (a resampler of your own has the same form; see
+  :mod:`dtpf.messages.family` for every family a run takes your code in);
+- a PS policy of your own: subclass :class:`PSPolicy`, return a
+  :class:`PSDecision`;
 - the preprocessing rules of the information layer: :func:`preprocess`
   (Eq. 28-30), :func:`threshold` (W of Eq. 28);
 - a run: :class:`RunConfig` (every option of ``dtpf run`` and ``dtpf launch``),
@@ -64,6 +68,10 @@ _HOMES = {
     "stratified": "dtpf.entity.resampling",
     "systematic": "dtpf.entity.resampling",
     "residual": "dtpf.entity.resampling",
+    "ssp": "dtpf.entity.resamplers.ssp",
+    "killing": "dtpf.entity.resamplers.killing",
+    "PSPolicy": "dtpf.system.policy",
+    "PSDecision": "dtpf.system.policy",
     "preprocess": "dtpf.information.rules",
     "threshold": "dtpf.information.rules",
     "RunConfig": "dtpf.messages.config",

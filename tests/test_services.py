@@ -299,6 +299,8 @@ def test_every_run_option_of_a_launch_reaches_its_services(layer, tmp_path):
         RunConfig(policy="choose", choose_base="roughening", twin="t-flags-3"),
         RunConfig(model="docs/examples/range_bearing.py:RangeBearingTarget", observations="live", steps=None,
                   preprocess=False, jitter="regularised", twin="t-flags-2"),
+        RunConfig(model="docs/examples/range_bearing.py:RangeBearingTarget", reader="csv", steps=None,
+                  observations="docs/examples/range_bearing_no_truth.csv", twin="t-flags-4"),
     ]
     changed = {name for config in configs for name in _FLAG_FIELDS if getattr(config, name) != getattr(defaults, name)}
     assert set(_FLAG_FIELDS) - changed <= {"topic", "ros2_fields"}  # a ROS 2 topic's, tests/test_ros2_live.py
@@ -316,7 +318,7 @@ def test_services_reject_bad_configuration_at_startup():
     completed = subprocess.run([sys.executable, "-m", "dtpf.information.service", "--resampler", "best"],
                                cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert completed.returncode == 2
-    assert "--resampler: unknown resampler 'best'; expected one of multinomial," in completed.stderr
+    assert "--resampler: unknown resampler 'best'; expected one of killing, multinomial," in completed.stderr
     completed = subprocess.run([sys.executable, "-m", "dtpf.system.service", "--ps", "1.5"],
                                cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert completed.returncode == 2

@@ -60,7 +60,7 @@ from pathlib import Path
 import numpy as np
 
 from dtpf.messages.config import RunConfig
-from dtpf.messages.names import CONSTANT_POLICIES
+from dtpf.messages.family import POLICIES
 from dtpf.scripts.bench import fleet_floor
 from dtpf.scripts.bench.cpu import RssSampler, _descendants  # noqa: F401 (_descendants: imported from here too)
 from dtpf.scripts.bench.pipeline import inprocess_step
@@ -151,7 +151,7 @@ def run_floor(n: int, k: int, steps: int, folder: Path, entities: int | None = N
     while len(stalls) < FLOOR_ATTEMPTS:
         # The fleet runs the fixed policy, whose decisions its information layer does not wait for.
         result = fleet_floor.one_run(k, "inbox", steps, entities or os.cpu_count() or 1, plan=plan,
-                                     waits=RunConfig().policy not in CONSTANT_POLICIES)
+                                     waits=not POLICIES.trait(RunConfig().policy, "constant", False))
         if "stalled" not in result:
             return {**result, "plan": plan, "stalls": stalls}
         # A stand-in's sample lost now and then (fleet_floor's inbox receivers, on a loaded machine): run again.

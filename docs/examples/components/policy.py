@@ -2,7 +2,7 @@
 
     dtpf run --policy docs/examples/components/policy.py:LowEssPS
 """
-from dtpf.system.policy import PSDecision, PSPolicy
+from dtpf import PSDecision, PSPolicy
 
 
 class LowEssPS(PSPolicy):

@@ -1,7 +1,7 @@
 """The runs of ``dtpf compare``: each (variant, seed) filtered in one process, on worker processes.
 
-A run is :func:`dtpf.scripts.inprocess.run` of its configuration; its figure is the mean squared error
-against the truth when the run knows it, else the mean log predictive likelihood per step. Each worker
+A run is :func:`dtpf.scripts.inprocess.run` of its configuration; its figure is its task's metric
+(:mod:`~dtpf.scripts.compare_metrics`), beside the figures every row keeps. Each worker
 first runs every variant a few steps on a few particles, so numba's kernels are loaded before any run
 is timed, and ignores Ctrl-C: the parent stops the workers and keeps what has finished::
 
@@ -14,28 +14,28 @@ import multiprocessing
 import signal
 from dataclasses import dataclass
 
-import numpy as np
-
 from dtpf.entity import sources
 from dtpf.messages.config import RunConfig
 from dtpf.scripts.compare_csv import RunRow
+from dtpf.scripts.compare_metrics import Metric, figures_of
 
-__all__ = ["MSE", "LOG_PREDICTIVE", "Task", "RunFailed", "run_task", "run_all", "warm_up"]
+__all__ = ["Task", "RunFailed", "run_task", "run_all", "warm_up"]
 
-#: The metric's names, as the CSV keeps them.
-MSE, LOG_PREDICTIVE = "mse", "log_predictive"
 #: The warm-up of a worker: this many particles and steps of each variant.
 WARM_PARTICLES, WARM_STEPS = 50, 3
 
 
 @dataclass(frozen=True)
 class Task:
-    """One run to make: a variant's label, spec and settings, and the run's configuration (with its seed)."""
+    """One run to make: a variant's label, spec and settings, the run's configuration (with its seed), the
+    metric it is judged by and the cell of the grid it belongs to ("" without a grid)."""
 
     label: str
     spec: str
     settings: str
     config: RunConfig
+    metric: Metric
+    cell: str = ""
 
 
 class RunFailed(RuntimeError):
@@ -47,6 +47,7 @@ class _Failure:
     label: str
     seed: int
     message: str
+    cell: str = ""
 
 
 #: The models of this process by (scenario, model): loaded (and checked in the parent) once.
@@ -66,16 +67,16 @@ def run_task(task: Task) -> RunRow | _Failure:
 
     try:
         result = run(task.config, model=_model(task.config))
+        value = task.metric.of(result)
     except Exception as error:  # a user's model or file may raise anything; the parent reports it
         message = " ".join(f"{type(error).__name__}: {error}".split())
-        return _Failure(task.label, task.config.seed, message)
-    if result.has_truth:
-        metric, value = MSE, result.mse
-    else:
-        metric, value = LOG_PREDICTIVE, float(np.mean(result.log_predictive))
+        return _Failure(task.label, task.config.seed, message, task.cell)
     steps = len(result.steps)
-    return RunRow(task.label, task.spec, task.settings, task.config.seed, metric, float(value), result.mean_ess,
-                  steps, 1e3 * result.elapsed / steps if steps else math.nan)
+    figures = figures_of(result)
+    return RunRow(task.label, task.spec, task.settings, task.config.seed, task.metric.key, value,
+                  figures["mean_ess"], steps, 1e3 * result.elapsed / steps if steps else math.nan, cell=task.cell,
+                  distinct=figures["distinct"], preprocessed=figures["preprocessed"],
+                  log_predictive=figures["log_predictive"])
 
 
 def warm_up(configs: list[RunConfig]) -> None:
@@ -125,5 +126,6 @@ def run_all(tasks: list[Task], workers: int, warm: list[RunConfig], on_row) -> N
 
 def _checked(outcome: RunRow | _Failure) -> RunRow:
     if isinstance(outcome, _Failure):
-        raise RunFailed(f"variant {outcome.label!r}, seed {outcome.seed}: {outcome.message}")
+        where = f"cell {outcome.cell!r}, " if outcome.cell else ""
+        raise RunFailed(f"{where}variant {outcome.label!r}, seed {outcome.seed}: {outcome.message}")
     return outcome

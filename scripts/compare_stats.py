@@ -10,7 +10,8 @@ Every interval is the normal one, mean +- z s / sqrt(S) with z = 1.96 and s the 
 deviation (ddof 1) over the S seeds; a difference is paired by seed. The relative change is the ratio
 of the means minus one, in percent of the baseline's mean, with the delta method's interval: the
 half-width is z sd(a - R b) / (sqrt(S) |mean b|), R = mean a / mean b (the method of the paper's
-reports). With fewer than two seeds a half-width is NaN and no verdict is given.
+reports). With fewer than two seeds a half-width is NaN and no verdict is given. Every function takes
+``z=`` for another quantile (the research reports use the exact 1.959963984540054).
 """
 from __future__ import annotations
 
@@ -28,23 +29,23 @@ Z95 = 1.96
 BETTER, WORSE, SAME, BASELINE = "better", "worse", "not significantly different", "baseline"
 
 
-def mean_interval(values) -> tuple[float, float]:
+def mean_interval(values, z: float = Z95) -> tuple[float, float]:
     """The mean of ``values`` and the half-width of its 95% normal interval (NaN for fewer than two)."""
     values = np.asarray(values, dtype=np.float64)
     if values.size == 0:
         return math.nan, math.nan
     if values.size < 2:
         return float(values.mean()), math.nan
-    return float(values.mean()), Z95 * float(values.std(ddof=1)) / math.sqrt(values.size)
+    return float(values.mean()), z * float(values.std(ddof=1)) / math.sqrt(values.size)
 
 
-def paired_difference(values, baseline) -> tuple[float, float]:
+def paired_difference(values, baseline, z: float = Z95) -> tuple[float, float]:
     """The mean of ``values - baseline`` (paired element by element) and its 95% half-width."""
     values, baseline = _paired(values, baseline)
-    return mean_interval(values - baseline)
+    return mean_interval(values - baseline, z)
 
 
-def relative_change(values, baseline) -> tuple[float, float]:
+def relative_change(values, baseline, z: float = Z95) -> tuple[float, float]:
     """The change of mean(values) against mean(baseline) in percent of |mean(baseline)|, paired by element,
     with its 95% delta-method half-width (NaN where the baseline's mean is 0, or for fewer than two)."""
     values, baseline = _paired(values, baseline)
@@ -56,7 +57,7 @@ def relative_change(values, baseline) -> tuple[float, float]:
     if values.size < 2:
         return change, math.nan
     spread = float(np.std(values - ratio * baseline, ddof=1)) / (math.sqrt(values.size) * abs(base))
-    return change, 100.0 * Z95 * spread
+    return change, 100.0 * z * spread
 
 
 def verdict(difference: float, half: float, higher_is_better: bool) -> str:
@@ -81,15 +82,15 @@ class Comparison:
     verdict: str
 
 
-def compare(values, baseline, higher_is_better: bool, is_baseline: bool = False) -> Comparison:
+def compare(values, baseline, higher_is_better: bool, is_baseline: bool = False, z: float = Z95) -> Comparison:
     """``values`` against ``baseline`` (the same seeds, in the same order); ``is_baseline``: the baseline itself
     (its difference is 0 by construction, its verdict ``"baseline"``)."""
     values, baseline = _paired(values, baseline)
-    mean, mean_half = mean_interval(values)
+    mean, mean_half = mean_interval(values, z)
     if is_baseline:
         return Comparison(values.size, mean, mean_half, 0.0, 0.0, 0.0, 0.0, BASELINE)
-    difference, difference_half = paired_difference(values, baseline)
-    change, change_half = relative_change(values, baseline)
+    difference, difference_half = paired_difference(values, baseline, z)
+    change, change_half = relative_change(values, baseline, z)
     return Comparison(values.size, mean, mean_half, difference, difference_half, change, change_half,
                       verdict(difference, difference_half, higher_is_better))
 

@@ -154,14 +154,13 @@ def test_compare_prints_the_table_writes_the_csv_and_resumes_it(tmp_path):
         lines = list(csv.reader(handle))
     assert tuple(lines[0]) == HEADER and len(lines) == 1 + 3 * 3
     held, note = CompareCsv(table).read()
-    assert note is None and {(label, seed) for label, seed in held} == \
-        {(label, seed) for label in ("plain", "dt", "rough") for seed in range(3)}
+    assert note is None and set(held) == {("", label, seed) for label in ("plain", "dt", "rough") for seed in range(3)}
     # A row is the in-process run of its variant and seed, to the last digit.
     from dtpf.scripts.inprocess import run
-    assert held[("plain", 1)].value == run(RunConfig(particles=30, steps=10, seed=1, preprocess=False)).mse
+    assert held[("", "plain", 1)].value == run(RunConfig(particles=30, steps=10, seed=1, preprocess=False)).mse
     # The table is the statistics of the rows.
-    plain = [held[("plain", seed)].value for seed in range(3)]
-    dt = [held[("dt", seed)].value for seed in range(3)]
+    plain = [held[("", "plain", seed)].value for seed in range(3)]
+    dt = [held[("", "dt", seed)].value for seed in range(3)]
     expected = stats.compare(dt, plain, higher_is_better=False)
     assert rows["dt"][2] == stats.format_interval(expected.mean, expected.mean_half)
     assert rows["dt"][3] == stats.format_interval(expected.difference, expected.difference_half)
@@ -259,3 +258,143 @@ def test_help_explains_the_variant_syntax_with_an_example():
     done = dtpf("--help")
     assert done.returncode == 0
     assert "LABEL:FIELD=VALUE" in done.stdout and "example:" in done.stdout and "--seed-list" in done.stdout
+
+
+# --- metrics, grids, the CSV's layouts --------------------------------------------------------------------------
+
+class _Result:
+    """What a metric reads of a run: its errors over the components the truth covers, and the log predictives."""
+
+    def __init__(self, errors, components=None, log_predictive=(-1.0, -2.0)):
+        self.errors = np.asarray(errors, dtype=np.float64)
+        self.components = tuple(range(self.errors.shape[1])) if components is None else components
+        self.log_predictive = np.asarray(log_predictive)
+
+
+def test_each_metric_against_values_worked_out_by_hand():
+    from dtpf.scripts.compare_metrics import Metric
+
+    result = _Result([[3.0, 4.0], [0.0, 0.0]])  # distances 5 and 0
+    assert Metric("mse").of(result) == 6.25  # (9 + 16 + 0 + 0) / 4
+    assert Metric("rmse").of(result) == 2.5
+    assert Metric("squared-distance").of(result) == 12.5  # (25 + 0) / 2
+    assert Metric("distance").of(result) == 2.5  # (5 + 0) / 2
+    assert Metric("mse", (1,)).of(result) == 8.0  # (16 + 0) / 2
+    assert Metric("log-predictive").of(result) == -1.5
+    # A file whose truth covers components 2 and 4 of the state: the metric picks them by state component.
+    partial = _Result([[1.0, 2.0], [3.0, 4.0]], components=(2, 4))
+    assert Metric("squared-distance", (4,)).of(partial) == 10.0  # (4 + 16) / 2
+    assert Metric("mse").higher_is_better is False and Metric("log-predictive").higher_is_better is True
+
+
+def test_a_metric_is_named_as_the_csv_keeps_it_and_refused_where_a_run_cannot_give_it():
+    from dtpf.scripts.compare_metrics import Metric, parse_metric
+
+    assert parse_metric(None, None, has_truth=True) == Metric("mse")
+    assert parse_metric(None, None, has_truth=False) == Metric("log-predictive")
+    assert parse_metric("squared-distance", "0,1", has_truth=True).key == "squared-distance[0,1]"
+    assert Metric("log-predictive").key == "log_predictive" and Metric("mse").key == "mse"
+    assert Metric("distance", (0, 1)).title == "distance of components 0, 1 (lower is better)"
+    for name, components, message in [("bogus", None, "--metric: one of mse, rmse"),
+                                      ("mse", "0,x", "--components: state components are integers"),
+                                      ("mse", "1,1", "--components: distinct components"),
+                                      ("log-predictive", "0", "--components: the log predictive is of the whole")]:
+        with pytest.raises(RunInputError, match=message):
+            parse_metric(name, components, has_truth=True)
+    with pytest.raises(RunInputError, match="--metric rmse needs the truth"):
+        Metric("rmse").check(2, None)
+    with pytest.raises(RunInputError, match="the state has components 0 .. 1, got 2"):
+        Metric("mse", (2,)).check(2, (0, 1))
+    with pytest.raises(RunInputError, match="the truth covers components 0, not 1"):
+        Metric("mse", (1,)).check(2, (0,))
+
+
+def test_a_grid_is_every_combination_the_first_field_outermost():
+    from dtpf.scripts.compare_plan import Cell, parse_grid
+
+    assert parse_grid(None) == [Cell()]
+    cells = parse_grid(["particles=100,1000", "scenario=ungm,drift"])
+    assert [cell.name for cell in cells] == ["particles=100, scenario=ungm", "particles=100, scenario=drift",
+                                             "particles=1000, scenario=ungm", "particles=1000, scenario=drift"]
+    assert cells[1].fields == {"particles": "100", "scenario": "drift"}
+    for texts, message in [(["particles"], "FIELD=VALUE"), (["bogus=1"], "unknown field 'bogus'"),
+                           (["seed=1,2"], "each run's own"), (["particles=1,1"], "lists a value twice"),
+                           (["particles=1", "particles=2"], "particles is given twice"), (["steps=5,"], "FIELD=VALUE")]:
+        with pytest.raises(RunInputError, match=message):
+            parse_grid(texts)
+
+
+def test_the_statistics_take_another_quantile():
+    mean, half = stats.mean_interval([1.0, 2.0, 3.0, 4.0], z=1.0)
+    assert half == pytest.approx(math.sqrt(5 / 3) / 2)
+    exact = stats.compare([3.0, 5.0, 4.0, 6.0], [2.0, 3.0, 3.0, 4.0], higher_is_better=False, z=1.959963984540054)
+    assert exact.difference_half == pytest.approx(0.5658033 * 1.959963984540054 / 1.96, abs=1e-7)
+
+
+def test_a_csv_of_the_first_layout_is_read_and_appended_to_in_its_own(tmp_path):
+    from dtpf.scripts.compare_csv import FIRST_HEADER, RunRow
+
+    path = tmp_path / "old.csv"
+    path.write_text(",".join(FIRST_HEADER) + "\nplain,preprocess=false,{},0,mse,1.5,20.0,10,0.1\n")
+    store = CompareCsv(path)
+    held, _ = store.read()
+    row = held[("", "plain", 0)]
+    assert (row.value, row.cell) == (1.5, "") and math.isnan(row.distinct) and math.isnan(row.log_predictive)
+    store.check(held, {("", "plain"): "{}"}, "mse")
+    with pytest.raises(RunInputError, match=r"judged there by the metric mse \(now rmse\)"):
+        store.check(held, {("", "plain"): "{}"}, "rmse")
+    with pytest.raises(RunInputError, match="holds no cells; give another --csv for a --grid"):
+        store.check(held, {("particles=10", "plain"): "{}"}, "mse")
+    store.append(RunRow("plain", "preprocess=false", "{}", 1, "mse", 2.5, 21.0, 10, 0.2, distinct=0.5))
+    lines = path.read_text().splitlines()
+    assert lines[-1] == "plain,preprocess=false,{},1,mse,2.5,21.0,10,0.2"
+    assert set(CompareCsv(path).read()[0]) == {("", "plain", 0), ("", "plain", 1)}
+
+
+def test_a_grid_gives_a_table_per_cell_and_a_metric_over_chosen_components(tmp_path):
+    """--grid particles=20,30 with --metric squared-distance --components 0 on the range-bearing target: a table
+    per cell, each row the metric of the in-process run worked out from its means and truth; the CSV holds each
+    cell's rows, and the same command again runs nothing."""
+    from dtpf.scripts.inprocess import run
+
+    table = tmp_path / "grid.csv"
+    model = "docs/examples/range_bearing.py:RangeBearingTarget"
+    args = ("--model", model, "--variant", "plain:preprocess=false", "--variant", "rough:preprocess=false,jitter=roughening",
+            "--grid", "particles=20,30", "--seeds", "2", "-T", "6", "--workers", "2", "--metric", "squared-distance",
+            "--components", "0", "--csv", str(table))
+    done = dtpf(*args)
+    assert done.returncode == 0, done.stderr
+    assert "2 variants x 2 seeds x 2 cells (seeds 0-1); metric: the mean over steps of the squared distance of the " \
+           "posterior mean to the truth of component 0, lower is better" in done.stdout
+    blocks = done.stdout.split("**particles=")
+    assert [block.split("**")[0] for block in blocks[1:]] == ["20", "30"]
+    assert "| variant | runs | squared distance of component 0 (lower is better) | difference vs plain |" in blocks[1]
+    held, _ = CompareCsv(table).read()
+    assert set(held) == {(f"particles={n}", label, seed) for n in (20, 30) for label in ("plain", "rough")
+                         for seed in (0, 1)}
+    row = held[("particles=30", "rough", 1)]
+    result = run(RunConfig(model=str(ROOT / "docs/examples/range_bearing.py") + ":RangeBearingTarget", particles=30,
+                           steps=6, seed=1, preprocess=False, jitter="roughening"))
+    assert row.metric == "squared-distance[0]"
+    assert row.value == pytest.approx(float(np.mean((result.means[:, 0] - result.truth[:, 0]) ** 2)), rel=1e-12)
+    assert row.log_predictive == pytest.approx(float(np.mean(result.log_predictive)), rel=1e-12)
+    assert row.distinct > 0 and row.preprocessed == 0.0
+    values = [held[("particles=20", "rough", seed)].value - held[("particles=20", "plain", seed)].value
+              for seed in (0, 1)]
+    assert table_rows(blocks[1])["rough"][3] == stats.format_interval(*stats.paired_difference(values, [0.0, 0.0]))
+    again = dtpf(*args)
+    assert again.returncode == 0 and "holds 8 of the 8 runs (2 variants x 2 seeds x 2 cells); skipping them, " \
+                                      "nothing to run" in again.stderr
+    assert again.stdout == done.stdout
+
+
+@pytest.mark.parametrize("extra, message", [
+    (("--components", "3"), "dtpf compare: error: --components: the state has components 0 .. 0, got 3"),
+    (("--grid", "particles=20,x"), "dtpf compare: error: --grid: cell 'particles=x': particles: "),
+    (("--grid", "preprocess=true,false"), "dtpf compare: error: variant 'plain' sets preprocess, which --grid varies"),
+])
+def test_a_bad_metric_or_grid_is_one_line_before_any_run(extra, message):
+    done = dtpf("--variant", "plain:preprocess=false", "--seeds", "2", "-n", "20", "-T", "4", *extra)
+    assert done.returncode == 2, done.stderr
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(message), lines

@@ -25,6 +25,7 @@ from __future__ import annotations
 import hashlib
 import importlib
 import importlib.machinery
+import inspect
 import importlib.metadata
 import importlib.util
 import os
@@ -37,7 +38,7 @@ from pathlib import Path
 from dtpf.messages.errors import RunInputError
 
 __all__ = ["ReferenceLoadError", "is_reference", "is_path", "import_module", "load_file", "attribute",
-           "entry_points", "load_entry_point", "file_sha256", "origin_of", "describe", "first_line"]
+           "entry_points", "load_entry_point", "file_sha256", "function_of", "Signature", "origin_of", "describe", "first_line"]
 
 _MODULE_NAME = re.compile(r"^[A-Za-z_]\w*(\.[A-Za-z_]\w*)*$")
 _LOCK = threading.RLock()
@@ -152,6 +153,39 @@ def load(ref: str, where: str, error: type[ReferenceLoadError] = ReferenceLoadEr
     else:
         module, shown = import_module(source, where, error), f"module {source!r}"
     return attribute(module, attr, shown, where, error, listing), module
+
+
+class Signature:
+    """The parameters of a user's function, as :func:`function_of` found them (none when it has no signature)."""
+
+    def __init__(self, parameters):
+        self.parameters = dict(parameters)
+
+    def takes(self, keyword: str) -> bool:
+        """Whether the function accepts ``keyword=...`` (by name or through ``**kwargs``); False if unknown."""
+        return keyword in self.parameters or any(p.kind == p.VAR_KEYWORD for p in self.parameters.values())
+
+
+def function_of(obj, where: str, noun: str, form: str, arguments: tuple[str, ...],
+                error: type[ReferenceLoadError] = ReferenceLoadError) -> Signature:
+    """The signature of ``obj`` if it is a function that can be called with the positional ``arguments``
+    (``noun``, ``form``: what a family calls a member and how it writes its contract, for the error), else one
+    line naming what is wrong."""
+    if isinstance(obj, type) or not callable(obj):
+        raise error(f"{where}: expected a function {form}, got "
+                    f"{'the class ' + obj.__name__ if isinstance(obj, type) else a(obj)}")
+    try:
+        parameters = inspect.signature(obj).parameters
+    except (TypeError, ValueError):  # no signature (some builtins): called as the contract says
+        return Signature({})
+    kinds = [p.kind for p in parameters.values()]
+    positional = [p for p in parameters.values() if p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD)]
+    required = [p for p in parameters.values() if p.default is p.empty and p.kind not in (p.VAR_POSITIONAL,
+                                                                                            p.VAR_KEYWORD)]
+    if len(required) > len(arguments) or (len(positional) < len(arguments)
+                                          and inspect.Parameter.VAR_POSITIONAL not in kinds):
+        raise error(f"{where}: {noun} takes ({', '.join(arguments)}), got the parameters ({', '.join(parameters)})")
+    return Signature(parameters)
 
 
 def entry_points(group: str) -> dict[str, importlib.metadata.EntryPoint]:

@@ -25,10 +25,9 @@ wrong). It is tried on a small set before a run.
 """
 from __future__ import annotations
 
-import inspect
-
 import numpy as np
 
+from dtpf.messages import references
 from dtpf.messages.family import MOVES
 from dtpf.messages.references import ReferenceLoadError, a
 
@@ -37,18 +36,9 @@ __all__ = ["MOVES", "adapt"]
 
 def adapt(obj, where: str):
     """A user's move in the contract's form, tried on a small set."""
-    if isinstance(obj, type) or not callable(obj):
-        raise ReferenceLoadError(f"{where}: expected a function move(resampled, particles, weights, rng), got "
-                                 f"{'the class ' + obj.__name__ if isinstance(obj, type) else a(obj)}")
-    try:
-        parameters = inspect.signature(obj).parameters
-    except (TypeError, ValueError):
-        parameters = {}
-    takes_n = "n" in parameters or any(p.kind == p.VAR_KEYWORD for p in parameters.values())
-    positional = [p for p in parameters.values() if p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD)]
-    if parameters and len([p for p in positional if p.default is p.empty]) > 4:
-        raise ReferenceLoadError(f"{where}: a move takes (resampled, particles, weights, rng), got the parameters "
-                                 f"({', '.join(parameters)})")
+    signature = references.function_of(obj, where, "a move", "move(resampled, particles, weights, rng)",
+                                       ("resampled", "particles", "weights", "rng"))
+    takes_n = signature.takes("n")
     move = _Checked(obj, where, takes_n)
     rng = np.random.default_rng(0)
     particles = rng.standard_normal((5, 2))

@@ -31,28 +31,22 @@ columns fit the model, and names what is wrong in one line (an
 """
 from __future__ import annotations
 
-import inspect
 import os
 
 import numpy as np
 
 from dtpf.entity.observations import ObservationError, ObservationTable
+from dtpf.messages import references
 from dtpf.messages.family import READERS
-from dtpf.messages.references import ReferenceLoadError, a
+from dtpf.messages.references import a
 
 __all__ = ["READERS", "adapt"]
 
 
 def adapt(obj, where: str):
     """A user's reader in the contract's form."""
-    if isinstance(obj, type) or not callable(obj):
-        raise ReferenceLoadError(f"{where}: expected a function read(source) -> observations, got "
-                                 f"{'the class ' + obj.__name__ if isinstance(obj, type) else a(obj)}")
-    try:
-        parameters = inspect.signature(obj).parameters
-    except (TypeError, ValueError):
-        parameters = {}
-    takes_steps = "steps" in parameters or any(p.kind == p.VAR_KEYWORD for p in parameters.values())
+    signature = references.function_of(obj, where, "a reader", "read(source) -> observations", ("source",))
+    takes_steps = signature.takes("steps")
     return _Checked(obj, where, takes_steps)
 
 

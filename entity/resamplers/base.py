@@ -38,12 +38,12 @@ A built-in is a module of this package that registers its function with
 """
 from __future__ import annotations
 
-import inspect
 import math
 
 import numpy as np
 
 from dtpf.entity import _merge
+from dtpf.messages import references
 from dtpf.messages.arrays import check_weights, is_plain_float64
 from dtpf.messages.family import RESAMPLERS
 from dtpf.messages.references import ReferenceLoadError, a
@@ -93,19 +93,7 @@ def exponential_merge(w: np.ndarray, rng: np.random.Generator, out: np.ndarray, 
 
 def adapt(obj, where: str):
     """A user's resampler in the contract's form, checked on a small case (see the module docstring)."""
-    if isinstance(obj, type) or not callable(obj):
-        raise ReferenceLoadError(f"{where}: expected a function (weights, rng) -> ancestors, got "
-                                 f"{'the class ' + obj.__name__ if isinstance(obj, type) else a(obj)}")
-    try:
-        parameters = inspect.signature(obj).parameters
-    except (TypeError, ValueError):
-        parameters = {}
-    positional = [p for p in parameters.values() if p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD)]
-    required = [p for p in positional if p.default is p.empty]
-    if parameters and (len(required) > 2 or (len(positional) < 2 and not any(
-            p.kind == p.VAR_POSITIONAL for p in parameters.values()))):
-        raise ReferenceLoadError(f"{where}: a resampler takes (weights, rng), got the parameters "
-                                 f"({', '.join(parameters)})")
+    references.function_of(obj, where, "a resampler", "(weights, rng) -> ancestors", ("weights", "rng"))
     resampler = _Checked(obj, where)
     check_unbiased(resampler, where)
     return resampler

@@ -39,13 +39,13 @@ A built-in is a module of this package that registers its function with ``@THRES
 """
 from __future__ import annotations
 
-import inspect
 import math
 import numbers
 from typing import NamedTuple
 
 import numpy as np
 
+from dtpf.messages import references
 from dtpf.messages.family import THRESHOLDS
 from dtpf.messages.references import ReferenceLoadError, a, describe
 
@@ -64,20 +64,7 @@ class Split(NamedTuple):
 
 def adapt(obj, where: str):
     """A user's ``W = rule(weights)`` in the family's calling form, tried on a small set (module docstring)."""
-    if isinstance(obj, type) or not callable(obj):
-        raise ReferenceLoadError(f"{where}: expected a function rule(weights) -> W, got "
-                                 f"{'the class ' + obj.__name__ if isinstance(obj, type) else a(obj)}")
-    try:
-        parameters = inspect.signature(obj).parameters
-    except (TypeError, ValueError):
-        parameters = {}
-    positional = [p for p in parameters.values() if p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD)]
-    required = [p for p in parameters.values() if p.default is p.empty and p.kind not in (p.VAR_POSITIONAL,
-                                                                                            p.VAR_KEYWORD)]
-    if parameters and (len(required) > 1 or (not positional and not any(
-            p.kind == p.VAR_POSITIONAL for p in parameters.values()))):
-        raise ReferenceLoadError(f"{where}: a threshold rule takes (weights), got the parameters "
-                                 f"({', '.join(parameters)})")
+    references.function_of(obj, where, "a threshold rule", "rule(weights) -> W", ("weights",))
     rule = _Checked(obj, where)
     weights = CHECK_WEIGHTS / CHECK_WEIGHTS.sum()
     weights.flags.writeable = False

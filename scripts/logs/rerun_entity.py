@@ -16,7 +16,7 @@ from dtpf.entity.filter import ParticleFilter, Preprocessed
 from dtpf.messages.config import RunConfig
 from dtpf.messages.models import Estimate, ParticleSet
 
-__all__ = ["EntityRerun", "rerun_entity"]
+__all__ = ["EntityRerun", "rerun_entity", "first_difference"]
 
 
 @dataclass
@@ -30,7 +30,8 @@ class EntityRerun:
     skipped: str | None = None
 
 
-def _first_difference(recorded: np.ndarray, rerun: np.ndarray) -> tuple[str, object, object] | None:
+def first_difference(recorded: np.ndarray, rerun: np.ndarray) -> tuple[str, object, object] | None:
+    """Where two arrays differ bit for bit: ('[i, j]', recorded value, re-run value), or None."""
     if recorded.shape != rerun.shape:
         return "shape", recorded.shape, rerun.shape
     differ = recorded != rerun
@@ -77,7 +78,7 @@ def rerun_entity(config: RunConfig, model, twin: str, propagated: dict[int, Part
         filtered = pf._step(z)
         answers.pop(step, None)
         for name in ("particles", "weights"):
-            where = _first_difference(getattr(recorded, name), getattr(filtered, name))
+            where = first_difference(getattr(recorded, name), getattr(filtered, name))
             if where is not None:
                 index, value, other = where
                 result.mismatch = (step, f"{name}{index}" if index != "shape" else f"{name} shape", value, other)

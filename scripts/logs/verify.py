@@ -15,14 +15,13 @@ import argparse
 import math
 from dataclasses import dataclass, field
 
-import numpy as np
 
 from dtpf.information.layer import InformationLayer
 from dtpf.messages.config import RunConfig
 from dtpf.messages.models import ParticleSet, Status
 from dtpf.recording.logfile import Log, LogError, in_step_order, read_logs
 from dtpf.messages.family import component_records
-from dtpf.scripts.logs.rerun_entity import EntityRerun, rerun_entity
+from dtpf.scripts.logs.rerun_entity import EntityRerun, first_difference, rerun_entity
 from dtpf.scripts.logs.summary import format_ranges
 from dtpf.system.layer import SystemLayer
 from dtpf.system.predict import Snapshot
@@ -66,17 +65,6 @@ class Verification:
     @property
     def ok(self) -> bool:
         return self.mismatch is None
-
-
-def _first_difference(recorded: np.ndarray, rerun: np.ndarray) -> tuple[str, object, object] | None:
-    """Where two arrays differ bit for bit: ('[i, j]', recorded value, re-run value), or None."""
-    if recorded.shape != rerun.shape:
-        return "shape", recorded.shape, rerun.shape
-    differ = recorded != rerun
-    if not differ.any():
-        return None
-    index = tuple(int(i) for i in np.argwhere(differ)[0])
-    return f"[{', '.join(map(str, index))}]", float(recorded[index]), float(rerun[index])
 
 
 def _same(a, b) -> bool:
@@ -247,7 +235,7 @@ def _compare_preprocessed(step: int, twin: str, recorded: ParticleSet, out) -> M
     topic = f"dtpf/{twin}/information/preprocessed"
     rerun = out.preprocessed
     for name, mine in (("particles", rerun.particles), ("weights", rerun.weights)):
-        where = _first_difference(getattr(recorded, name), mine)
+        where = first_difference(getattr(recorded, name), mine)
         if where is not None:
             index, value, other = where
             return Mismatch(step, topic, f"{name}{index}" if index != "shape" else f"{name} shape", value, other)

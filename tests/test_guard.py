@@ -423,6 +423,50 @@ def test_the_evaluation_quick_form_prints_every_variant_of_every_scenario(capsys
     assert error(shifted, "DT paper rule, PS 0.81") > 100 * error(drift, "DT paper rule, PS 0.81")
 
 
+def test_the_evaluation_runs_dtpf_compare_cells_and_prints_the_command_of_one(capsys, tmp_path):
+    """evaluate_guard's cells are dtpf compare plans: its --csv is a compare CSV whose video rows are the squared
+    distance of the estimated to the true centre (worked out here from an in-process run), the same command
+    again runs nothing and prints the same tables, and the dtpf compare command it prints for the video cell
+    gives every run's error to the last digit."""
+    import shlex
+    import subprocess
+    import sys
+
+    from conftest import ROOT
+    from dtpf.scripts.compare_csv import CompareCsv
+    from dtpf.scripts.paper import evaluate_guard
+
+    path = tmp_path / "guard.csv"
+    argv = ["--seeds", "2", "--steps", "5", "--particles", "20", "--scenarios", "video", "drift+100", "--workers",
+            "1", "--csv", str(path)]
+    assert evaluate_guard.main(argv) == 0
+    out = capsys.readouterr().out
+    held, _ = CompareCsv(path).read()
+    video = {(label, seed): row for (cell, label, seed), row in held.items() if cell == "video, N = 20"}
+    assert {label for label, _ in video} == {label for label in evaluate_guard.VARIANTS
+                                             if evaluate_guard.runs_on("video", label)}
+    assert all(row.metric == "squared-distance[0,1]" for row in video.values())
+    result = run(RunConfig(scenario="video", particles=20, steps=5, seed=1, twin="guard-1", preprocess=False,
+                           resampler="stratified"))
+    centre = float(np.mean(np.sum((result.means[:, :2] - result.truth[:, :2]) ** 2, axis=1)))
+    assert video[("stratified", 1)].value == centre
+    assert "| Kalman (exact) |" in out.split("**drift+100, N = 20**")[1]
+    assert evaluate_guard.main(argv) == 0
+    again = capsys.readouterr().out
+    assert again.split("(")[:-1] == out.split("(")[:-1]  # the same report but the time it took
+    assert len(CompareCsv(path).read()[0]) == len(held)
+
+    command = out.split("\n\n    dtpf compare ")[1].split("\n\n")[0]
+    assert command.startswith("--scenario video -n 20 -T 5 --twin guard-1 --seeds 2 --metric squared-distance "
+                              "--components 0,1")
+    table = tmp_path / "compare.csv"
+    done = subprocess.run([sys.executable, "-m", "dtpf.scripts.cli", "compare", *shlex.split(command.replace(
+        "\\\n", " ")), "--workers", "1", "--csv", str(table)], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    direct = {(label, seed): row.value for (_, label, seed), row in CompareCsv(table).read()[0].items()}
+    assert direct == {key: row.value for key, row in video.items()}
+
+
 _SYSTEM_FIRST_STEPS = """
 import numba, numpy as np
 import dtpf.entity._growth, dtpf.entity._merge, dtpf.information.mirror, dtpf.information.rules, dtpf.information.select, dtpf.messages._seedseq

@@ -6,30 +6,9 @@ The recommended import is::
     ancestors = rs.systematic(weights, rng)
     particles = particles[ancestors]
 
-Every scheme has the same contract, ``ancestors = scheme(weights, rng)``
-(:mod:`dtpf.entity.resamplers.base`, where it is stated once):
-
-Parameters
-----------
-weights : (N,) array_like
-    Normalised weights: finite, non-negative, summing to 1 (checked; a
-    ValueError names what is wrong).
-rng : numpy.random.Generator
-    The only source of randomness; schemes never touch global state.
-
-out : (N,) ndarray of int64, optional, keyword only
-    Where to write the ancestors (C-contiguous, writeable); a new array if None.
-checked : bool, keyword only
-    The weights passed :func:`~dtpf.messages.arrays.check_weights` already (the
-    filter normalised them, or a decoded message was checked): if they are
-    a float64 vector they are not scanned again. Validation belongs where
-    the weights are made, once per step, not in every kernel the step calls.
-
-Returns
--------
-ancestors : (N,) ndarray of int64
-    Index of the parent of each new particle, in non-decreasing order
-    (``out`` if given).
+Every scheme has the same contract, ``ancestors = scheme(weights, rng)``, stated once in
+:mod:`dtpf.entity.resamplers.base`: normalised weights (N,) and a numpy Generator in, N int64 ancestor
+indices in non-decreasing order out (keyword-only ``out=`` and ``checked=`` for the filter's hot path).
 
 Every built-in is unbiased: the expected number of copies of particle i is
 N w_i. They differ in the variance of that number: multinomial (largest),

@@ -2,8 +2,9 @@
 
 A run is :func:`dtpf.scripts.inprocess.run` of its configuration; its figure is its task's metric
 (:mod:`~dtpf.scripts.compare_metrics`), beside the figures every row keeps. Each worker
-first runs every variant a few steps on a few particles, so numba's kernels are loaded before any run
-is timed, and ignores Ctrl-C: the parent stops the workers and keeps what has finished::
+first runs every variant a few steps on a few particles (each model once over all its steps), so
+numba's kernels and a model's lazily computed data are loaded before any run is timed, and ignores
+Ctrl-C: the parent stops the workers and keeps what has finished::
 
     run_all(tasks, workers=2, warm=[config, ...], on_row=print)
 """
@@ -80,13 +81,17 @@ def run_task(task: Task) -> RunRow | _Failure:
 
 
 def warm_up(configs: list[RunConfig]) -> None:
-    """Run each configuration on a few particles and steps: numba's kernels load, the models too. A
-    configuration that raises is passed over: its runs will say what is wrong."""
+    """Run each configuration on a few particles and steps, the first of each model over all its steps: numba's
+    kernels load, and so does what a model computes once per process when a step first needs it (the video's
+    frame histograms). A configuration that raises is passed over: its runs will say what is wrong."""
     from dtpf.scripts.inprocess import run
 
+    whole: set[tuple[str, str | None]] = set()
     for config in configs:
+        first = (config.scenario, config.model) not in whole
+        whole.add((config.scenario, config.model))
         small = dict(particles=min(config.particles, WARM_PARTICLES),
-                     steps=min(config.steps or WARM_STEPS, WARM_STEPS))
+                     steps=config.steps if first else min(config.steps or WARM_STEPS, WARM_STEPS))
         try:
             run(config.model_copy(update=small), model=_model(config))
         except Exception:  # noqa: BLE001 - a worker that died here would be started again and again

@@ -398,3 +398,18 @@ def test_a_bad_metric_or_grid_is_one_line_before_any_run(extra, message):
     assert done.returncode == 2, done.stderr
     lines = done.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith(message), lines
+
+
+def test_a_worker_warms_each_model_over_all_its_steps_once_and_every_variant_a_few(monkeypatch):
+    """What a model computes once per process when a step first needs it (the video's frame histograms) is not
+    in any timed run: the first run of each model goes over all its steps, the others three, on few particles."""
+    from dtpf.scripts import compare_runs, inprocess
+
+    ran = []
+    monkeypatch.setattr(inprocess, "run", lambda config, model=None: ran.append((config.scenario, config.particles,
+                                                                                  config.steps)))
+    monkeypatch.setattr(compare_runs, "_model", lambda config: None)
+    compare_runs.warm_up([RunConfig(scenario="video", particles=400, steps=50),
+                          RunConfig(scenario="video", particles=400, steps=50, preprocess=False),
+                          RunConfig(scenario="drift", particles=20, steps=100)])
+    assert ran == [("video", 50, 50), ("video", 50, 3), ("drift", 20, 100)]

@@ -47,6 +47,7 @@ from dtpf.entity import resampling
 from dtpf.entity.models import StateSpaceModel
 from dtpf.messages.arrays import check_particles, check_set
 from dtpf.messages.errors import DtpfError
+from dtpf.messages.names import OWN_ARM
 from dtpf.messages.models import MAX_COVARIANCE_DIM
 from dtpf.messages.streams import stream
 
@@ -502,9 +503,13 @@ class ParticleFilter:
                 report = answer.report
                 if answer.jitter is not None:
                     # Only a built-in or the run's own move: a name on the wire never loads code.
-                    if answer.jitter not in jitters.JITTERS and answer.jitter != self.jitter:
-                        raise ValueError(f"unknown jitter {answer.jitter!r} in the twin's answer")
-                    move = answer.jitter
+                    if answer.jitter == OWN_ARM and self.jitter not in jitters.JITTERS:
+                        move = self.jitter
+                    elif answer.jitter not in jitters.JITTERS:
+                        raise ValueError(f"unknown jitter {answer.jitter!r} in the twin's answer (this run has "
+                                         f"{'no move of its own' if answer.jitter == OWN_ARM else 'no such move'})")
+                    else:
+                        move = answer.jitter
 
         mean, var, covariance = moments_and_covariances(target_particles, target_weights)
         half = Z95 * np.sqrt(var)

@@ -185,7 +185,8 @@ class TwinRun:
         self.data = data
         self.cloud = args.cloud_points
         self.steps = config.steps if config.steps is not None or data is None else len(data.observations)
-        shell.expect(RunShape(config.particles, model.dim, model.obs_dim, self.steps))
+        shell.expect(RunShape(config.particles, model.dim, model.obs_dim, self.steps,
+                              own_move=RunShape.of(config).own_move))
         self.wait_for = set(args.wait_for if args.wait_for is not None else (
             ["information", "system"] if config.preprocess else []))
         self.twin = ZenohTwin(shell, args.timeout) if config.preprocess else None

@@ -29,11 +29,11 @@ from dtpf.entity.models import StateSpaceModel
 from dtpf.information import rules
 from dtpf.information.mirror import WeightSummary, summarise
 from dtpf.messages.arrays import check_probability
-from dtpf.messages.family import THRESHOLDS
-from dtpf.messages.names import MOVE_RULE_REGISTRY, WEIGHT_RULE_REGISTRY
+from dtpf.messages.family import MOVES, THRESHOLDS
+from dtpf.messages.names import MOVE_RULE_REGISTRY, OWN_ARM, WEIGHT_RULE_REGISTRY
 from dtpf.messages.streams import stream
 
-__all__ = ["InformationLayer", "InformationOutput", "Arm", "ARMS"]
+__all__ = ["InformationLayer", "InformationOutput", "Arm", "ARMS", "arms_for"]
 
 
 @dataclass(frozen=True)
@@ -65,6 +65,15 @@ ARMS: dict[str, Arm] = {
     "roughening": Arm("roughening", jitter="roughening"),
     "regularised": Arm("regularised", jitter="regularised"),
 }
+
+
+def arms_for(move: str = "none") -> dict[str, Arm]:
+    """The arms of a run whose own move after resampling is ``move``: :data:`ARMS`, and, when ``move`` is
+    not a built-in (a user's ``file.py:NAME`` or an installed package's), the arm "own" that makes it
+    (named "own" on the wire; the entity and the system layer's copies apply the run's move)."""
+    if move in MOVES.builtins():
+        return ARMS
+    return {**ARMS, OWN_ARM: Arm(OWN_ARM, jitter=OWN_ARM)}
 
 
 @dataclass(frozen=True)
@@ -107,12 +116,16 @@ class InformationLayer:
     arm : str, optional
         The arm (:data:`ARMS`) in force before the system layer's first
         decision (the choosing policy starts with "plain").
+    arms : dict, optional
+        The arms a system layer may name (:func:`arms_for` the run's move; default :data:`ARMS`).
     """
 
     def __init__(self, model: StateSpaceModel, *, ps: float, threshold_rule: str | float = "neff",
                  weight_rule: str = "inherit", seed: int = 0, twin: str = "twin", move_rule: str = "paper",
-                 preprocess: bool = True, arm: str | None = None):
+                 preprocess: bool = True, arm: str | None = None, arms: dict[str, Arm] | None = None):
         self.model = model
+        #: The arms a system layer may name.
+        self.arms: dict[str, Arm] = ARMS if arms is None else arms
         self.ps = check_probability(ps, "PS")
         #: Whether the preprocessing runs (the system layer's latest decision in force).
         self.enabled = bool(preprocess)
@@ -170,9 +183,9 @@ class InformationLayer:
         step, ps = int(applies_from_step), check_probability(ps, "PS")
         chosen = None
         if arm is not None:
-            if arm not in ARMS:
-                raise ValueError(f"unknown arm {arm!r}; expected one of {', '.join(ARMS)}")
-            chosen = ARMS[arm]
+            if arm not in self.arms:
+                raise ValueError(f"unknown arm {arm!r}; expected one of {', '.join(self.arms)}")
+            chosen = self.arms[arm]
             ps, preprocess = chosen.ps, chosen.preprocess
         self.pending = [item for item in self.pending if item[0] != step]
         self.pending.append((step, ps, bool(preprocess), chosen))

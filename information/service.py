@@ -17,7 +17,7 @@ import argparse
 import zenoh
 
 from dtpf.entity import sources
-from dtpf.information.layer import ARMS, InformationLayer
+from dtpf.information.layer import InformationLayer, arms_for
 from dtpf.messages import family, names
 from dtpf.messages.admission import RunShape
 from dtpf.messages.config import RunConfig, add_run_arguments
@@ -50,7 +50,9 @@ class PSInbox:
             return f"the {self.policy} policy names an arm in every decision" if choosing else None
         if not choosing:
             return f"an arm ({command.arm}) from a run whose policy is {self.policy}"
-        arm = ARMS[command.arm]
+        arm = self.layer.arms.get(command.arm)
+        if arm is None:
+            return f"arm {command.arm} of a run without a move of its own (its arms: {', '.join(self.layer.arms)})"
         if command.policy != self.policy or command.ps != arm.ps or command.preprocess != arm.preprocess:
             return (f"arm {arm.name} with policy {command.policy}, PS {command.ps:g}, preprocess "
                     f"{command.preprocess} (the arm's: {self.policy}, PS {arm.ps:g}, preprocess {arm.preprocess})")
@@ -87,6 +89,7 @@ class TwinInformation:
                                       weight_rule=config.weight_rule, seed=config.seed, twin=config.twin,
                                       move_rule=config.move_rule,
                                       preprocess=family.POLICIES.trait(config.policy, "initial_preprocess", True),
+                                      arms=arms_for(config.jitter),
                                       arm=(config.choose_base or names.DEFAULT_CHOOSE_BASE)
                                       if family.POLICIES.trait(config.policy, "chooses_arms", False) else None)
         shell.expect(RunShape.of(config, model))

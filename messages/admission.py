@@ -19,6 +19,7 @@ from dataclasses import dataclass
 from typing import NamedTuple
 
 from dtpf.messages.models import Estimate, Message, Observation, ParticleSet, PSCommand, WeightState
+from dtpf.messages.names import OWN_ARM
 
 __all__ = ["RunShape", "Misfit", "kind_of"]
 
@@ -61,12 +62,18 @@ class RunShape:
     dim: int | None = None
     obs_dim: int | None = None
     steps: int | None = None
+    #: Whether the run has a move of its own (a user's), which a set or a command may name as "own" (None:
+    #: not checked, a process that does not apply moves).
+    own_move: bool | None = None
 
     @classmethod
     def of(cls, config, model=None) -> "RunShape":
         """The shape of the run of ``config`` (a RunConfig) with its loaded ``model``."""
+        from dtpf.messages.family import MOVES
+
         return cls(particles=config.particles, dim=getattr(model, "dim", None),
-                   obs_dim=getattr(model, "obs_dim", None), steps=config.steps)
+                   obs_dim=getattr(model, "obs_dim", None), steps=config.steps,
+                   own_move=config.jitter not in MOVES.builtins())
 
     @property
     def last_step(self) -> int:
@@ -89,6 +96,10 @@ class RunShape:
         if isinstance(message, WeightState) and message.n != self.particles:
             return Misfit("WeightState of another N",
                           f"WeightState with n = {message.n}, the run has N = {self.particles}")
+        if isinstance(message, PSCommand) and message.arm == OWN_ARM and self.own_move is False:
+            return Misfit("PSCommand naming a move the run does not have",
+                          f"PSCommand at step {step} puts the arm '{OWN_ARM}' in force; the run has no move of "
+                          f"its own")
         if isinstance(message, PSCommand) and message.applies_from_step > self.last_step + 1:
             return Misfit("PSCommand applying after the run's end",
                           f"PSCommand applies from step {message.applies_from_step}, the run has "
@@ -105,6 +116,10 @@ class RunShape:
             return Misfit("particle set of another shape",
                           f"{message.kind.value} particle set of step {message.step} has shape ({n}, {d}), "
                           f"the run has {want}")
+        if message.jitter == OWN_ARM and self.own_move is False:
+            return Misfit("particle set naming a move the run does not have",
+                          f"particle set of step {message.step} names the move '{OWN_ARM}'; the run has no move "
+                          f"of its own")
         if self.obs_dim is not None and message.observation and len(message.observation) != self.obs_dim:
             return Misfit("particle set with an observation of another length",
                           f"particle set of step {message.step} carries {len(message.observation)} observed "

@@ -296,9 +296,10 @@ class ParticleSetHeader(Message):
         default=None, ge=1, le=UINT32_MAX, description="Number of distinct particles this set descends from "
                                                         "(distinct ancestors of the last resampling); absent "
                                                         "before the first resampling.")
-    jitter: Literal[tuple(family.MOVES.builtins())] | None = Field(
+    jitter: Literal[(*family.MOVES.builtins(), names.OWN_ARM)] | None = Field(
         default=None, description="Preprocessed sets: the move the entity applies after resampling this set, "
-                                  "the arm the system layer chose (absent: the run's own --jitter).")
+                                  "the arm the system layer chose ('own': the run's own move of "
+                                  "a user's code; absent: the run's own --jitter).")
 
     @classmethod
     def _expected_layer(cls, data: Any) -> Layer | None:

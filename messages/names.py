@@ -20,7 +20,7 @@ import sys
 from dtpf.messages.family import Family
 
 __all__ = ["SCENARIOS", "MODEL_ENTRY_POINTS", "CANNOT_SAMPLE", "BuiltinOnly", "WEIGHT_RULE_REGISTRY",
-           "MOVE_RULE_REGISTRY", "ARMS", "scenario_names"]
+           "MOVE_RULE_REGISTRY", "ARMS", "OWN_ARM", "scenario_names"]
 
 #: Built-in scenarios (dtpf.entity.models): Eq. 35 with 25, Eq. 35 as printed (0.25), the tracking video, and a
 #: slowly drifting constant with precise observations (where particles impoverish; not in the paper), and the
@@ -63,8 +63,11 @@ WEIGHT_RULE_REGISTRY = BuiltinOnly("weight rule", "dtpf.information.weight_rules
 #: rule; built-in only.
 MOVE_RULE_REGISTRY = BuiltinOnly("move rule", "dtpf.information.move_rules")
 #: The moves the choosing policy picks from (dtpf.information.layer.ARMS): plain resampling, DT preprocessing
-#: with the relative or the paper's rule, roughening, the regularised kernel.
-ARMS = ("plain", "dt-relative", "dt-paper", "roughening", "regularised")
+#: with the relative or the paper's rule, roughening, the regularised kernel; and "own", the run's own move after
+#: resampling (--move file.py:NAME, or an installed package's), an arm of runs that have one.
+ARMS = ("plain", "dt-relative", "dt-paper", "roughening", "regularised", "own")
+#: The arm (and the name of the move on the wire) that stands for the run's own move after resampling.
+OWN_ARM = "own"
 #: The choosing policy's base arm when none is given: over 1,000 seeds per cell roughening was never
 #: significantly worse than plain systematic resampling in any cell of its evaluation (docs/results/chooser.md).
 DEFAULT_CHOOSE_BASE = "roughening"

@@ -19,7 +19,7 @@ import numpy as np
 
 from dtpf.entity import sources
 from dtpf.entity.filter import FilterStep, ParticleFilter, Preprocessed
-from dtpf.information.layer import InformationLayer
+from dtpf.information.layer import InformationLayer, arms_for
 from dtpf.messages.config import RunConfig
 from dtpf.messages.streams import stream
 from dtpf.system.layer import SystemLayer
@@ -165,7 +165,8 @@ def build(config: RunConfig, observations, model=None, innovation: bool = False)
         information = InformationLayer(model, ps=system.policy.initial_ps, threshold_rule=config.threshold,
                                        weight_rule=config.weight_rule, seed=config.seed, twin=config.twin,
                                        move_rule=config.move_rule, preprocess=system.policy.initial_preprocess,
-                                       arm=getattr(system.policy, "initial_arm", None))
+                                       arm=getattr(system.policy, "initial_arm", None),
+                                       arms=arms_for(config.jitter))
         twin = InProcessTwin(information, system)
     return ParticleFilter(model, observations, config.particles, resampler=config.resampler,
                           resample_below=config.resample_below, seed=config.seed, twin=config.twin,

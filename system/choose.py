@@ -53,7 +53,8 @@ from dtpf.entity import jitter as jitters
 from dtpf.entity import resampling
 from dtpf.entity.models import StateSpaceModel
 from dtpf.information import rules
-from dtpf.information.layer import ARMS, Arm
+from dtpf.information.layer import ARMS, Arm, arms_for
+from dtpf.messages.names import OWN_ARM
 from dtpf.system.evidence import predictive_log_likelihood
 
 __all__ = ["ArmEvidence", "CLIP", "point_log_likelihood"]
@@ -101,17 +102,22 @@ class ArmEvidence:
         M, at most this many particles per arm.
     window : int
         W, the differences kept and summed per arm.
+    move : str
+        The run's own move after resampling: a user's makes the arm "own" (:func:`~dtpf.information.layer.arms_for`).
     """
 
     def __init__(self, model: StateSpaceModel, arms=tuple(ARMS), *, n: int, threshold_rule="neff",
-                 particles: int = 1000, window: int = 20):
+                 particles: int = 1000, window: int = 20, move: str = "none"):
         if int(window) < 1:
             raise ValueError(f"window must be at least 1, got {window!r}")
-        unknown = [a for a in arms if a not in ARMS]
+        table = arms_for(move)
+        unknown = [a for a in arms if a not in table]
         if unknown:
-            raise ValueError(f"unknown arm {unknown[0]!r}; expected some of {', '.join(ARMS)}")
+            raise ValueError(f"unknown arm {unknown[0]!r}; expected some of {', '.join(table)}")
         self.model = model
-        self.arms: tuple[Arm, ...] = tuple(ARMS[a] for a in dict.fromkeys(("plain", *arms)))
+        #: The run's own move after resampling, which the arm "own" makes.
+        self.move = move
+        self.arms: tuple[Arm, ...] = tuple(table[a] for a in dict.fromkeys(("plain", *arms)))
         self.n = int(n)
         self.threshold_rule = threshold_rule
         self.particles = int(particles)
@@ -204,7 +210,8 @@ class ArmEvidence:
                 continue
             rng.bit_generator.state = state
             x, w = weighted[arm.name]
-            resampled[arm.name] = jitters.apply(arm.jitter, resampled[arm.name], x, w, rng, n=self.n)
+            move = self.move if arm.jitter == OWN_ARM else arm.jitter
+            resampled[arm.name] = jitters.apply(move, resampled[arm.name], x, w, rng, n=self.n)
         state = rng.bit_generator.state
         out: dict[str, np.ndarray] = {}
         for arm in self.arms:                                 # the same numbers propagate every copy

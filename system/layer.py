@@ -71,6 +71,8 @@ class SystemLayer:
 
         cls_ = ps_policy.policy_class(config.policy)
         base = {"base": config.choose_base} if cls_.chooses_arms and config.choose_base else {}
+        if cls_.chooses_arms:
+            base["move"] = config.jitter
         policy = cls_(ps=config.ps, max_change=config.ps_rate, **base, **(policy_options or {}))
         if policy.simulates and model is None:
             model = model_ref.resolve(config.model_ref)
@@ -79,7 +81,7 @@ class SystemLayer:
         if policy.chooses_arms:
             from dtpf.system.choose import ArmEvidence
             evidence = ArmEvidence(model, policy.arms, n=config.particles, threshold_rule=config.threshold,
-                                   particles=policy.particles, window=policy.window)
+                                   particles=policy.particles, window=policy.window, move=config.jitter)
         predictor = Predictor(model, resampler=config.resampler, **options,
                               scenario_simulation=policy.samples_observations, evidence=evidence) \
             if policy.simulates else Predictor()

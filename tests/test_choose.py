@@ -25,11 +25,12 @@ CHOSEN = RunConfig(scenario="drift", policy="choose", choose_base="plain", parti
 
 
 def test_the_arms_the_contract_names_are_the_arms_the_layers_implement():
-    assert names.ARMS == tuple(ARMS)
+    assert names.ARMS == (*ARMS, names.OWN_ARM)
     from dtpf.system.policy import POLICIES
     assert POLICIES["choose"] is ChoosePS and not ChoosePS.initial_preprocess and ChoosePS.chooses_arms
     assert not ChoosePS.samples_observations  # no sample_observation: it runs on the video
-    assert ChoosePS().arms == names.ARMS
+    assert ChoosePS().arms == tuple(ARMS)
+    assert ChoosePS(move="my_moves.py:shake").arms == names.ARMS  # a user's move is one more arm, "own"
 
 
 def _twin(config: RunConfig, model, enter: float | None = None) -> InProcessTwin:
@@ -295,9 +296,15 @@ def test_a_decision_message_must_name_a_known_arm_and_fit_it():
     assert PSCommand(**base, ps=0.81, preprocess=True, arm="dt-paper").arm == "dt-paper"
     with pytest.raises(ValueError):
         PSCommand(**base, ps=0.0, arm="teleport")
+    from dtpf.information.layer import arms_for
+
     inbox = PSInbox.__new__(PSInbox)
     inbox.policy = "choose"
+    inbox.layer = SimpleNamespace(arms=arms_for("none"))
     assert inbox.problem(PSCommand(**base, ps=0.81, preprocess=True, arm="dt-paper")) is None
+    assert "a run without a move of its own" in inbox.problem(PSCommand(**base, ps=0.0, arm="own"))
+    inbox.layer = SimpleNamespace(arms=arms_for("my.py:shake"))
+    assert inbox.problem(PSCommand(**base, ps=0.0, preprocess=False, arm="own")) is None
     assert "the arm's" in inbox.problem(PSCommand(**base, ps=0.3, preprocess=True, arm="dt-paper"))
     assert "names an arm" in inbox.problem(PSCommand(**base, ps=0.0))
     inbox.policy = "fixed"
@@ -455,7 +462,7 @@ def test_the_evaluation_runs_the_chooser_on_other_bases_with_their_verdicts(caps
     assert evaluate_chooser.main(["--cells", "range-bearing:30", "--seeds", "2", "--steps", "8", "--workers", "1",
                                   "--bases", "regularised", "roughening"]) == 0
     out = capsys.readouterr().out
-    assert evaluate_chooser.VARIANTS["choose, regularised base"] == dict(policy="choose", choose_base="regularised")
+    assert evaluate_chooser.VARIANTS["choose, regularised base"].fields == dict(policy="choose", choose_base="regularised")
     assert evaluate_chooser.CHOOSERS["choose, regularised base"] == "regularised"
     assert "| choose, regularised base (not regularised at " in out
     assert "- range-bearing, N = 30: choose, regularised base " in out

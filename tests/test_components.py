@@ -127,6 +127,27 @@ def test_a_reader_that_breaks_the_contract_is_one_line(tmp_path, source, problem
     assert problem in done.stderr.strip().splitlines()[-1] and "Traceback" not in done.stderr
 
 
+def test_a_users_move_is_an_arm_of_the_choosing_policy(tmp_path):
+    """With --policy choose a user's move is one more arm, 'own': scored on the real observations, put in force
+    when it has the evidence, applied by the entity, and re-run by dtpf verify."""
+    (tmp_path / "strong.py").write_text(
+        "import numpy as np\n\n\ndef wide(resampled, particles, weights, rng):\n"
+        "    mean = weights @ particles\n    spread = np.sqrt(weights @ (particles - mean) ** 2)\n"
+        "    return resampled + rng.standard_normal(resampled.shape) * (0.5 * spread)\n")
+    args = ("-q", "--model", str(EXAMPLES / "range_bearing.py:RangeBearingTarget"), "-n", "100", "-T", "100",
+            "--seed", "1", "--policy", "choose", "--choose-base", "plain", "--move", "strong.py:wide")
+    ran = dtpf("run", *args, cwd=tmp_path)
+    assert ran.returncode == 0, ran.stderr
+    launched = dtpf("launch", *args, "-o", "run.mcap", cwd=tmp_path)
+    assert launched.returncode == 0, launched.stderr
+    assert figures(launched.stdout) == figures(ran.stdout)
+    from dtpf.recording.logfile import read_log
+    arms = [m.arm for _, m in read_log(tmp_path / "run.mcap").decoded(lambda topic: topic.endswith("/system/ps"))]
+    assert "own" in arms and "plain" in arms  # the own move was chosen at some steps (4 of 100 with this seed)
+    verified = dtpf("verify", "run.mcap", cwd=tmp_path)
+    assert verified.returncode == 0 and "entity: 100 propagated sets reproduced bit for bit" in verified.stdout
+
+
 def test_verify_names_a_members_file_that_changed_since_the_run(user, tmp_path):
     move = tmp_path / "move.py"
     shutil.copy(user / "move.py", move)

@@ -157,7 +157,7 @@ def test_the_contract_names_what_the_layers_implement():
     assert set(names.SCENARIOS) == set(models.MODELS)
     assert names.CANNOT_SAMPLE == {name for name in models.MODELS if not models.get(name).samples_observations}
     from dtpf.information import layer
-    assert set(names.ARMS) == set(layer.ARMS)
+    assert set(names.ARMS) == set(layer.arms_for("my.py:move")) == set(layer.ARMS) | {names.OWN_ARM}
     # The information layer's rules are registries: names written once, by the modules that implement them.
     from dtpf.messages.family import THRESHOLDS
     for registry, package in ((THRESHOLDS, "dtpf.information.thresholds"),

@@ -16,7 +16,7 @@ import math
 from dataclasses import dataclass, field
 
 
-from dtpf.information.layer import InformationLayer
+from dtpf.information.layer import InformationLayer, arms_for
 from dtpf.messages.config import RunConfig
 from dtpf.messages.models import ParticleSet, Status
 from dtpf.recording.logfile import Log, LogError, in_step_order, read_logs
@@ -168,7 +168,8 @@ def verify_twin(by_topic: dict[str, list], twin: str, problem: str | None = None
     information = InformationLayer(model, ps=system.policy.initial_ps, threshold_rule=config.threshold,
                                    weight_rule=config.weight_rule, seed=config.seed, twin=twin,
                                    move_rule=config.move_rule, preprocess=system.policy.initial_preprocess,
-                                   arm=getattr(system.policy, "initial_arm", None))
+                                   arm=getattr(system.policy, "initial_arm", None),
+                                   arms=arms_for(config.jitter))
     for step in sorted(particle_sets):
         source: ParticleSet = particle_sets[step]
         out = information.process(step, source.particles, source.weights, source.observation, source.parents)

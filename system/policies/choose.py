@@ -63,6 +63,9 @@ class ChoosePS(PSPolicy):
     base : str
         The arm in force when no other has the evidence (default roughening,
         :data:`dtpf.messages.names.DEFAULT_CHOOSE_BASE`); every threshold above is against this arm's copy.
+    move : str
+        The run's own move after resampling: a user's (``--move file.py:NAME``) is one more arm, "own"
+        (:func:`dtpf.information.layer.arms_for`).
     """
 
     simulates = True
@@ -72,12 +75,14 @@ class ChoosePS(PSPolicy):
 
     def __init__(self, ps: float | None = None, *, max_change: float | None = None, arms=None,
                  enter: float | None = None, leave: float = math.log(3.0), window: int = 20,
-                 particles: int = 1000, veto: bool = True, steady: float = 2.0, base: str = DEFAULT_CHOOSE_BASE):
-        from dtpf.information.layer import ARMS
-        chosen = tuple(ARMS) if arms is None else tuple(arms)
-        unknown = [a for a in (*chosen, base) if a not in ARMS]
+                 particles: int = 1000, veto: bool = True, steady: float = 2.0, base: str = DEFAULT_CHOOSE_BASE,
+                 move: str = "none"):
+        from dtpf.information.layer import arms_for
+        table = arms_for(move)
+        chosen = tuple(table) if arms is None else tuple(arms)
+        unknown = [a for a in (*chosen, base) if a not in table]
         if unknown:
-            raise ValueError(f"unknown arm {unknown[0]!r}; expected some of {', '.join(ARMS)}")
+            raise ValueError(f"unknown arm {unknown[0]!r}; expected some of {', '.join(table)}")
         self.arms = tuple(dict.fromkeys(("plain", *chosen, base)))
         self.base = base
         if enter is None:
@@ -91,7 +96,9 @@ class ChoosePS(PSPolicy):
         self.window, self.particles = int(window), int(particles)
         self.veto = bool(veto)
         self.steady = float(steady)
-        self._table = ARMS
+        self._table = table
+        #: The run's own move after resampling (the arm "own" when it is a user's).
+        self.move = move
         #: The arm in force (the latest decision's; the arm the entity applies at the step being decided).
         self.arm = self.initial_arm = base
 

@@ -327,7 +327,7 @@ class Inbound:
             shell.reject("a ROS message with no values or too many",
                          f"{len(values)} values (an observation holds 1 to {MAX_OBSERVATION_VALUES})")
             return
-        stamp = rosbag.stamp_of(message)
+        stamp = normalized_stamp(rosbag.stamp_of(message))
         if stamp is None or stamp == (0, 0) or stamp[0] < 0:
             now = time.time_ns()
             stamp = (now // 10**9, now % 10**9)
@@ -347,6 +347,16 @@ class Inbound:
         values_json = json.dumps([float(v) for v in values], separators=(",", ":")).encode()
         return b'%s,"step":%d,"stamp":{"sec":%d,"nsec":%d},"values":%s}' % (
             self.head, sequence, stamp[0], stamp[1], values_json)
+
+
+def normalized_stamp(stamp: tuple[int, int] | None) -> tuple[int, int] | None:
+    """A ROS 2 stamp with ``nanosec`` carried into ``sec``: (1, 1_500_000_000) is (2, 500_000_000), the same
+    instant, as rclpy's Time reads it (a stamp's nanosec should stay below 1e9; publishers do not all
+    normalise it, and the observation on the bus must)."""
+    if stamp is None:
+        return None
+    sec, nanosec = int(stamp[0]), int(stamp[1])
+    return sec + nanosec // 10**9, nanosec % 10**9
 
 
 def checked_values(paths: list[rosbag.FieldPath]):

@@ -165,6 +165,17 @@ def _write(path: Path, data: bytes | str) -> None:
     os.chmod(path, 0o600)
 
 
+#: Written into every folder of secrets: git (and tools that read .gitignore) leave its contents out.
+GITIGNORE = "# dtpf secure: private keys and passwords; never commit this folder\n*\n"
+
+
+def _keep_out_of_git(folder: Path) -> Path:
+    """A .gitignore that ignores everything in ``folder`` (itself included)."""
+    path = folder / ".gitignore"
+    _write(path, GITIGNORE)
+    return path
+
+
 def _inline(folder: Path, **files: str) -> dict:
     """Zenoh's ``<name>_base64`` keys holding the files' contents: a configuration that names no path works
     from any working directory and in any Zenoh client (Zenoh resolves a relative path against the working
@@ -195,7 +206,7 @@ def init(folder, *, hosts: tuple[str, ...] = DEFAULT_HOSTS, port: int = DEFAULT_
         raise ValueError(f"--twin takes one twin name or '*', got {twins!r}")
     folder.mkdir(mode=0o700, parents=True, exist_ok=True)
     os.chmod(folder, 0o700)
-    written: list[Path] = []
+    written: list[Path] = [_keep_out_of_git(folder)]
 
     def put(path: Path, data) -> None:
         _write(path, data)
@@ -271,6 +282,7 @@ def export(folder, roles, target) -> list[Path]:
     manifest["roles"] = [role for role in roles if role != "router"]
     _write(target / MANIFEST, _json(manifest))
     written.append(target / MANIFEST)
+    written.append(_keep_out_of_git(target))
     os.chmod(target, 0o700)
     return sorted(set(written))
 

@@ -257,6 +257,25 @@ def test_a_secured_launch_gives_the_plain_numbers_and_a_log_that_verifies(tmp_pa
         assert secured[f"dtpf/t-secured/{layer}/status"] >= 2
 
 
+def test_a_secure_folder_keeps_its_secrets_out_of_git(tmp_path, folder):
+    """git status in a repository holding the folder lists none of its files (keys and passwords)."""
+    import shutil
+    import subprocess
+
+    repository = tmp_path / "repo"
+    repository.mkdir()
+    shutil.copytree(folder, repository / "deploy")
+    secure.export(folder / "tls", ["entity"], repository / "machine-b")
+    (repository / "notes.txt").write_text("a file of the user's")
+    git = shutil.which("git")
+    if git is None:
+        pytest.skip("git is not installed")
+    subprocess.run([git, "init", "-q"], cwd=repository, check=True)
+    listed = subprocess.run([git, "status", "--porcelain", "--untracked-files=all"], cwd=repository,
+                            capture_output=True, text=True, check=True).stdout.split()
+    assert "notes.txt" in listed and not [name for name in listed if name.startswith(("deploy", "machine-b"))]
+
+
 def test_secure_init_writes_owner_only_files_and_refuses_a_full_folder(tmp_path, folder):
     modes = {path.relative_to(folder): stat.S_IMODE(path.stat().st_mode) for path in folder.rglob("*")}
     assert {mode for path, mode in modes.items() if (folder / path).is_file()} == {0o600}
@@ -294,7 +313,7 @@ def test_export_copies_only_the_files_of_the_roles_asked_for(tmp_path, folder):
     written = secure.export(folder / "tls", ["information", "system"], target)
     assert {path.relative_to(target).as_posix() for path in written} == {
         "dtpf-secure.json", "ca.pem", "information.json5", "system.json5", "certs/information.pem",
-        "certs/system.pem", "keys/information.key", "keys/system.key"}
+        "certs/system.pem", "keys/information.key", "keys/system.key", ".gitignore"}
     exported = open_secure_dir(target)
     assert exported.roles == ("information", "system")
     json.loads(role_config(exported, "system"))  # its paths resolve inside the exported folder

@@ -762,8 +762,14 @@ def _npy_header(fp, where: str, source: str, size: int) -> _Header:
     need = math.prod(shape) * dtype.itemsize
     have = size - fp.tell()
     if have < need:
+        held = ""
+        if shape and not fortran and shape[0] > 0:  # C order: whole rows first, so say how many are there
+            row_bytes = need // shape[0]
+            rows = max(have, 0) // row_bytes if row_bytes else 0
+            missing = f"row {rows}" if rows == shape[0] - 1 else f"rows {rows} to {shape[0] - 1}"
+            held = f": {rows} whole row{'' if rows == 1 else 's'} of the {shape[0]} its header declares ({missing} missing)"
         raise ObservationError(f"{where}: cut short: shape {shape} of {dtype} needs {need} bytes of data, "
-                               f"the file holds {max(have, 0)}", source=source)
+                               f"the file holds {max(have, 0)}{held}", source=source)
     return _Header(shape, fortran, dtype, need)
 
 
@@ -899,6 +905,8 @@ def _read_archive(archive: zipfile.ZipFile, source, name, steps, *, obs_dim, sta
         with archive.open(members[key]) as fp:
             _npy_header(fp, where, source, members[key].file_size)
             data[role] = _npy_data(fp, header, rows)
+            while fp.read(1 << 20):  # to the member's end, where zipfile checks its CRC: rows read are intact
+                pass
         _check_finite(data[role], where, source, "times" if role == "time" else role)
     times = None
     if "time" in data:

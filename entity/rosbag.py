@@ -30,6 +30,8 @@ from __future__ import annotations
 import math
 import os
 import re
+import struct
+import zlib
 from dataclasses import dataclass, fields, is_dataclass
 from pathlib import Path
 
@@ -233,7 +235,8 @@ def _mapper(fields_spec: str | None, model, name: str):
 
 
 def read_bag(path, topic: str | None, fields_spec: str | None, *, obs_dim: int | None = None,
-             state_dim: int | None = None, steps: int | None = None, model=None) -> ObservationTable:
+             state_dim: int | None = None, steps: int | None = None, model=None,
+             partial: bool = False) -> ObservationTable:
     """The observations of ``topic`` in the rosbag2 log ``path``: one step per message, in the bag's
     order; times are the bag's receive times in seconds, stamps the same in nanoseconds (made non-decreasing
     both). ObservationError for anything wrong.
@@ -241,6 +244,12 @@ def read_bag(path, topic: str | None, fields_spec: str | None, *, obs_dim: int |
     A bag whose MCAP file was cut short (a recording that did not end: no summary or footer) is read up to
     the cut, with the message types of ROS 2 Kilted and those its schemas define; the table's ``problem``
     says so and how many messages were read.
+
+    A bag is read whole or refused: the messages read are checked against what the bag declares (its MCAP
+    summary's message counts and message indexes, a folder's metadata.yaml). Fewer messages than declared,
+    messages other than the indexed ones, or a chunk that does not decode is an ObservationError naming how
+    many were read, how many declared and where the gap is, unless ``partial``: then the messages the index
+    finds intact are read and the table's ``problem`` says what was skipped.
     """
     source = os.fsdecode(path)
     name = source
@@ -257,6 +266,8 @@ def read_bag(path, topic: str | None, fields_spec: str | None, *, obs_dim: int |
     rows, times = [], []
     taker = _Taker(name, source, topic, mapper, obs_dim, steps, rows, times)
     problem = None
+    failure = None  # what stopped rosbags, for a bag that is not cut short
+    counted = None  # the topic's message count that rosbags gives (a folder's metadata.yaml)
     try:
         with AnyReader([p], default_typestore=get_typestore(Stores.ROS2_KILTED)) as reader:
             connections = [c for c in reader.connections if c.topic == topic]
@@ -268,19 +279,26 @@ def read_bag(path, topic: str | None, fields_spec: str | None, *, obs_dim: int |
             if len(types) > 1:
                 raise ObservationError(f"{name}: topic {topic!r} has messages of {len(types)} types "
                                        f"({', '.join(types)})", source=source)
-            for connection, timestamp, raw in reader.messages(connections=connections):
-                if not taker.wants_more():
-                    break
-                taker.take(timestamp, lambda: reader.deserialize(raw, connection.msgtype))
+            counts = [getattr(c, "msgcount", None) for c in connections]
+            counted = sum(counts) if counts and all(isinstance(n, int) and n > 0 for n in counts) else None
+            try:
+                for connection, timestamp, raw in reader.messages(connections=connections):
+                    if not taker.wants_more():
+                        break
+                    taker.take(timestamp, lambda: reader.deserialize(raw, connection.msgtype))
+            except ObservationError as error:  # a message that does not fit: the bag's fault or damage?
+                failure = error
     except ObservationError:
         raise
     except Exception as error:  # a cut or corrupt bag: rosbags' own errors
         text = " ".join(str(error).split())
         cut = _cut_mcap(p) if taker.read == 0 else None
         if cut is None:
-            raise ObservationError(f"{name}: cannot read the bag after {taker.read} messages of {topic}: "
-                                   f"{type(error).__name__}: {text}", source=source) from None
-        problem = _read_cut_bag(cut, name, source, topic, taker)
+            failure = f"{type(error).__name__}: {text}"
+        else:
+            problem = _read_cut_bag(cut, name, source, topic, taker)
+    if problem is None:
+        problem = _whole_or_refused(p, name, source, topic, taker, failure, counted, partial)
     if not rows:
         raise ObservationError(f"{name}: no message on {topic!r}" + (f" ({problem})" if problem else ""),
                                source=source)
@@ -302,6 +320,7 @@ class _Taker:
         self.name, self.source, self.topic, self.mapper = name, source, topic, mapper
         self.obs_dim, self.steps, self.rows, self.times = obs_dim, steps, rows, times
         self.read = 0
+        self.last: int | None = None  # the log time of the message taken last
 
     def wants_more(self) -> bool:
         return self.steps is None or len(self.rows) < self.steps
@@ -309,6 +328,7 @@ class _Taker:
     def take(self, timestamp: int, deserialize) -> None:
         name, topic, source = self.name, self.topic, self.source
         self.read += 1
+        self.last = timestamp
         read = self.read
         message = deserialize()
         try:
@@ -387,6 +407,285 @@ def _read_cut_bag(path: Path, name: str, source: str, topic: str, taker: _Taker)
     held = sum(1 for item in log.messages if item.channel_id in channels)
     return (f"{name} was cut short: read up to the cut, where {held} message{'' if held == 1 else 's'} of "
             f"{topic} end ({log.problem})")
+
+
+# --- a bag read whole or refused: what it declares, what its index finds intact ---------------------
+
+_MESSAGE_HEAD = struct.Struct("<BQHIQQ")  # opcode, length, channel id, sequence, log time, publish time
+_CHUNK_HEAD = struct.Struct("<BQQQQI")   # opcode, length, start time, end time, uncompressed size, crc
+
+
+@dataclass(frozen=True)
+class _Entry:
+    """One message of the topic as a message index lists it."""
+
+    log_time: int
+    file: Path
+    chunk: int   # the chunk record's byte offset in the file
+    offset: int  # the message record's offset in the chunk's records
+    channel: int
+
+
+class _Index:
+    """What a bag's MCAP files declare about a topic: the message counts of their summaries (``stated``),
+    and the messages their message indexes list (``entries``, in log-time order; None when an index cannot
+    be read, ``unusable`` says why)."""
+
+    def __init__(self, path: Path, topic: str):
+        self.stated: int | None = 0
+        self.entries: list[_Entry] | None = []
+        self.unusable: str | None = None
+        self.chunks: dict[tuple[Path, int], object] = {}
+        self.msgtypes: dict[tuple[Path, int], tuple[str, str, str]] = {}  # (file, channel): name, encoding, text
+        files = [path] if path.is_file() else sorted(path.glob("*.mcap"))
+        if not files:
+            self.stated, self.entries, self.unusable = None, None, "no MCAP file"
+        for file in files:
+            try:
+                self._read(file, topic)
+            except Exception as error:  # a summary or index that does not parse: the index cannot locate
+                self.stated, self.entries = None, None
+                self.unusable = f"{file.name}: its summary or message index is unreadable ({_say(error)})"
+            if self.entries is None:
+                break
+        if self.entries is not None:
+            self.entries.sort(key=lambda e: e.log_time)
+            if self.stated is not None and len(self.entries) != self.stated:
+                self.unusable = (f"its message indexes list {len(self.entries)} messages of the {self.stated} "
+                                 f"its statistics count")
+                self.entries = None
+
+    def _read(self, file: Path, topic: str) -> None:
+        from mcap.reader import make_reader
+
+        with open(file, "rb") as stream:
+            summary = make_reader(stream).get_summary()
+            if summary is None:
+                raise ValueError("no summary")
+            ids = {cid for cid, channel in summary.channels.items() if channel.topic == topic}
+            for cid in ids:
+                channel = summary.channels[cid]
+                schema = summary.schemas.get(channel.schema_id)
+                self.msgtypes[(file, cid)] = (schema.name if schema else "", channel.message_encoding,
+                                              schema.data.decode("utf-8", "replace") if schema else "")
+            if summary.statistics is None:
+                self.stated = None
+            elif self.stated is not None:
+                self.stated += sum(summary.statistics.channel_message_counts.get(cid, 0) for cid in ids)
+            for chunk in summary.chunk_indexes:
+                self.chunks[(file, chunk.chunk_start_offset)] = chunk
+                for cid, at in chunk.message_index_offsets.items():
+                    if cid not in ids:
+                        continue
+                    stream.seek(at)
+                    head = stream.read(15)
+                    opcode, length, channel, size = struct.unpack("<BQHI", head) if len(head) == 15 else (0,) * 4
+                    if opcode != 0x07 or channel != cid or size % 16 or size + 6 != length:
+                        raise ValueError(f"the message index at byte {at:,} is damaged")
+                    body = stream.read(size)
+                    if len(body) != size:
+                        raise ValueError(f"the message index at byte {at:,} is cut")
+                    for log_time, offset in struct.iter_unpack("<QQ", body):
+                        if not chunk.message_start_time <= log_time <= chunk.message_end_time \
+                                or offset >= chunk.uncompressed_size:
+                            raise ValueError(f"the message index at byte {at:,} is damaged")
+                        self.entries.append(_Entry(log_time, file, chunk.chunk_start_offset, offset, cid))
+
+    def records(self, file: Path, at: int) -> bytes:
+        """The decompressed records of the chunk at byte ``at``; ValueError saying why not."""
+        from dtpf.recording.logfile import _decompress
+
+        chunk = self.chunks[(file, at)]
+        with open(file, "rb") as stream:
+            stream.seek(at)
+            raw = stream.read(chunk.chunk_length)
+        if len(raw) != chunk.chunk_length or len(raw) < _CHUNK_HEAD.size + 4:
+            raise ValueError(f"the chunk at byte {at:,} is cut")
+        opcode, length, _, _, size, crc = _CHUNK_HEAD.unpack_from(raw)
+        if opcode != 0x06 or length + 9 != chunk.chunk_length:
+            raise ValueError(f"the chunk at byte {at:,} has a damaged header or is not where the index puts it")
+        (name_length,) = struct.unpack_from("<I", raw, _CHUNK_HEAD.size)
+        start = _CHUNK_HEAD.size + 4 + name_length
+        compression = raw[_CHUNK_HEAD.size + 4:start].decode("utf-8", "replace")
+        (data_length,) = struct.unpack_from("<Q", raw, start) if len(raw) >= start + 8 else (len(raw),)
+        if compression != chunk.compression or start + 8 + data_length > len(raw):
+            raise ValueError(f"the chunk at byte {at:,} has a damaged header")
+        try:
+            data = _decompress(compression, raw[start + 8:start + 8 + data_length], size)
+        except Exception as error:
+            raise ValueError(f"the chunk at byte {at:,} does not decompress ({compression}: {_say(error)})") from None
+        if len(data) != size:
+            raise ValueError(f"the chunk at byte {at:,} decompresses to {len(data):,} bytes, not {size:,}")
+        if crc and zlib.crc32(data) != crc:
+            raise ValueError(f"the chunk at byte {at:,} fails its CRC")
+        return data
+
+    def intact(self):
+        """(position, entry, raw message) of each indexed message whose record is where its index says,
+        and (position, entry, why) of the others; positions count from 0 in log-time order."""
+        good, bad, chunks = [], [], {}
+        for position, entry in enumerate(self.entries):
+            key = (entry.file, entry.chunk)
+            if key not in chunks:
+                try:
+                    chunks[key] = self.records(*key)
+                except ValueError as error:
+                    chunks[key] = str(error)
+            data = chunks[key]
+            if isinstance(data, str):
+                bad.append((position, entry, data))
+                continue
+            o = entry.offset
+            if o + _MESSAGE_HEAD.size <= len(data):
+                opcode, length, channel, _, log_time, _ = _MESSAGE_HEAD.unpack_from(data, o)
+                if (opcode == 0x05 and 22 <= length and o + 9 + length <= len(data) and channel == entry.channel
+                        and log_time == entry.log_time and _sound_after(data, o + 9 + length)):
+                    good.append((position, entry, bytes(data[o + _MESSAGE_HEAD.size:o + 9 + length])))
+                    continue
+            bad.append((position, entry, f"their records in the chunk at byte {entry.chunk:,} are damaged"))
+        return good, bad
+
+    def deserializer(self, name: str, source: str):
+        """deserialize(entry, raw) -> the message, with ROS 2 Kilted's types and those the schemas define."""
+        from rosbags.typesys import Stores, get_typestore, get_types_from_msg
+
+        typestore = get_typestore(Stores.ROS2_KILTED)
+        for msgtype, encoding, text in set(self.msgtypes.values()):
+            if encoding != "cdr":
+                raise ObservationError(f"{name}: messages in {encoding!r}, not CDR", source=source)
+            if msgtype not in typestore.fielddefs:
+                try:
+                    typestore.register(get_types_from_msg(text, msgtype))
+                except Exception as error:
+                    raise ObservationError(f"{name}: its type {msgtype}: {_say(error)}", source=source) from None
+        return lambda entry, raw: typestore.deserialize_cdr(raw, self.msgtypes[(entry.file, entry.channel)][0])
+
+
+def _sound_after(data: bytes, at: int) -> bool:
+    """Whether a sound record (or the chunk's end) follows a record that ends at ``at``: damage that starts
+    inside a message's data and runs on shows in the record after it."""
+    if at == len(data):
+        return True
+    if at + 9 > len(data) or data[at] not in (0x03, 0x04, 0x05):
+        return False
+    (length,) = struct.unpack_from("<Q", data, at + 1)
+    return at + 9 + length <= len(data) and (data[at] != 0x05 or length >= 22)
+
+
+def _say(error: Exception) -> str:
+    text = " ".join(str(error).split())
+    return f"{type(error).__name__}: {text}" if text else type(error).__name__
+
+
+def _gaps(bad, entries, declared: int) -> str:
+    """'messages 605-672 (log times 1030.200-1033.550 s; chunk ... does not decompress)', runs joined."""
+    runs = []
+    for position, entry, why in bad:
+        if runs and runs[-1][1] == position - 1 and runs[-1][2] == why:
+            runs[-1][1] = position
+        else:
+            runs.append([position, position, why])
+    parts = []
+    for first, last, why in runs[:3]:
+        span = f"message {first + 1}" if first == last else f"messages {first + 1}-{last + 1}"
+        times = f"{entries[first].log_time / 1e9:.3f}" + (
+            "" if first == last else f"-{entries[last].log_time / 1e9:.3f}")
+        parts.append(f"{span} (log time{'' if first == last else 's'} {times} s; {why})")
+    if len(runs) > 3:
+        parts.append(f"{len(runs) - 3} more gaps")
+    return ", ".join(parts) + f" of the {declared}"
+
+
+def _metadata_count(path: Path, topic: str) -> int | None:
+    """The topic's message count in a bag folder's metadata.yaml (None: no folder, file or count)."""
+    if not path.is_dir():
+        return None
+    try:
+        from ruamel.yaml import YAML
+
+        info = YAML(typ="safe").load((path / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+        counts = [int(t["message_count"]) for t in info["topics_with_message_count"]
+                  if t["topic_metadata"]["name"] == topic]
+    except Exception:  # no metadata.yaml, or one that does not parse: it declares nothing
+        return None
+    return sum(counts) if counts else None
+
+
+def _whole_or_refused(path: Path, name: str, source: str, topic: str, taker: _Taker, failure, counted: int | None,
+                      partial: bool) -> str | None:
+    """Check what was read against what the bag declares: None when it agrees; else the ObservationError
+    that names the gap, or (``partial``) the intact messages read into ``taker`` and what was skipped."""
+    if counted is None:
+        counted = _metadata_count(path, topic)
+    index = _Index(path, topic) if (path.is_file() or any(path.glob("*.mcap"))) else None
+    entries = None if index is None else index.entries
+    declared = [n for n in (counted, None if index is None else index.stated,
+                            None if entries is None else len(entries)) if n is not None]
+    declared = max(declared) if declared else None
+    times, read = taker.times, len(taker.rows)
+    whole = taker.wants_more() and failure is None  # read to the end (not stopped at ``steps``)
+    out_of_place = None
+    if entries is not None:
+        seen = times + ([taker.last] if isinstance(failure, ObservationError) and taker.last is not None else [])
+        out_of_place = next((i for i, t in enumerate(seen) if i >= len(entries) or t != entries[i].log_time), None)
+    if isinstance(failure, ObservationError) and out_of_place is None:
+        raise failure  # the message is where the bag says and does not fit the model: the bag is sound
+    what = f"rosbags stopped after {read} messages ({failure})" if isinstance(failure, str) else (
+        f"{failure}" if failure is not None else
+        f"{read} were read" + ("" if out_of_place is None else f", from message {out_of_place + 1} on not the "
+                                                               f"ones its index lists") if whole or out_of_place is not None
+        else None)
+    if entries is None:  # nothing to place a gap by: the counts alone
+        if failure is None and (declared is None or read == declared or not whole and read < declared):
+            return None
+        where = ""
+        if len(times) > 1:
+            k = int(np.argmax(np.diff(np.asarray(times, dtype=np.int64))))
+            where = (f"; the widest gap in the log times read is after message {k + 1} ({times[k] / 1e9:.3f} s), "
+                     f"before message {k + 2} ({times[k + 1] / 1e9:.3f} s)")
+        why = index.unusable if index is not None else "it has no MCAP file to index its messages"
+        raise ObservationError(f"{name}: the bag declares {declared if declared is not None else 'an unknown number of'} "
+                               f"messages on {topic}, {what}; {why}, so what is intact cannot be told{where}",
+                               source=source)
+    good = bad = None
+    if failure is None and out_of_place is None and declared == len(entries):
+        if whole and read == declared:
+            return None  # every message the bag declares, each where its index says
+        if not whole:  # the first ``steps`` agree with the index: are the others where it says?
+            good, bad = index.intact()
+            if not bad:
+                return None
+    if good is None:
+        good, bad = index.intact()
+    deserialize = index.deserializer(name, source)
+    messages = []
+    for position, entry, raw in good:
+        try:
+            messages.append((entry, deserialize(entry, raw)))
+        except Exception as error:  # a payload damaged beyond decoding
+            bad.append((position, entry, f"cannot deserialise it: {_say(error)}"))
+    bad.sort(key=lambda item: item[0])
+    intact = len(messages)
+    gaps = _gaps(bad, entries, declared) if bad else f"none of the {len(entries)} its index lists"
+    if declared > len(entries):
+        gaps += (f", and {declared - len(entries)} that its metadata.yaml declares and no MCAP index lists")
+    if intact == declared:  # every message of the topic is where its index says: read them so
+        partial, gaps = True, None
+    elif not partial:
+        raise ObservationError(f"{name}: the bag declares {declared} messages on {topic}, {intact} can be read: "
+                               f"missing {gaps}{f' ({what})' if what else ''}; --partial reads the {intact} intact "
+                               f"ones", source=source)
+    taker.rows.clear()
+    taker.times.clear()
+    taker.read = 0
+    for entry, message in messages:
+        if not taker.wants_more():
+            break
+        taker.take(entry.log_time, lambda: message)
+    if gaps is None:
+        return (f"{name}: the bag is damaged{f' ({what})' if what else ''}, but each of the {declared} messages on "
+                f"{topic} is intact where its index puts it; read them so")
+    return f"{name}: read {intact} of the {declared} messages on {topic} the bag declares (--partial); skipped {gaps}"
 
 
 def _column_names(spec: str, width: int) -> tuple[str, ...]:

@@ -105,7 +105,8 @@ def read_table(config, model: StateSpaceModel | None = None, *, steps: int | Non
             from dtpf.entity import model_ref
             model = model_ref.resolve(config.model_ref)
         return rosbag.read_bag(path, config.topic, config.ros2_fields, obs_dim=None if model is None else model.obs_dim,
-                               state_dim=None if model is None else model.dim, steps=steps, model=model)
+                               state_dim=None if model is None else model.dim, steps=steps, model=model,
+                               partial=config.partial)
     if model is None:
         return read_observations(path, steps=steps)
     return read_observations(path, obs_dim=model.obs_dim, state_dim=model.dim, steps=steps)

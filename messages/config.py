@@ -47,6 +47,10 @@ class RunConfig(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     def __init__(self, **values):
+        observations = values.get("observations")
+        if "steps" not in values and isinstance(observations, str) and observations != "live" \
+                and not observations.startswith(("live:", "ros2:")):
+            values["steps"] = None  # an observation file: every row, as dtpf run reads it
         try:
             super().__init__(**values)
         except ValidationError as error:
@@ -75,10 +79,13 @@ class RunConfig(BaseModel):
     ros2_fields: str | None = Field(None, max_length=4096, description="How a ROS 2 message becomes an "
                                     "observation: field paths, e.g. 'range', 'point.x,point.y', 'ranges[0:8]' "
                                     "(None: the model's observation_from_ros2(message)).")
+    partial: bool = Field(False, description="Read what is intact of a damaged observation file (a rosbag2 log "
+                          "whose messages are fewer than it declares, or whose chunks do not decode) and say "
+                          "what was skipped; False refuses such a file.")
     particles: int = Field(1000, ge=1, description="Number of particles N.")
     steps: int | None = Field(100, ge=1, description="Number of time points T (k = 1 .. T). With observations "
-                              "from a file: at most this many of its rows (None: every row); live: stop "
-                              "after this many steps (None: when the stream ends).")
+                              "from a file: at most this many of its rows (None, the default for a file: every "
+                              "row); live: stop after this many steps (None: when the stream ends).")
     resampler: str = Field("systematic", max_length=family.MAX_REFERENCE, description="Traditional resampling "
                            "scheme run after preprocessing: a built-in (dtpf.entity.resampling.RESAMPLERS; "
                            "dtpf run --help lists them), a name an installed package registers in the entry-point group "
@@ -294,6 +301,10 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--ros2-fields", default=None, metavar="PATHS",
                        help="how a ROS 2 message becomes an observation: field paths, e.g. 'range', "
                             "'point.x,point.y', 'ranges[0:8]' (default: the model's observation_from_ros2)")
+    group.add_argument("--partial", action="store_true", default=None,
+                       help="read what is intact of a damaged observation file (a rosbag2 log with fewer "
+                            "messages than it declares, or chunks that do not decode) and say what was skipped "
+                            "(default: refuse it)")
     group.add_argument("--particles", "-n", type=int, default=None,
                        help=f"number of particles N (default: {defaults.particles})")
     group.add_argument("--steps", "-T", type=int, default=None,
@@ -336,7 +347,7 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 #: The RunConfig fields the run flags set (argparse dest = field name).
-_FLAG_FIELDS = ("scenario", "model", "observations", "reader", "topic", "ros2_fields", "particles", "steps", "resampler", "resample_below",
+_FLAG_FIELDS = ("scenario", "model", "observations", "reader", "topic", "ros2_fields", "partial", "particles", "steps", "resampler", "resample_below",
                 "preprocess", "threshold", "weight_rule", "move_rule", "jitter", "policy", "choose_base", "ps", "ps_rate", "seed", "twin", "run_id")
 
 

@@ -385,6 +385,8 @@ def service_command(layer: str, config: RunConfig, endpoint: str, *, timeout: fl
         command += ["--topic", config.topic]
     if config.ros2_fields is not None:
         command += ["--ros2-fields", config.ros2_fields]
+    if config.partial:
+        command += ["--partial"]
     if config.resample_below is not None:
         command += ["--resample-below", repr(config.resample_below)]
     if config.choose_base is not None:

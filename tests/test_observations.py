@@ -562,7 +562,7 @@ def test_npy_cut_short():
     with open("obs.npy", "r+b") as handle:
         handle.truncate(size - 8)
     fails("obs.npy", r"^obs\.npy: cut short: shape \(100, 2\) of float64 needs 1600 bytes of data, "
-                     r"the file holds 1592$")
+                     r"the file holds 1592: 99 whole rows of the 100 its header declares \(row 99 missing\)$")
 
 
 def test_npy_and_npz_that_are_not_what_they_say():
@@ -653,3 +653,33 @@ def test_observation_error_is_a_value_error_in_one_line():
     err = ObservationError("a\nb\r\nc", source="f")
     assert isinstance(err, ValueError) and "\n" not in str(err) and "\r" not in str(err)
     assert err.source == "f" and err.line is None
+
+
+# --- a run on a file: every row, in the library as on the command line --------------------------
+
+def test_a_library_run_on_a_file_reads_every_row_as_dtpf_run_does(tmp_path):
+    """dtpf.RunConfig(model=..., observations="file.csv") without steps reads every row, as dtpf run does
+    (it was cut to RunConfig's default of 100 steps without a word); steps given, and simulations and live
+    runs without steps, keep their numbers."""
+    import argparse
+
+    from conftest import ROOT
+
+    from dtpf.messages.config import RunConfig, add_run_arguments, config_from_args
+    from dtpf.scripts import inprocess
+
+    lines = (ROOT / "docs/examples/range_bearing_no_truth.csv").read_text().splitlines()
+    body = lines[1:]
+    rows = [lines[0]] + [f"{k + 1}.0," + line.split(",", 1)[1] for k, line in enumerate(body + body[:80])]
+    path = tmp_path / "long.csv"
+    path.write_text("\n".join(rows) + "\n")
+    model = f"{ROOT / 'docs/examples/range_bearing.py'}:RangeBearingTarget"
+    config = RunConfig(model=model, observations=str(path), particles=50)
+    assert config.steps is None
+    parser = argparse.ArgumentParser()
+    add_run_arguments(parser)
+    assert config_from_args(parser.parse_args(["--model", model, "--observations", str(path), "-n", "50"])) == config
+    assert inprocess.run(config).means.shape[0] == 180
+    assert inprocess.run(RunConfig(model=model, observations=str(path), particles=50, steps=100)).means.shape[0] == 100
+    assert RunConfig().steps == 100 and RunConfig(model=model, observations="live").steps == 100
+    assert RunConfig(model=model, observations=str(path), steps=None).steps is None

@@ -301,6 +301,8 @@ def test_every_run_option_of_a_launch_reaches_its_services(layer, tmp_path):
                   preprocess=False, jitter="regularised", twin="t-flags-2"),
         RunConfig(model="docs/examples/range_bearing.py:RangeBearingTarget", reader="csv", steps=None,
                   observations="docs/examples/range_bearing_no_truth.csv", twin="t-flags-4"),
+        RunConfig(model="docs/examples/range_bearing.py:RangeBearingTarget", partial=True,
+                  observations="docs/examples/range_bearing_no_truth.csv", twin="t-flags-5"),
     ]
     changed = {name for config in configs for name in _FLAG_FIELDS if getattr(config, name) != getattr(defaults, name)}
     assert set(_FLAG_FIELDS) - changed <= {"topic", "ros2_fields"}  # a ROS 2 topic's, tests/test_ros2_live.py

@@ -34,9 +34,9 @@ from dtpf.messages.codec import encode_with_base64
 from dtpf.messages.config import RunConfig, add_run_arguments
 from dtpf.messages.foxglove import PackedElementField, PointCloud
 from dtpf.messages.models import ARRAYS_CHECKED, Estimate, Observation, ParticleSet, ParticleSetKind, ServiceState, Time
-from dtpf.shell.bus import Doorbell, add_zenoh_arguments
+from dtpf.shell.bus import Doorbell, add_zenoh_arguments, open_session
 from dtpf.shell.fleet import host_twins, serve_run
-from dtpf.shell.service import TAKE_BUDGET, ServiceShell, add_service_arguments, run_service
+from dtpf.shell.service import TAKE_BUDGET, ServiceShell, add_service_arguments, refuse_taken_twins, run_service
 
 __all__ = ["ZenohTwin", "TwinRun", "LiveObservations", "main"]
 
@@ -133,17 +133,27 @@ def main(config: RunConfig, zenoh_config: zenoh.Config, args: argparse.Namespace
     models: dict[str, object] = {}  # one model object per reference, shared by the twins of this process
 
     def make(shell: ServiceShell, twin_config: RunConfig) -> TwinRun:
+        shell.presence.claim(twin_config.run_id)  # checked with the others below, before anything is published
         model = models.get(twin_config.model_ref)
         if model is None:
             model = models[twin_config.model_ref] = sources.load_model(twin_config)
         return TwinRun(shell, twin_config, model, sources.observations_of(twin_config, model), args)
 
     if args.twins:
-        return host_twins("entity", hosted_configs(config, args.twins), zenoh_config, make)
+        configs = hosted_configs(config, args.twins)
+        # One twin, one entity: the process starts none of its twins if another entity runs any of them (an
+        # operator who asked for a set of twins gets that set or a line naming the twins taken, exit 2).
+        session = open_session(zenoh_config)
+        try:
+            refuse_taken_twins(session, [c.twin for c in configs])
+        finally:
+            session.close()
+        return host_twins("entity", configs, zenoh_config, make)
     model = sources.load_model(config)
     data = sources.observations_of(config, model)  # a wrong file stops the service before its session opens
     doorbell = Doorbell()
-    with ServiceShell("entity", config, zenoh_config, doorbell=doorbell) as shell:
+    # claim: refused (TwinTaken, exit 2) while another entity runs the twin, before anything is published.
+    with ServiceShell("entity", config, zenoh_config, doorbell=doorbell, claim=True) as shell:
         return serve_run(TwinRun(shell, config, model, data, args), doorbell)
 
 

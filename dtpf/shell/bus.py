@@ -26,8 +26,11 @@ from __future__ import annotations
 import argparse
 import json
 import queue
+import os
+import re
 import socket
 import threading
+import time
 from dataclasses import dataclass
 
 import zenoh
@@ -43,6 +46,9 @@ __all__ = [
     "Inbox",
     "Doorbell",
     "Presence",
+    "Claim",
+    "Claims",
+    "claims_alive",
     "publisher",
     "free_port",
 ]
@@ -342,6 +348,7 @@ class Presence:
         self._changed = threading.Condition(self._lock)
         self._session = session
         self._token = None
+        self._claim = None
         self._watch = session.liveliness().declare_subscriber(f"dtpf/{twin}/*/alive", self._on_token,
                                                               history=True)
 
@@ -385,11 +392,146 @@ class Presence:
             self._changed.wait_for(lambda: wanted <= self._alive, timeout=timeout)
             return wanted - self._alive
 
+    def claim(self, run_id: str) -> None:
+        """Declare this process's claim on the twin (:class:`Claim`): an entity does it as soon as it has
+        found no other entity of its twin alive (:func:`claims_alive`), before it publishes anything."""
+        if self._claim is None:
+            self._claim = self._session.liveliness().declare_token(Claim.mine(self.twin, run_id).key)
+
     def close(self) -> None:
-        for handle in (self._watch, self._token):
+        for handle in (self._watch, self._token, self._claim):
             if handle is None:
                 continue
             try:
                 handle.undeclare()
             except zenoh.ZError:
                 pass
+
+
+#: Characters a key chunk cannot hold (a host name is put in one).
+_NOT_IN_CHUNK = re.compile(r"[^A-Za-z0-9_.-]")
+#: Seconds an entity waits, at most, for the answer to its liveliness query at start-up (the router answers at
+#: once; the bound is for a router that does not answer).
+CLAIM_QUERY_TIMEOUT = 2.0
+#: Seconds a twin found alive is looked at again before the entity refuses to start: the token of a
+#: predecessor that has just died goes when its router has seen the connection close.
+CLAIM_GRACE = 1.0
+#: Most claims a :class:`Claims` keeps (a flood of made-up tokens cannot grow it).
+MAX_CLAIMS = 100
+
+
+def _this_host() -> str:
+    """This machine's name as a key chunk."""
+    return _NOT_IN_CHUNK.sub("_", socket.gethostname())[:64] or "host"
+
+
+@dataclass(frozen=True)
+class Claim:
+    """An entity's claim on its twin: the liveliness token ``dtpf/<twin>/entity/claim/<run>/<host>/<pid>``.
+
+    One twin, one entity: an entity declares it from its start to its end, and refuses to start while another
+    entity of its twin has one (or an ``entity/alive`` token, which carries no run or process: then
+    ``run_id``, ``host`` and ``pid`` are None).
+    """
+
+    twin: str
+    run_id: str | None = None
+    host: str | None = None
+    pid: int | None = None
+
+    @classmethod
+    def mine(cls, twin: str, run_id: str) -> "Claim":
+        return cls(twin, run_id, _this_host(), os.getpid())
+
+    @property
+    def key(self) -> str:
+        return f"dtpf/{self.twin}/entity/claim/{self.run_id}/{self.host}/{self.pid}"
+
+    @classmethod
+    def of_key(cls, key: str) -> "Claim | None":
+        """The claim a token's key says, None if it is none (an ``entity/alive`` token is a claim without a
+        run or process)."""
+        parts = str(key).split("/")
+        if len(parts) == 4 and parts[0] == "dtpf" and parts[2:] == ["entity", "alive"]:
+            return cls(parts[1])
+        if len(parts) == 7 and parts[0] == "dtpf" and parts[2:4] == ["entity", "claim"] and parts[6].isdigit():
+            return cls(parts[1], parts[4], parts[5], int(parts[6]))
+        return None
+
+    def describe(self) -> str:
+        """'twin T: run R, process P on H' (or 'twin T: an entity alive' for a token without a claim)."""
+        if self.pid is None:
+            return f"twin {self.twin}: an entity alive"
+        return f"twin {self.twin}: run {self.run_id}, process {self.pid} on {self.host}"
+
+
+def claims_alive(session: zenoh.Session, twins, timeout: float = CLAIM_QUERY_TIMEOUT,
+                 grace: float = CLAIM_GRACE) -> list[Claim]:
+    """The claims of other entities on ``twins`` alive on the bus, found by a liveliness query of each twin
+    (answered by the router from what it knows, in about a millisecond; at most ``timeout`` seconds).
+
+    A twin found alive is asked again for up to ``grace`` seconds: a predecessor that has just died (a
+    restarted entity's) leaves its token until its router has seen its connection close. What the session
+    cannot reach (a peer not yet connected, the other side of a partition) is not found: a competitor that
+    appears later is for the launcher to see (:class:`Claims`).
+    """
+    deadline = time.monotonic() + grace
+    wanted = list(dict.fromkeys(twins))
+    while True:
+        found = _query_claims(session, wanted, timeout)
+        if not found or time.monotonic() >= deadline:
+            return found
+        time.sleep(0.05)
+        wanted = sorted({claim.twin for claim in found})
+
+
+def _query_claims(session: zenoh.Session, twins: list[str], timeout: float) -> list[Claim]:
+    pending = [session.liveliness().get(f"dtpf/{twin}/entity/**", timeout=timeout) for twin in twins]
+    found: set[Claim] = set()
+    for replies in pending:  # every query is under way: the waits overlap
+        for reply in replies:
+            if reply.ok is not None:
+                claim = Claim.of_key(reply.ok.key_expr)
+                if claim is not None and claim.twin in twins:
+                    found.add(claim)
+    # A claim of this process is not another's.
+    others = {claim for claim in found if claim.pid != os.getpid() or claim.host != _this_host()}
+    # An entity/alive token beside a claim of the same twin is that entity's: named once, by its claim.
+    claimed = {claim.twin for claim in others if claim.pid is not None}
+    return sorted((c for c in others if c.pid is not None or c.twin not in claimed),
+                  key=lambda c: (c.twin, c.run_id or "", c.host or "", c.pid or 0))
+
+
+class Claims:
+    """The claims on a twin as they come and go (a liveliness subscriber, with the tokens already there):
+    a launcher sees every entity of its twin, its own and any other, through the run."""
+
+    def __init__(self, session: zenoh.Session, twin: str):
+        self.twin = twin
+        self._lock = threading.Lock()
+        #: Every claim seen during the run, gone since or not (at most MAX_CLAIMS).
+        self.seen: list[Claim] = []
+        self._watch = session.liveliness().declare_subscriber(f"dtpf/{twin}/entity/claim/**", self._on_token,
+                                                              history=True)
+
+    def _on_token(self, sample: zenoh.Sample) -> None:
+        if sample.kind != zenoh.SampleKind.PUT:
+            return
+        claim = Claim.of_key(sample.key_expr)
+        if claim is None or claim.twin != self.twin:
+            return
+        with self._lock:
+            if claim not in self.seen and len(self.seen) < MAX_CLAIMS:
+                self.seen.append(claim)
+
+    def others(self, pids) -> list[Claim]:
+        """The claims seen that are not of the processes ``pids`` of this host."""
+        host = _this_host()
+        with self._lock:
+            return [claim for claim in self.seen if claim.host != host or claim.pid not in set(pids)]
+
+    def close(self) -> None:
+        try:
+            self._watch.undeclare()
+        except zenoh.ZError:
+            pass

@@ -35,9 +35,10 @@ from dtpf.messages.codec import MessageError, decode_for_key, encode
 from dtpf.messages.config import RunConfig
 from dtpf.messages.errors import DtpfError
 from dtpf.messages.models import Component, Layer, Message, NamedCount, ServiceState, Status
-from dtpf.shell.bus import DEFAULT_MAX_ITEMS, BusError, Inbox, Presence, Received, open_session, publisher
+from dtpf.shell.bus import (DEFAULT_MAX_ITEMS, BusError, Inbox, Presence, Received, claims_alive, open_session,
+                            publisher)
 
-__all__ = ["ServiceShell", "add_service_arguments", "run_service"]
+__all__ = ["ServiceShell", "TwinTaken", "refuse_taken_twins", "add_service_arguments", "run_service"]
 
 #: Seconds between two periodic status reports.
 STATUS_INTERVAL = 1.0
@@ -84,6 +85,26 @@ def add_service_arguments(parser: argparse.ArgumentParser) -> None:
                        help="stop (as on SIGTERM) when the parent process dies; the launcher sets it")
     group.add_argument("--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"],
                        help="logging level on stderr (default: %(default)s)")
+
+
+class TwinTaken(DtpfError, RuntimeError):
+    """Another entity of the twin is alive on the bus: one twin, one entity (exit code 2, one line)."""
+
+
+def refuse_taken_twins(session: zenoh.Session, twins) -> None:
+    """Raise :class:`TwinTaken` naming every twin of ``twins`` that another entity runs on the bus now
+    (:func:`~dtpf.shell.bus.claims_alive`: a liveliness query, about a millisecond when none is)."""
+    twins = list(twins)
+    found = claims_alive(session, twins)
+    if not found:
+        return
+    taken = sorted({claim.twin for claim in found})
+    which = f"twin {taken[0]} is" if len(taken) == 1 else \
+        f"{len(taken)} twins ({', '.join(taken[:10])}{', ...' if len(taken) > 10 else ''}) are"
+    holders = "; ".join(claim.describe() for claim in found[:5]) + ("; ..." if len(found) > 5 else "")
+    started = "not started" if len(twins) == 1 else f"none of this process's {len(twins)} twins is started"
+    raise TwinTaken(f"{which} already run by another entity on this bus ({holders}): one twin, one entity; "
+                    f"{started} (stop that entity, or give this one another --twin)")
 
 
 class Tally:
@@ -214,7 +235,7 @@ class ServiceShell:
     """
 
     def __init__(self, layer: str, config: RunConfig, zenoh_config: zenoh.Config | None = None, *,
-                 session: zenoh.Session | None = None, doorbell=None):
+                 session: zenoh.Session | None = None, doorbell=None, claim: bool = False):
         self.layer = keys.check_layer(layer)
         self.config = config
         self.shared = session is not None
@@ -248,6 +269,15 @@ class ServiceShell:
         self.session = session if self.shared else open_session(zenoh_config)
         self.presence = Presence(self.session, config.twin, self.layer.value, names=_LAYER_NAMES,
                                  doorbell=doorbell)
+        if claim:  # an entity: refused while another runs its twin, before it publishes anything
+            try:
+                refuse_taken_twins(self.session, [config.twin])
+            except BaseException:
+                self.presence.close()
+                if not self.shared:
+                    self.session.close()
+                raise
+            self.presence.claim(config.run_id)
         self._status_thread = threading.Thread(target=self._report, name="status", daemon=True)
         self._next_status = time.monotonic() + STATUS_INTERVAL
 

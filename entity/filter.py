@@ -37,6 +37,7 @@ its answer arrives. The entity service does both during the lockstep wait
 """
 from __future__ import annotations
 
+import inspect
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -48,6 +49,7 @@ from dtpf.entity.models import StateSpaceModel
 from dtpf.messages.arrays import check_particles, check_set
 from dtpf.messages.errors import DtpfError
 from dtpf.messages.names import OWN_ARM
+from dtpf.messages.references import describe
 from dtpf.messages.models import MAX_COVARIANCE_DIM
 from dtpf.messages.streams import stream
 
@@ -144,6 +146,19 @@ class FilterStep:
     log_predictive: float = float("nan")
     innovation: float | None = None
     covariance: np.ndarray | None = None
+
+
+def _model_failed(model, k: int, method: str, exc: Exception) -> Exception:
+    """What to raise for a model method that failed at step k: a FilterError in one line naming the step, the
+    method and the line of the model's file (an IndexError at step 50 is not a traceback); a FilterError
+    itself as it is."""
+    if isinstance(exc, FilterError):
+        return exc
+    try:
+        path = inspect.getsourcefile(type(model))
+    except TypeError:
+        path = None
+    return FilterError(f"step {k}: the model's {method} raised {describe(exc, path)}")
 
 
 def normalise(log_weights: np.ndarray) -> np.ndarray:
@@ -348,7 +363,10 @@ class ParticleFilter:
         if self.k == 0 or (k > self.steps and not self.live) or self._ahead is not None:
             return
         rng = stream(self.seed, self.twin, k, "entity")
-        self._ahead = (k, rng, self.model.propagation_noise(self.n, k, rng))
+        try:
+            self._ahead = (k, rng, self.model.propagation_noise(self.n, k, rng))
+        except Exception as exc:
+            raise _model_failed(self.model, k, "propagation_noise", exc) from exc
 
     def resample_ahead(self) -> None:
         """Resample the set being preprocessed with its own weights, before the answer comes.
@@ -446,12 +464,16 @@ class ParticleFilter:
             _, rng, noise = ahead
         else:
             rng, noise = stream(self.seed, self.twin, k, "entity"), None
-        if self.particles is None:
-            self.particles = check_particles(self.model.initial_particles(self.n, rng))
-        elif noise is None:
-            self.particles = check_particles(self.model.propagate(self.particles, k, rng))
-        else:
-            self.particles = check_particles(self.model.propagate(self.particles, k, rng, noise=noise))
+        try:
+            if self.particles is None:
+                self.particles = check_particles(self.model.initial_particles(self.n, rng))
+            elif noise is None:
+                self.particles = check_particles(self.model.propagate(self.particles, k, rng))
+            else:
+                self.particles = check_particles(self.model.propagate(self.particles, k, rng, noise=noise))
+        except Exception as exc:
+            raise _model_failed(self.model, k, "propagate" if self.particles is not None else "initial_particles",
+                                exc) from exc
         if self._gathered is not None and np.may_share_memory(self.particles, self._gathered):
             self._gathered = None  # propagated in place: this step's particles, not to be gathered over
         prior_log_total = self._log_total
@@ -459,7 +481,10 @@ class ParticleFilter:
         if self.innovation:
             prior = np.exp(self.log_weights - prior_log_total)
             innovation = normalised_innovation(self.model, self.particles, prior, z, k)
-        log_likelihood = self.model.log_likelihood(self.particles, z, k)
+        try:
+            log_likelihood = self.model.log_likelihood(self.particles, z, k)
+        except Exception as exc:
+            raise _model_failed(self.model, k, "log_likelihood", exc) from exc
         if self._flat:  # 0 + l is l: no pass over zeros
             np.copyto(self.log_weights, log_likelihood)
         else:

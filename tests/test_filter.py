@@ -360,3 +360,30 @@ def test_steps_kept_after_the_run_keep_their_own_numbers(model, preprocessor):
         np.testing.assert_array_equal(step.particles, particles)
         np.testing.assert_array_equal(step.weights, weights)
         np.testing.assert_array_equal(step.ancestors, ancestors)
+
+
+def test_a_model_that_fails_mid_run_is_one_line_naming_the_step_the_method_and_its_line(tmp_path):
+    """An IndexError in a model's propagate at step 5 stops the run with one line (exit 2 from the CLI), not a
+    traceback."""
+    import subprocess
+    import sys
+
+    (tmp_path / "late.py").write_text(
+        "from dtpf.entity.models import get\n\n\nclass Late(type(get('ungm'))):\n"
+        "    def propagate(self, particles, k, rng, noise=None):\n"
+        "        if k == 5:\n"
+        "            return particles[[1, 2, 3]][10]\n"
+        "        return super().propagate(particles, k, rng, noise=noise)\n\n\nMODEL = Late()\n")
+    from dtpf.entity import model_ref
+
+    model = model_ref.resolve(f"{tmp_path / 'late.py'}:MODEL")
+    truth, z = models.get("ungm").simulate(10, np.random.default_rng(0))
+    pf = ParticleFilter(model, z, 50, seed=1)
+    with pytest.raises(FilterError, match=r"^step 5: the model's propagate raised IndexError: index 10 is out of "
+                                          r"bounds for axis 0 with size 3 \(at late.py line 7\)$"):
+        list(pf)
+    done = subprocess.run([sys.executable, "-P", "-m", "dtpf", "run", "-q", "-T", "10", "--model", "late.py:MODEL"],
+                          cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 2 and "Traceback" not in done.stderr
+    assert done.stderr.strip() == ("dtpf run: error: step 5: the model's propagate raised IndexError: index 10 is "
+                                   "out of bounds for axis 0 with size 3 (at late.py line 7)")

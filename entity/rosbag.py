@@ -24,6 +24,14 @@ topic is one step; the bag's receive time becomes the step's time (the table's `
 seconds, its ``stamps`` in nanoseconds: the stamps of the run's estimates). Every problem is
 one line (:class:`~dtpf.entity.observations.ObservationError`): a bag without the topic, a
 field path the message type does not have, a NaN, a bag that cannot be read to its end.
+
+A bag is read whole or refused: the messages read are checked against the counts of its MCAP summary,
+the messages its message indexes list (place and log time) and a folder's metadata.yaml. A bag with fewer
+messages than it declares, other messages than its index lists, or a chunk that does not decode is refused
+in one line naming how many can be read, how many it declares and which are missing (steps and log times);
+``partial=True`` reads the messages the index finds intact and says in the table's ``problem`` what it
+skipped. A bag cut short (no summary) is read up to the cut, as before. Without CRCs (rosbags writes
+none), a flipped bit inside a message's data cannot be seen.
 """
 from __future__ import annotations
 

@@ -34,7 +34,7 @@ from dtpf.messages.errors import DtpfError
 from dtpf.messages.models import Estimate, Layer, ServiceState, Status
 from dtpf.recording.logfile import what_it_holds
 from dtpf.recording.writer import EXIT_LOG_WRITE, LogWriteError
-from dtpf.shell.bus import BusError, Inbox, Presence, free_port, open_session, zenoh_config
+from dtpf.shell.bus import BusError, Claims, Inbox, Presence, free_port, open_session, zenoh_config
 from dtpf.shell.service import release_memory
 
 __all__ = ["launch", "LaunchResult", "LaunchError", "EstimateTally", "Restart", "segment_path", "open_router",
@@ -48,6 +48,8 @@ MODULES = {"recorder": "dtpf.scripts.record", "system": "dtpf.system.service",
 DEFAULT_RESTARTS = 3
 #: Most messages the launcher takes from its inbox before it looks at its children again.
 _BATCH = 64
+#: Most competing steps an :class:`EstimateTally` names (the rest are counted).
+MAX_COMPETING_STEPS = 10_000
 
 
 class LaunchError(DtpfError, RuntimeError):
@@ -109,11 +111,16 @@ class EstimateTally:
         self._lp_sum, self._lp_count = 0.0, 0
         self._nis_sum, self._nis_count = 0.0, 0
         self.observed_values = 0
+        #: Steps of the run that had an estimate besides the one taken (a repeat, or one sent ahead of the
+        #: twin): another publisher of the twin's estimates; at most MAX_COMPETING_STEPS of them.
+        self.competing_steps: set[int] = set()
 
     def add(self, estimate: Estimate) -> bool:
         """Fold one estimate in; False (and counted as ignored) if it is not the next step."""
         if estimate.step != self.count + 1 or (self.steps is not None and estimate.step > self.steps):
             self.ignored += 1
+            if (self.steps is None or estimate.step <= self.steps) and len(self.competing_steps) < MAX_COMPETING_STEPS:
+                self.competing_steps.add(estimate.step)
             return False
         self.count += 1
         if self.estimates is not None:
@@ -186,6 +193,9 @@ class LaunchResult:
     log_problem: str | None = None
     elapsed: float = 0.0
     interrupted: bool = False
+    #: Other entities that claimed the run's twin during the run (:class:`~dtpf.shell.bus.Claim`, in words):
+    #: one twin, one entity; any fails the launch.
+    competitors: list[str] = field(default_factory=list)
 
     def __post_init__(self):
         if self.tally is None:
@@ -240,12 +250,24 @@ class LaunchResult:
             *([f"ignored         {t.ignored} estimates and {self.ignored_statuses} statuses that were not the "
                f"run's own (repeated or out-of-order steps, unknown processes)"]
               if t.ignored or self.ignored_statuses else []),
+            *self.competing_lines(),
             *([f"failed          {self.failure}"] if self.failure else []),
             *([f"log ended       {self.log_problem}"] if self.log_problem else []),
             f"time            {self.elapsed:.2f} s",
             f"log             {log}",
         ]
         return "\n".join(lines)
+
+    def competing_lines(self) -> list[str]:
+        """The summary's 'competing' lines: another entity of the twin, steps that had another estimate."""
+        lines = [f"competing       another entity ran this twin during the run ({who})" for who in self.competitors]
+        steps = sorted(self.tally.competing_steps)
+        if steps:
+            from dtpf.scripts.logs.summary import format_ranges
+            lines.append(f"competing       {len(steps)} steps had an estimate besides the one taken "
+                         f"({format_ranges(steps[:1000])}{', ...' if len(steps) > 1000 else ''}): the launcher used "
+                         f"the one in step order")
+        return lines
 
 
 def rejected_by_layer(statuses) -> dict[str, int]:
@@ -555,7 +577,7 @@ def launch(config: RunConfig, *, log_path: Path | None = None, port: int | None 
         result.restarts.append(event)
         notify(event.describe())
 
-    presence = watch = bridge_to_foxglove = ros2_bridge = None
+    presence = watch = bridge_to_foxglove = ros2_bridge = claims = None
     try:
         if foxglove is not None:
             from dtpf.scripts.foxglove_bridge import FoxgloveBridge
@@ -568,6 +590,7 @@ def launch(config: RunConfig, *, log_path: Path | None = None, port: int | None 
         watch = Inbox(router, keys.key(config.twin, "entity", "estimate"), keys.any_layer_pattern(config.twin, "status"),
                       max_payload=1 << 20, max_items=10_000)
         presence = Presence(router, config.twin, "launcher", names=[layer.value for layer in Layer])
+        claims = Claims(router, config.twin)  # every entity of the twin: the launcher's own and any other
         # The recorder first, and listening, before any layer says it is running.
         if record:
             start_child("recorder", log_path)
@@ -645,6 +668,14 @@ def launch(config: RunConfig, *, log_path: Path | None = None, port: int | None 
         result.elapsed = time.monotonic() - start
         if presence is not None:
             presence.close()
+        if claims is not None:  # one twin, one entity: another that claimed the twin fails the launch
+            mine = [pid for pid, layer in layer_of_pid.items() if layer == "entity"]
+            result.competitors = [claim.describe() for claim in claims.others(mine)]
+            claims.close()
+            if result.competitors and result.failure is None:
+                result.failure = (f"another entity ran twin {config.twin} during the run "
+                                  f"({'; '.join(result.competitors)}): the estimates on its keys are not one "
+                                  f"twin's run")
         router.close()
     return result
 

@@ -99,6 +99,9 @@ def test_a_forged_estimate_of_future_steps_leaves_every_real_step_in_the_log(for
     assert competing == set(FORGED)  # the forged steps hold the forgery and the real estimate
     for step in FORGED:
         assert sorted(float(np.ravel(e.mean)[0]) == 1000.0 for e in steps[step]) == [False, True]
+    # The launcher saw them too, and its summary names them (a forger has no entity's claim: not a competitor).
+    assert result.tally.competing_steps == set(FORGED) and result.competitors == []
+    assert "competing       30 steps had an estimate besides the one taken (90-119)" in result.summary()
 
 
 def test_dtpf_summary_names_the_competing_steps_and_uses_the_real_estimates(forged_launch):
@@ -111,6 +114,24 @@ def test_dtpf_summary_names_the_competing_steps_and_uses_the_real_estimates(forg
     assert twin.competing_steps == list(FORGED) and twin.duplicate_estimates == len(FORGED)
     assert f"{twin.rmse:.4f}" == f"{result.rmse:.4f}"  # the launcher's own figure: the forgeries not used
     assert "competing     30 steps had more than one estimate (90-119; 30 more)" in format_summary(summary)
+
+
+def test_dtpf_verify_fails_a_log_with_forged_estimates_naming_the_steps(forged_launch, capsys):
+    """One twin, one entity: the forged estimates of steps 90-119 are not the twin's run, so the log fails, every
+    time, though the layers' outputs of every step are reproduced."""
+    import argparse
+
+    from dtpf.scripts.logs.verify import cmd_verify, decoded_by_topic, verify_twin
+
+    config, _, log_path = forged_launch
+    result = verify_twin(decoded_by_topic(read_log(log_path)), config.twin)
+    assert result.mismatch is None and len(result.checked) == config.steps and not result.ok
+    assert result.entity_competing == {f"dtpf/{config.twin}/entity/estimate": list(FORGED)}
+    for _ in range(3):
+        assert cmd_verify(argparse.Namespace(log=[str(log_path)], twin=None, model=None, verbose=False)) == 1
+        out = capsys.readouterr().out
+        assert f"FAILED: dtpf/{config.twin}/entity/estimate had more than one message at steps 90-119" in out
+        assert "OK:" not in out
 
 
 def test_dtpf_verify_reproduces_one_of_a_steps_competing_commands_and_says_which(forged_launch, tmp_path):
@@ -129,8 +150,12 @@ def test_dtpf_verify_reproduces_one_of_a_steps_competing_commands_and_says_which
     log.messages.insert(at, forged)  # received first
     write_log(log, tmp_path / "two-commands.mcap")
     result = verify_twin(decoded_by_topic(read_log(tmp_path / "two-commands.mcap")), config.twin)
-    assert result.ok and len(result.checked) == config.steps
-    assert result.competing == {topic: [5]} and result.used == {(topic, 5): 1}
+    # The layers' outputs are reproduced, the command of step 5 by its second message; the log fails all the
+    # same, on the forged estimates (one twin, one entity).
+    assert result.mismatch is None and len(result.checked) == config.steps and not result.ok
+    estimates = f"dtpf/{config.twin}/entity/estimate"
+    assert result.competing == {topic: [5], estimates: list(FORGED)} and result.used == {(topic, 5): 1}
+    assert result.entity_competing == {estimates: list(FORGED)}
     # With the forgery alone at that step, the re-run does not reproduce it.
     del log.messages[at + 1]
     write_log(log, tmp_path / "forged-command.mcap")

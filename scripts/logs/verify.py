@@ -7,7 +7,9 @@ every recorded output (preprocessed set with the move it names for the
 entity, weight state, PS command with its reason, predicted figures and chosen
 arm) must be reproduced exactly. The system layer's
 simulation draws from its own random stream, so it is reproduced too. The report goes step by step; the first mismatch names the step,
-the topic and the field, and the exit code is 1.
+the topic and the field, and the exit code is 1. A log whose twin has more than one estimate (or entity
+particle set) at a step fails too, naming the steps: one twin, one entity, and such a log holds another
+entity's or a forger's messages beside the twin's.
 """
 from __future__ import annotations
 
@@ -63,8 +65,16 @@ class Verification:
     changed_code: list[str] = field(default_factory=list)
 
     @property
+    def entity_competing(self) -> dict[str, list[int]]:
+        """The entity's topics that had more than one message at a step, with those steps: another entity (or a
+        forger) published for the twin, so the log does not show one twin's run."""
+        return {topic: steps for topic, steps in self.competing.items()
+                if topic.endswith(("/entity/estimate", "/entity/particles"))}
+
+    @property
     def ok(self) -> bool:
-        return self.mismatch is None
+        """Every recorded output reproduced, and one entity's messages only (no competing estimates or sets)."""
+        return self.mismatch is None and not self.entity_competing
 
 
 def _same(a, b) -> bool:
@@ -159,6 +169,10 @@ def verify_twin(by_topic: dict[str, list], twin: str, problem: str | None = None
     # entity publishes them) is used.
     particle_sets, _ = in_step_order(by_topic.get(f"dtpf/{twin}/entity/particles", []))
     recorded("entity/particles")
+    # Whether the entity took a step's answer is what its estimate says: the one in step order, as for its sets.
+    estimates, competing_estimates = in_step_order(by_topic.get(f"dtpf/{twin}/entity/estimate", []))
+    if competing_estimates:  # one twin, one entity: such a log fails (Verification.ok), the steps named
+        result.competing[f"dtpf/{twin}/entity/estimate"] = sorted(competing_estimates)
     preprocessed = recorded("information/preprocessed")
     weight_states = recorded("information/weight_state")
     commands = recorded("system/ps")
@@ -202,8 +216,6 @@ def verify_twin(by_topic: dict[str, list], twin: str, problem: str | None = None
                 result.mismatch = mismatch
                 return result
         result.checked.append(step)
-    # Whether the entity took a step's answer is what its estimate says: the one in step order, as for its sets.
-    estimates, _ = in_step_order(by_topic.get(f"dtpf/{twin}/entity/estimate", []))
     answers = {step: sets[result.used.get((f"dtpf/{twin}/information/preprocessed", step), 0)]
                for step, sets in preprocessed.items()}
     result.entity = rerun_entity(config, model, twin, particle_sets, answers, estimates)
@@ -298,13 +310,19 @@ def _report(result: Verification, verbose: bool) -> int:
         print(f"steps without a recorded preprocessed set (the information layer did not answer): "
               f"{format_ranges(result.unanswered)}")
     for topic, steps in sorted(result.competing.items()):
-        if topic.endswith("/entity/particles"):
+        if topic.endswith("/entity/estimate"):
+            how = "the re-run used the one received in step order; the others are another entity's or a forger's"
+        elif topic.endswith("/entity/particles"):
             how = "the re-run used the one received in step order, as the entity publishes them"
         else:
             found = [result.used[topic, step] + 1 for step in steps if (topic, step) in result.used]
             how = (f"the re-run reproduced one message of each ({_ordinals(found)}); the rest are not what the "
                    f"twin's layers computed" if found else "none was checked")
         print(f"competing: {topic} had more than one message at steps {format_ranges(steps)}: {how}")
+    for topic, steps in sorted(result.entity_competing.items()):
+        print(f"FAILED: {topic} had more than one message at steps {format_ranges(steps)}: one twin, one "
+              f"entity; the log holds another entity's (or a forger's) messages beside the twin's, so it does "
+              f"not show one twin's run")
     if result.mismatch is not None:
         print(f"MISMATCH {result.mismatch}")
         entity = result.entity
@@ -313,6 +331,10 @@ def _report(result: Verification, verbose: bool) -> int:
                   + (f"; the entity steps {format_ranges(entity.checked)} before it" if entity.checked else ""))
         elif result.checked:
             print(f"steps {format_ranges(result.checked)} were reproduced exactly before it")
+        return 1
+    if result.entity_competing:
+        print(f"the layers' outputs of {len(result.checked)} steps were reproduced exactly; the log fails all the "
+              f"same")
         return 1
     print(f"OK: {len(result.checked)} steps reproduced exactly "
           f"(preprocessed sets bit for bit, weight states, PS commands)")

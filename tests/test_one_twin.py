@@ -1,0 +1,182 @@
+"""One twin, one entity: a second entity of a running twin is refused; one that appears mid-run fails the launch
+and is named; a log with competing estimates fails dtpf verify, every time."""
+from __future__ import annotations
+
+import argparse
+import os
+import threading
+import time
+
+import numpy as np
+
+from conftest import service_args
+from dtpf.messages.codec import MessageError, decode_for_key, encode
+from dtpf.messages.config import RunConfig
+from dtpf.recording.logfile import read_log
+from dtpf.shell.bus import BusError, Claim, Claims, Inbox, claims_alive, free_port, open_session, zenoh_config
+
+#: Deadlines for a loaded 2-core machine (a service's start imports numpy and numba: seconds).
+START = 90.0
+RUN = 240.0
+
+
+def client(port: int, deadline: float = START):
+    """A Zenoh client on the launcher's router, once it listens."""
+    until = time.monotonic() + deadline
+    while True:
+        try:
+            return open_session(zenoh_config(mode="client", connect=[f"tcp/127.0.0.1:{port}"]))
+        except BusError:
+            if time.monotonic() > until:
+                raise
+            time.sleep(0.1)
+
+
+def wait_until(condition, timeout: float, what: str) -> None:
+    until = time.monotonic() + timeout
+    while not condition():
+        assert time.monotonic() < until, f"not within {timeout:.0f} s: {what}"
+        time.sleep(0.05)
+
+
+def test_a_second_entity_of_a_running_twin_is_refused_and_the_run_goes_on(processes, tmp_path):
+    from dtpf.scripts import inprocess
+    from dtpf.scripts.launch import launch
+    from dtpf.scripts.logs.verify import decoded_by_topic, verify_twin
+
+    # 400 steps at 20 a second: the second entity's start (imports, seconds on a loaded machine) falls in the run.
+    config = RunConfig(particles=100, steps=400, seed=3, twin="t-one")
+    port, log_path, outcome = free_port(), tmp_path / "run.mcap", {}
+
+    def run():
+        outcome["result"] = launch(config, log_path=log_path, port=port, timeout=5.0, rate=20.0,
+                                   notify=lambda text: None)
+
+    launcher = threading.Thread(target=run)
+    launcher.start()
+    session = claims = None
+    try:
+        session = client(port)
+        claims = Claims(session, config.twin)
+        wait_until(lambda: claims.seen or not launcher.is_alive(), START, "the launch's entity claims its twin")
+        assert launcher.is_alive(), "the launch ended before its entity started"
+        # The same twin and run id, against the same router: refused at once, before it publishes anything.
+        second = processes.start("second", service_args(
+            "dtpf.entity.service", f"tcp/127.0.0.1:{port}", "--twin", config.twin, "--run-id", config.run_id,
+            "--particles", "100", "--steps", "400", "--seed", "3"))
+        assert second.wait(timeout=START) == 2
+        lines = processes.output(second).strip().splitlines()
+        assert len(lines) == 1, lines
+        assert "twin t-one is already run by another entity on this bus" in lines[0]
+        assert "one twin, one entity; not started" in lines[0]
+        assert launcher.is_alive(), "the run should still be going on after the refusal"
+        launcher.join(timeout=RUN)
+    finally:
+        if claims is not None:
+            claims.close()
+        if session is not None:
+            session.close()
+        launcher.join(timeout=60)
+    result = outcome["result"]
+    # The first run is unaffected: every step, none degraded, the numbers of the run alone, no competitor.
+    assert result.failure is None and result.competitors == [] and not result.tally.competing_steps
+    assert result.ignored_statuses == 0 and result.tally.ignored == 0
+    assert sorted(e.step for e in result.estimates) == list(range(1, config.steps + 1))
+    assert not any(e.degraded for e in result.estimates)
+    reference = inprocess.run(config)
+    np.testing.assert_array_equal([e.mean for e in result.estimates], reference.means)
+    verification = verify_twin(decoded_by_topic(read_log(log_path)), config.twin)
+    assert verification.ok and not verification.competing, verification.mismatch
+
+
+def test_a_predecessor_that_died_leaves_its_twin_free(processes, router):
+    """A restarted entity comes back: its predecessor's claim goes with its connection."""
+    twin = "t-again"
+    def args(steps: int) -> list[str]:
+        return service_args("dtpf.entity.service", router.endpoint, "--twin", twin, "--no-preprocess",
+                            "--particles", "100", "--steps", str(steps), "--rate", "20", "--cloud-points", "0")
+
+    first = processes.start("first", args(100_000))
+    claims = Claims(router.session, twin)
+    try:
+        wait_until(lambda: claims.seen or first.poll() is not None, START, "the first entity claims its twin")
+        assert first.poll() is None, processes.output(first)
+        assert [claim.pid for claim in claims_alive(router.session, [twin], grace=0)] == [first.pid]
+        os.killpg(first.pid, 9)
+        first.wait(timeout=10)
+        # At once after its death: the query waits (CLAIM_GRACE) for the dead claim to go.
+        again = processes.start("again", args(5))
+        assert again.wait(timeout=START) == 0, processes.output(again)
+    finally:
+        claims.close()
+
+
+class Competitor:
+    """Another entity of the twin appearing mid-run (a healed partition, a mistake): it claims the twin as an
+    entity does and publishes estimates of the run's steps again."""
+
+    def __init__(self, port: int, twin: str, run_id: str):
+        self.session = client(port)
+        self.claim = Claim(twin, run_id, "elsewhere", 4242)
+        self.token = None  # claimed once the run is under way: mid-run
+        self.inbox = Inbox(self.session, f"dtpf/{twin}/entity/estimate")
+        self.publisher = self.session.declare_publisher(f"dtpf/{twin}/entity/estimate")
+        self.sent: list[int] = []
+
+    def echo(self, count: int, timeout: float) -> None:
+        """Publish ``count`` estimates again, each of a step the twin has just published."""
+        until = time.monotonic() + timeout
+        while len(self.sent) < count and time.monotonic() < until:
+            item = self.inbox.get(timeout=0.1)
+            if item is None:
+                continue
+            try:
+                estimate = decode_for_key(item.key, item.payload)
+            except MessageError:
+                continue
+            if estimate.step in self.sent:
+                continue
+            if self.token is None:
+                self.token = self.session.liveliness().declare_token(self.claim.key)
+            self.sent.append(estimate.step)
+            self.publisher.put(encode(estimate.model_copy(update={"mean": [float(v) + 1.0 for v in estimate.mean]})))
+
+    def close(self) -> None:
+        self.inbox.close()
+        if self.token is not None:
+            self.token.undeclare()
+        self.session.close()
+
+
+def test_a_competitor_that_appears_mid_run_fails_the_launch_and_is_named(processes, tmp_path, capsys):
+    from dtpf.scripts.logs.verify import cmd_verify
+
+    twin, steps, port, log = "t-rival", 200, free_port(), tmp_path / "run.mcap"
+    launcher = processes.start("launcher", ["-m", "dtpf.scripts.cli", "launch", "--steps", str(steps), "--rate",
+                                            "40", "--particles", "100", "--twin", twin, "--port", str(port),
+                                            "-o", str(log), "--quiet"])
+    competitor = None
+    try:
+        competitor = Competitor(port, twin, "run")
+        competitor.echo(5, START)
+        assert len(competitor.sent) == 5, processes.output(launcher)
+        launcher.wait(timeout=RUN)
+    finally:
+        if competitor is not None:
+            competitor.close()
+    output = processes.output(launcher)
+    assert launcher.returncode == 1, output
+    named = "competing       another entity ran this twin during the run (twin t-rival: run run, process 4242 " \
+            "on elsewhere)"
+    assert named in output
+    assert "steps had an estimate besides the one taken" in output
+    assert "dtpf launch: error: another entity ran twin t-rival during the run" in output
+    # Its log holds both entities' estimates: dtpf verify fails it, naming the steps, every time.
+    from dtpf.scripts.logs.summary import format_ranges
+
+    competing = format_ranges(competitor.sent)
+    for _ in range(3):
+        assert cmd_verify(argparse.Namespace(log=[str(log)], twin=None, model=None, verbose=False)) == 1
+        out = capsys.readouterr().out
+        assert f"FAILED: dtpf/t-rival/entity/estimate had more than one message at steps {competing}:" in out, out
+        assert "OK:" not in out

@@ -137,6 +137,8 @@ def cmd_launch(args: argparse.Namespace) -> int:
 
     config = resolved_config(args)
     model = sources.load_model(config)  # a wrong model or file: one line here, before any process starts
+    if not _claim_log(args):
+        return 2
     _note_partial_truth(config, model)
     signal.signal(signal.SIGTERM, _interrupt)
     # SIGINT stops the launch even when it was started in the background of a script (a non-interactive
@@ -199,6 +201,22 @@ def cmd_launch(args: argparse.Namespace) -> int:
         print(f"dtpf launch: error: {error}", file=sys.stderr)
         return 1
     return _finish(result.summary(), result.failure or _log_failure(result.log_problem), result.interrupted)
+
+
+def _claim_log(args: argparse.Namespace) -> bool:
+    """A log is never overwritten: -o of an existing file, or of a name whose segments (NAME.1.mcap, ...)
+    exist, is one line and False; --overwrite removes them and says so."""
+    if args.log is None:  # the default name is new (a date and time in it); launch() checks it all the same
+        return True
+    from dtpf.recording.writer import LogExistsError, claim_log
+    try:
+        removed = claim_log(args.log, args.overwrite)
+    except LogExistsError as error:
+        print(f"dtpf launch: error: {error}", file=sys.stderr)
+        return False
+    if removed:
+        print(f"dtpf launch: --overwrite: removed {', '.join(str(path) for path in removed)}", file=sys.stderr)
+    return True
 
 
 def _ros2_options(args: argparse.Namespace) -> list[str]:
@@ -310,7 +328,12 @@ def build_parser() -> argparse.ArgumentParser:
     add_run_arguments(launch)
     group = launch.add_argument_group("launch")
     group.add_argument("--log", "-o", type=Path, default=None, metavar="PATH",
-                       help="MCAP file to write (default: runs/<twin>-<run-id>-<date-time>.mcap)")
+                       help="MCAP file to write, never an existing one (default: "
+                            "runs/<twin>-<run-id>-<date-time>.mcap); a file of that name, or its segments "
+                            "NAME.1.mcap, ..., is an error unless --overwrite")
+    group.add_argument("--overwrite", action="store_true",
+                       help="replace the log of -o: its file and its segments are removed first (never one a "
+                            "recorder is writing)")
     group.add_argument("--port", type=int, default=None,
                        help="loopback port of the embedded Zenoh router (default: a free one)")
     group.add_argument("--timeout", type=float, default=2.0, metavar="SECONDS",

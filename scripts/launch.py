@@ -33,7 +33,7 @@ from dtpf.messages.config import RunConfig
 from dtpf.messages.errors import DtpfError
 from dtpf.messages.models import Estimate, Layer, ServiceState, Status
 from dtpf.recording.logfile import what_it_holds
-from dtpf.recording.writer import EXIT_LOG_WRITE, LogWriteError
+from dtpf.recording.writer import EXIT_LOG_WRITE, LogExistsError, LogWriteError, claim_log
 from dtpf.shell.bus import BusError, Claims, Inbox, Presence, free_port, open_session, zenoh_config
 from dtpf.shell.service import release_memory
 
@@ -320,7 +320,10 @@ class Bridge:
         self.config = config
         self.path = path
         self.shape = RunShape(config.particles, None, None, config.steps)
-        self.recording = McapRecording(path, compression="none")
+        try:  # a new file, as a recorder's: no segment is ever written over
+            self.recording = McapRecording(path, compression="none", exclusive=True)
+        except LogExistsError as error:
+            raise LaunchError(str(error)) from None
         # ``inbox``: one opened the moment the recorder died (see :func:`watch_recorder`); else one now, on
         # the twin's keys and its sensor's (a fleet passes its own patterns).
         self.inbox = inbox if inbox is not None else Inbox(router, *(patterns or bridge_patterns(config)))
@@ -486,7 +489,7 @@ def launch(config: RunConfig, *, log_path: Path | None = None, port: int | None 
            observation_timeout: float | None = None, restarts: int = DEFAULT_RESTARTS,
            keep_estimates: bool = True, notify=None, cloud_points: int | None = None,
            foxglove: tuple[str, int] | None = None, secure=None, record: bool = True,
-           ros2: list[str] | None = None) -> LaunchResult:
+           ros2: list[str] | None = None, overwrite: bool = False) -> LaunchResult:
     """Run ``config`` as four processes around an embedded Zenoh router.
 
     ``rate`` caps the entity's steps per second (None: as fast as it can).
@@ -507,6 +510,8 @@ def launch(config: RunConfig, *, log_path: Path | None = None, port: int | None 
     listens on its protocol (``tls/`` or ``tcp/`` with passwords) and enforces
     its access control, and each service connects as the role of its layer.
     ``record``: False runs no recorder (the split alone, for benchmarks); nothing is logged.
+    A log is never overwritten: when ``log_path`` or its segments (``run.1.mcap``, ...) exist, LaunchError
+    before anything starts, unless ``overwrite``, which removes them (and says so through ``notify``).
     ``ros2``: options of the ROS 2 bridge (``dtpf ros2``), started beside the layers when the observations
     are ``ros2:TOPIC`` (:func:`bridge_command`); it needs rclpy in this Python.
     Raises LaunchError when the router cannot listen, a service fails to start
@@ -514,8 +519,15 @@ def launch(config: RunConfig, *, log_path: Path | None = None, port: int | None 
     :attr:`LaunchResult.failure` set.
     """
     log_path = Path(log_path) if log_path else default_log_path(config)
-    router, endpoint, secure = open_router(port, secure)
     notify = notify or (lambda text: print(f"dtpf launch: {text}", file=sys.stderr, flush=True))
+    if record:  # a log is never overwritten: LaunchError before anything starts (``overwrite``: replaced)
+        try:
+            removed = claim_log(log_path, overwrite)
+        except LogExistsError as error:
+            raise LaunchError(str(error)) from None
+        if removed:
+            notify(f"removed {', '.join(str(path) for path in removed)} (overwrite)")
+    router, endpoint, secure = open_router(port, secure)
     result = LaunchResult(config, log_path, tally=EstimateTally(config.steps, keep=keep_estimates))
     children: dict[str, subprocess.Popen] = {}
     layer_of_pid: dict[int, str] = {}

@@ -9,10 +9,12 @@ counted, and a bounded sample of them (where, why, the first bytes) goes to
 ``dtpf/<twin>/recorder/rejected``. SIGINT or SIGTERM: the messages already
 received are written and the file is finished (summary and footer), so the
 log stays readable; a SIGKILL loses at most the last ``--flush-interval``
-seconds. A log that cannot be written (a full disk, a file-size limit, a
-read-only file system, the file deleted) ends the recording: the recorder
-says in one line what happened and up to which step the file holds the run,
-and exits with code 3 (:data:`dtpf.recording.writer.EXIT_LOG_WRITE`).
+seconds. The log is a new file: the recorder never opens an existing one (it
+exits with code 2, saying whether another recorder holds it) and holds an
+advisory lock on it while writing. A log that cannot be written (a full disk,
+a file-size limit, a read-only file system, the file deleted) ends the
+recording: the recorder says in one line what happened and up to which step
+the file holds the run, and exits with code 3 (:data:`dtpf.recording.writer.EXIT_LOG_WRITE`).
 
 Run ``python -m dtpf.scripts.record --help`` for the options.
 """
@@ -31,7 +33,8 @@ from dtpf.messages.config import RunConfig, add_run_arguments
 from dtpf.messages.models import Layer, ServiceState, Status
 from dtpf.recording.admission import Admission
 from dtpf.recording.logfile import what_it_holds
-from dtpf.recording.writer import COMPRESSION, EXIT_LOG_WRITE, LogWriteError, McapRecording, auto_compression
+from dtpf.recording.writer import (COMPRESSION, EXIT_LOG_WRITE, LogExistsError, LogWriteError, McapRecording,
+                                   auto_compression)
 from dtpf.shell.bus import add_zenoh_arguments
 from dtpf.shell.service import ServiceShell, add_service_arguments, run_service
 
@@ -56,7 +59,13 @@ def main(config: RunConfig, zenoh_config: zenoh.Config, args: argparse.Namespace
         if not args.all_twins:  # other twins may run other sizes
             shell.expect(RunShape(config.particles, dim, None, config.steps))
         try:
-            recording = McapRecording(args.output, compression=compression, flush_interval=args.flush_interval)
+            # Created, never opened: a log is never overwritten, and a second recorder on the path fails here.
+            recording = McapRecording(args.output, compression=compression, flush_interval=args.flush_interval,
+                                      exclusive=True)
+        except LogExistsError as error:
+            shell.state, shell.last_error = ServiceState.FAILED, str(error)
+            shell.log.error("%s", shell.last_error)
+            return 2
         except OSError as error:
             shell.state, shell.last_error = ServiceState.FAILED, f"cannot write the log {args.output}: {error}"
             shell.log.error("%s", shell.last_error)
@@ -205,7 +214,8 @@ def build_parser() -> argparse.ArgumentParser:
         prog="python -m dtpf.scripts.record",
         description="dtpf recorder: writes every message of a twin into an MCAP file, one channel per key "
                     "expression, schemas embedded.")
-    parser.add_argument("--output", "-o", required=True, help="MCAP file to write")
+    parser.add_argument("--output", "-o", required=True, help="MCAP file to write; created, never overwritten "
+                                                                    "(an existing file is an error)")
     parser.add_argument("--all-twins", action="store_true", help="record dtpf/** instead of one twin")
     parser.add_argument("--compression", default="auto", choices=["auto", *sorted(COMPRESSION)],
                         help="chunk compression; 'auto': lz4 while a particle set (N x (d + 1) float64) "

@@ -75,7 +75,8 @@ from dtpf.recording.crc import crc32, use_fast_crc
 use_fast_crc()
 
 __all__ = ["Log", "LogMessage", "LogError", "CutRecord", "read_log", "read_logs", "join_logs", "write_log", "MAGIC",
-           "last_estimate_steps", "what_it_holds", "in_step_order"]
+           "last_estimate_steps", "what_it_holds", "in_step_order", "MixedRunsError", "RunIdentity", "run_identity",
+           "check_one_run"]
 
 #: The eight bytes every MCAP file starts and ends with.
 MAGIC = b"\x89MCAP0\r\n"
@@ -686,8 +687,117 @@ def join_logs(logs: list[Log]) -> Log:
 
 
 def read_logs(paths) -> Log:
-    """:func:`read_log` of each path, joined (:func:`join_logs`); LogError names the file."""
-    return join_logs([read_log(path) for path in paths])
+    """:func:`read_log` of each path, joined (:func:`join_logs`); LogError names the file.
+
+    Several files must be the files of one run (its segments, or the logs of its recorders on several
+    hosts): :class:`MixedRunsError` (one line naming the files that differ and how) when they are not, as
+    :func:`check_one_run` tells.
+    """
+    logs = [read_log(path) for path in paths]
+    check_one_run(logs)
+    return join_logs(logs)
+
+
+class MixedRunsError(LogError):
+    """Files of different runs given as the files of one run; the text names them and how they differ."""
+
+
+@dataclass
+class RunIdentity:
+    """What says which run a log file is of (:func:`run_identity`): its run ids, and per (run id, twin) the
+    run configuration and the entity processes its statuses carry."""
+
+    run_ids: set[str] = field(default_factory=set)
+    configs: dict[tuple[str, str], dict] = field(default_factory=dict)
+    entities: dict[tuple[str, str], set[int]] = field(default_factory=dict)
+
+
+#: Fields of the run configuration that differ between the twins of one run (a fleet).
+_PER_TWIN = frozenset({"twin"})
+
+
+def run_identity(log: Log) -> RunIdentity:
+    """The run ids of ``log``'s statuses (of its estimates when it has no status), and per (run id, twin)
+    the configuration (``config_json``) and the process ids of its entity's statuses."""
+    import json
+
+    from dtpf.messages.models import Layer, Status
+
+    identity = RunIdentity()
+    for _, message in log.decoded(lambda topic: topic.endswith("/status")):
+        if not isinstance(message, Status):
+            continue
+        identity.run_ids.add(message.run_id)
+        if message.layer != Layer.ENTITY:
+            continue  # a shared service's configuration is not its twins'
+        key = (message.run_id, message.twin_id)
+        identity.entities.setdefault(key, set()).add(message.pid)
+        if message.config_json and key not in identity.configs:
+            try:
+                identity.configs[key] = json.loads(message.config_json)
+            except ValueError:
+                pass
+    if not identity.run_ids:
+        for _, message in log.decoded(lambda topic: topic.endswith("/entity/estimate")):
+            if not isinstance(message, MessageError):
+                identity.run_ids.add(message.run_id)
+    return identity
+
+
+def _config_differences(a: dict, b: dict, shown: int = 4) -> list[str]:
+    """'seed 3 vs 0' for each field in which configuration ``a`` differs from ``b`` (twin excepted)."""
+    names = [name for name in sorted(set(a) | set(b)) if name not in _PER_TWIN and a.get(name) != b.get(name)]
+    said = [f"{name.replace('_', ' ')} {a.get(name)} vs {b.get(name)}" for name in names[:shown]]
+    return said + ([f"{len(names) - shown} more fields"] if len(names) > shown else [])
+
+
+def _without_twin(config: dict) -> str:
+    import json
+    return json.dumps({k: v for k, v in config.items() if k not in _PER_TWIN}, sort_keys=True)
+
+
+def _how_they_differ(mine: RunIdentity, theirs: RunIdentity) -> str | None:
+    """How the file of ``mine`` is not of the run of ``theirs`` (None when nothing says so)."""
+    if mine.run_ids and theirs.run_ids and not mine.run_ids & theirs.run_ids:
+        return f"run id {', '.join(sorted(mine.run_ids))} vs {', '.join(sorted(theirs.run_ids))}"
+    common = sorted(set(mine.configs) & set(theirs.configs))
+    for key in common:
+        differences = _config_differences(mine.configs[key], theirs.configs[key])
+        if differences:
+            return f"{', '.join(differences)} (twin {key[1]})"
+    if not common and mine.configs and theirs.configs:
+        # Different twins: of one run (a fleet) only when their configurations agree but for the twin.
+        ours = {_without_twin(config): config for config in mine.configs.values()}
+        other = {_without_twin(config): config for config in theirs.configs.values()}
+        if not set(ours) & set(other):
+            first, second = next(iter(ours.values())), next(iter(other.values()))
+            return ", ".join(_config_differences(first, second)) or "other twins"
+    for key in sorted(set(mine.entities) & set(theirs.entities)):
+        if not mine.entities[key] & theirs.entities[key]:
+            pids = [", ".join(map(str, sorted(side.entities[key]))) for side in (mine, theirs)]
+            return f"twin {key[1]}'s entity is process {pids[0]} vs {pids[1]} (two runs of one configuration)"
+    return None
+
+
+def check_one_run(logs: list[Log]) -> None:
+    """MixedRunsError unless ``logs`` are the files of one run.
+
+    Every file must agree with the others on the run id (of its statuses or estimates), on the run
+    configuration of each twin (its entity's ``config_json``: seed, steps, N, model, ...) and on the
+    entity process of each twin (its pid: a launch never restarts its entity, so the files of two
+    launches of one configuration differ there). A file that does not say (no status in a short segment)
+    agrees. The segments of a run (``run.mcap``, ``run.1.mcap``, ...) and its recorders' logs on several
+    hosts pass.
+    """
+    if len(logs) < 2:
+        return
+    identities = [run_identity(log) for log in logs]
+    for i in range(1, len(logs)):
+        for j in range(i):
+            how = _how_they_differ(identities[i], identities[j])
+            if how is not None:
+                raise MixedRunsError(f"{logs[i].path} and {logs[j].path} are not of one run: {how}; give the "
+                                     f"files of one run only (its segments NAME.mcap, NAME.1.mcap, ...)")
 
 
 def write_log(log: Log, out_path: str | os.PathLike) -> int:

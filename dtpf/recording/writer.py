@@ -16,11 +16,22 @@ A write that fails (a full disk, a file-size limit, a file system turned
 read-only, the file deleted under the recorder) raises :class:`LogWriteError`
 once and ends the recording: the file keeps every chunk written before, and
 ``dtpf recover`` rewrites it as a complete file once there is room.
+
+A log is never overwritten: the recorder creates its file exclusively
+(``exclusive=True``: O_EXCL, :class:`LogExistsError` when it exists) and holds
+an advisory lock on it (``fcntl.flock``) while writing, so a second writer on
+the same path fails at once and can say that another recorder holds it.
+:func:`existing_log_files` finds a log and its segments (``run.mcap``,
+``run.1.mcap``, ...), :func:`claim_log` refuses them or (``overwrite``)
+removes them before a launch.
 """
 from __future__ import annotations
 
 import errno
+import fcntl
 import os
+import re
+import stat
 import time
 from pathlib import Path
 
@@ -29,7 +40,8 @@ from dtpf.messages.codec import message_encoding, schema_for
 from dtpf.messages.errors import DtpfError
 from dtpf.recording.mcap_file import COMPRESSIONS, McapWriter
 
-__all__ = ["EXIT_LOG_WRITE", "LogWriteError", "McapRecording", "UNKNOWN_ENCODING"]
+__all__ = ["EXIT_LOG_WRITE", "LogWriteError", "LogExistsError", "McapRecording", "UNKNOWN_ENCODING",
+           "existing_log_files", "claim_log", "held_by_writer"]
 
 #: Exit code of a recorder whose log could not be written: starting another on the same disk would not help.
 EXIT_LOG_WRITE = 3
@@ -77,6 +89,90 @@ class LogWriteError(DtpfError, RuntimeError):
                                                                errno.EROFS)
 
 
+class LogExistsError(DtpfError, FileExistsError):
+    """A log that would be overwritten (or is being written by another recorder); the text says which
+    file and why, in one line."""
+
+
+def held_by_writer(path) -> bool:
+    """True when another process holds the writer's lock on ``path`` (a recorder writing it)."""
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_CLOEXEC | os.O_NONBLOCK)
+    except OSError:
+        return False
+    try:
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            return False
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except OSError:  # BlockingIOError: an exclusive lock is held
+        return True
+    finally:
+        os.close(fd)
+    return False
+
+
+def existing_log_files(path) -> list[Path]:
+    """The files of the log ``path`` that exist: the log itself and its segments (``NAME.1.mcap``,
+    ``NAME.2.mcap``, ... as :func:`dtpf.scripts.launch.segment_path` names them), in segment order."""
+    path = Path(path)
+    found = [path] if path.exists() or path.is_symlink() else []
+    segment = re.compile(re.escape(path.stem) + r"\.([1-9][0-9]*)" + re.escape(path.suffix) + r"$")
+    try:
+        names = os.listdir(path.parent if str(path.parent) else ".")
+    except OSError:
+        return found
+    numbered = sorted((int(match.group(1)), name) for name in names if (match := segment.match(name)))
+    return found + [path.with_name(name) for _, name in numbered]
+
+
+def _named(paths: list[Path]) -> str:
+    return ", ".join(str(path) for path in paths[:4]) + (f" and {len(paths) - 4} more" if len(paths) > 4 else "")
+
+
+def claim_log(path, overwrite: bool = False) -> list[Path]:
+    """Make sure a new log can be written at ``path``: LogExistsError when it or its segments exist,
+    unless ``overwrite``, which removes them (never one a recorder is writing). Returns the files removed."""
+    existing = existing_log_files(path)
+    if not existing:
+        return []
+    held = [file for file in existing if held_by_writer(file)]
+    if held:
+        raise LogExistsError(f"the log {_named(held)} is being written by another recorder; choose another "
+                             f"output file")
+    if not overwrite:
+        segments = [file for file in existing if file != Path(path)]
+        what = "exists" if not segments else f"and its segments {_named(segments)} exist" \
+            if len(segments) < len(existing) else f"has segments on disk: {_named(segments)}"
+        raise LogExistsError(f"the log {path} {what}: a log is never overwritten; choose another output file "
+                             f"or add --overwrite to replace {'it' if existing == [Path(path)] else 'them'}")
+    for file in existing:
+        file.unlink(missing_ok=True)
+    return existing
+
+
+def _open_locked(path: Path, exclusive: bool):
+    """``path`` opened for writing from its start, with the writer's lock held (see McapRecording)."""
+    flags = os.O_WRONLY | os.O_CREAT | os.O_CLOEXEC | (os.O_EXCL if exclusive else 0)
+    try:
+        fd = os.open(path, flags, 0o666)
+    except FileExistsError:
+        held = " and another recorder is writing it" if held_by_writer(path) else ""
+        raise LogExistsError(f"cannot write the log {path}: it exists{held}; a log is never "
+                             f"overwritten") from None
+    try:
+        if stat.S_ISREG(os.fstat(fd).st_mode):
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                raise LogExistsError(f"cannot write the log {path}: another recorder is writing it") from None
+            if not exclusive:
+                os.ftruncate(fd, 0)
+        return os.fdopen(fd, "wb")
+    except BaseException:
+        os.close(fd)
+        raise
+
+
 class McapRecording:
     """An MCAP file being written.
 
@@ -92,15 +188,22 @@ class McapRecording:
         Bytes per chunk before it is closed.
     flush_interval : float
         Seconds between forced flushes of the open chunk.
+    exclusive : bool
+        Create the file, never open an existing one (:class:`LogExistsError`
+        says so, and whether another recorder holds it). Otherwise an
+        existing file is replaced, unless another writer holds its lock.
+
+    While open, the recording holds an exclusive advisory lock on the file
+    (``fcntl.flock``), so that another writer can tell it is in use.
     """
 
     def __init__(self, path, *, compression: str = "lz4", chunk_size: int = 1 << 20,
-                 flush_interval: float = 1.0):
+                 flush_interval: float = 1.0, exclusive: bool = False):
         if compression not in COMPRESSION:
             raise ValueError(f"unknown compression {compression!r}; expected one of {', '.join(COMPRESSION)}")
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._file = open(self.path, "wb")
+        self._file = _open_locked(self.path, exclusive)
         self._writer = McapWriter(self._file, chunk_size=chunk_size, compression=compression)
         self._writer.start(profile="", library="dtpf")
         self._schemas: dict[str, int] = {}

@@ -191,7 +191,8 @@ def cmd_filter(args: argparse.Namespace) -> int:
 
 def _selection_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("log", type=Path, nargs="+", metavar="LOG",
-                        help="MCAP log written by dtpf (several: the segments of one run)")
+                        help="MCAP log written by dtpf (several: the segments of one run; files of different "
+                             "runs are refused, exit code 2)")
     parser.add_argument("--topics", "-t", nargs="+", default=None, metavar="PATTERN",
                         help="only these topics: globs on the key expression or suffixes such as entity/estimate")
     parser.add_argument("--steps", type=StepRange, default=None, metavar="A:B",

@@ -30,7 +30,7 @@ import numpy as np
 
 from dtpf.messages.codec import MessageError, class_for_schema, schema_for
 from dtpf.messages.models import Estimate, PSCommand, Status
-from dtpf.recording.logfile import Log, LogError, in_step_order, read_log, read_logs, write_log
+from dtpf.recording.logfile import Log, LogError, MixedRunsError, in_step_order, read_log, read_logs, write_log
 
 __all__ = ["LogInfo", "TopicInfo", "SchemaInfo", "LogSummary", "TwinSummary", "Trajectory", "LayerStatus",
            "log_info", "summarise", "format_info", "format_summary", "format_ranges",
@@ -488,9 +488,12 @@ def format_summary(summary: LogSummary) -> str:
 # --- commands ---
 
 def read_for_command(args: argparse.Namespace, command: str) -> Log | None:
-    """The log (or segments) of ``args.log``; None after one error line naming the file."""
+    """The log (or segments) of ``args.log``; None after one error line naming the file. Files of different
+    runs raise :class:`~dtpf.recording.logfile.MixedRunsError` (the command's one line, exit code 2)."""
     try:
         return read_logs(args.log) if isinstance(args.log, list) else read_log(args.log)
+    except MixedRunsError:
+        raise
     except LogError as error:
         print(f"dtpf {command}: error: {error}", file=sys.stderr)
         return None
@@ -625,10 +628,12 @@ def register(subparsers) -> None:
                     "truth, mean and minimum ESS, resamplings, the PS trajectory (commanded by the system layer "
                     "and applied by the entity), degraded steps, and the last status of each layer (messages "
                     "received and rejected, last error). On a damaged file it says first what is missing. "
-                    "Exit code 0 when the file could be read, 1 when it is not an MCAP log.")
+                    "Exit code 0 when the file could be read, 1 when it is not an MCAP log, 2 when the files "
+                    "are not of one run.")
     summary.add_argument("log", type=Path, nargs="+", metavar="LOG",
-                         help="MCAP file written by dtpf; several: the segments of one run, in order (dtpf "
-                              "launch names them when its recorder was restarted)")
+                         help="MCAP file written by dtpf; several: the segments of one run, in any order (dtpf "
+                              "launch names them when its recorder was restarted); files of different runs (run "
+                              "id, configuration or entity process) are refused")
     summary.add_argument("--config-out", type=Path, default=None, metavar="FILE",
                          help="also write the run's configuration as TOML, for 'dtpf launch --config FILE'")
     summary.set_defaults(handler=cmd_summary)
@@ -650,7 +655,8 @@ def main(argv: list[str] | None = None) -> int:
                                      description="Inspect and recover dtpf MCAP logs.")
     register(parser.add_subparsers(dest="command", metavar="COMMAND", required=True))
     args = parser.parse_args(argv)
-    return args.handler(args)
+    from dtpf.scripts.console import run_command
+    return run_command(parser, args)
 
 
 if __name__ == "__main__":

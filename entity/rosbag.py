@@ -30,7 +30,8 @@ the messages its message indexes list (place and log time) and a folder's metada
 messages than it declares, other messages than its index lists, or a chunk that does not decode is refused
 in one line naming how many can be read, how many it declares and which are missing (steps and log times);
 ``partial=True`` reads the messages the index finds intact and says in the table's ``problem`` what it
-skipped. A bag cut short (no summary) is read up to the cut, as before. Without CRCs (rosbags writes
+skipped (a bag whose summary or index cannot be read: its records in file order, each chunk up to its first
+damaged record, as a cut bag's). A bag cut short (no summary) is read up to the cut, as before. Without CRCs (rosbags writes
 none), a flipped bit inside a message's data cannot be seen.
 """
 from __future__ import annotations
@@ -652,6 +653,19 @@ def _whole_or_refused(path: Path, name: str, source: str, topic: str, taker: _Ta
             where = (f"; the widest gap in the log times read is after message {k + 1} ({times[k] / 1e9:.3f} s), "
                      f"before message {k + 2} ({times[k + 1] / 1e9:.3f} s)")
         why = index.unusable if index is not None else "it has no MCAP file to index its messages"
+        files = [path] if path.is_file() else sorted(path.glob("*.mcap"))
+        if partial and len(files) == 1:  # what its records hold, in file order, each at its own log time
+            taker.rows.clear()
+            taker.times.clear()
+            taker.read = 0
+            try:
+                _read_cut_bag(files[0], name, source, topic, taker)
+            except ObservationError:
+                taker.rows.clear()
+            if taker.rows:
+                of = f"the {declared}" if declared is not None else "an unknown number"
+                return (f"{name}: {why}; read the {len(taker.rows)} messages on {topic} its records hold, in file "
+                        f"order (--partial), of {of} it declares; where others were cannot be told")
         raise ObservationError(f"{name}: the bag declares {declared if declared is not None else 'an unknown number of'} "
                                f"messages on {topic}, {what}; {why}, so what is intact cannot be told{where}",
                                source=source)

@@ -116,6 +116,9 @@ DAMAGE = {
     "zero the footer": lambda d: zero(d, len(d) - 37, 29),
     "zero the header": lambda d: zero(d, 8, 35),
     "zero the closing magic": lambda d: zero(d, len(d) - 8, 8),
+    "zero 4 kB at 60% and the statistics": lambda d: zero(zero(d, *records(d, 0x0B)[0]), int(len(d) * 0.6), 4096),
+    "zero 30 kB at 30% and the summary": lambda d: zero(zero(d, summary_start(d), len(d) - 8 - 29 - summary_start(d)),
+                                                        int(len(d) * 0.3), 30000),
 }
 
 #: Kinds that read silently wrong before (rows gone and the rest shifted) in the uncompressed bag: now refused,
@@ -192,7 +195,8 @@ def test_partial_reads_what_is_intact_and_says_what_it_skipped(whole, kind, tmp_
     assert steps == sorted(set(steps)), kind
     np.testing.assert_array_equal(table.observations, good.observations[steps], err_msg=kind)
     if table.steps < MESSAGES:
-        assert table.problem and ("skipped" in table.problem or "cut short" in table.problem), (kind, table.problem)
+        assert table.problem and ("skipped" in table.problem or "cut short" in table.problem
+                                  or "in file order (--partial)" in table.problem), (kind, table.problem)
         if "skipped" in table.problem:
             first_gap = next(k for k in range(MESSAGES) if k >= len(steps) or steps[k] != k)
             assert f"skipped messages {first_gap + 1}" in table.problem or \
@@ -233,6 +237,36 @@ def test_the_testers_bag_is_refused_naming_the_gap_and_partial_runs_on_the_rest(
     table = rosbag.read_bag(bag, TOPIC, FIELDS, partial=True)
     expected = [k for k in range(MESSAGES) if not first - 1 <= k <= last - 1]
     np.testing.assert_array_equal(table.observations, np.asarray(rows)[expected])
+
+
+def test_dtpf_launch_refuses_the_bag_or_with_partial_runs_on_what_dtpf_run_does(tmp_path):
+    """dtpf launch refuses the damaged bag before a service starts; with --partial every service reads the
+    intact messages (the flag reaches them) and the run's numbers are dtpf run --partial's."""
+    from test_ros2_bag import write_bag as write_example_bag
+
+    bag = tmp_path / "radar"
+    write_example_bag(bag, [(1000.0 + i, 0.5 + 0.0001 * i) for i in range(300)])
+    data = (bag / "radar.mcap").read_bytes()
+    (bag / "radar.mcap").write_bytes(zero(data, int(len(data) * 0.5), 2048))
+    common = ["-q", "--model", EXAMPLE, "--observations", str(bag), "--topic", TOPIC, "--ros2-fields", FIELDS,
+              "-n", "100", "--twin", "t-partial"]
+
+    def dtpf(*args):
+        return subprocess.run([sys.executable, "-m", "dtpf.scripts.cli", *args], cwd=ROOT, capture_output=True,
+                              text=True, timeout=300)
+
+    refused = dtpf("launch", *common, "-o", str(tmp_path / "refused.mcap"))
+    assert refused.returncode == 2 and len(refused.stderr.strip().splitlines()) == 1, refused.stderr
+    assert "the bag declares 300 messages on /target" in refused.stderr and not (tmp_path / "refused.mcap").exists()
+    launched = dtpf("launch", *common, "--partial", "-o", str(tmp_path / "partial.mcap"))
+    run = dtpf("run", *common, "--partial")
+    assert launched.returncode == 0 and run.returncode == 0, launched.stderr + run.stderr
+    found = re.search(r"read (\d+) of the 300 messages on /target the bag declares \(--partial\); skipped", run.stderr)
+    assert found and found.group(0) in launched.stderr, launched.stderr
+    intact = int(found.group(1))
+    assert f"steps           {intact} of {intact}" in launched.stdout, launched.stdout
+    figure = [line for line in run.stdout.splitlines() if line.startswith("log predictive")]
+    assert figure and figure[0].split("(")[0] in launched.stdout, (figure, launched.stdout)
 
 
 def test_a_bag_whose_metadata_declares_more_than_it_holds_is_refused(whole, tmp_path):

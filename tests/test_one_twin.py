@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 import os
+import re
+import socket
 import threading
 import time
 
@@ -180,3 +182,80 @@ def test_a_competitor_that_appears_mid_run_fails_the_launch_and_is_named(process
         out = capsys.readouterr().out
         assert f"FAILED: dtpf/t-rival/entity/estimate had more than one message at steps {competing}:" in out, out
         assert "OK:" not in out
+
+
+class Partition:
+    """A TCP link from ``port`` to the router on ``target``, cut until :meth:`heal` (then it forwards both
+    ways): the two sides of a partitioned network."""
+
+    def __init__(self, port: int, target: int):
+        self.port, self.target = port, target
+        self.sockets: list[socket.socket] = []
+        self.server: socket.socket | None = None
+
+    def heal(self) -> None:
+        self.server = socket.create_server(("127.0.0.1", self.port))
+        threading.Thread(target=self._accept, daemon=True).start()
+
+    def _accept(self) -> None:
+        while True:
+            try:
+                near, _ = self.server.accept()
+                far = socket.create_connection(("127.0.0.1", self.target))
+            except OSError:
+                return
+            self.sockets += [near, far]
+            for source, sink in ((near, far), (far, near)):
+                threading.Thread(target=self._pump, args=(source, sink), daemon=True).start()
+
+    @staticmethod
+    def _pump(source: socket.socket, sink: socket.socket) -> None:
+        try:
+            while data := source.recv(1 << 16):
+                sink.sendall(data)
+            sink.shutdown(socket.SHUT_WR)
+        except OSError:
+            pass
+
+    def close(self) -> None:
+        for sock in ([self.server] if self.server else []) + self.sockets:
+            try:
+                sock.close()
+            except OSError:
+                pass
+
+
+def test_an_entity_behind_a_healed_partition_fails_the_launch_and_is_named(processes, tmp_path):
+    """A real entity of the twin, started where the launch's router could not be reached (its start-up check
+    finds nobody), joins the launch's bus mid-run when the partition heals."""
+    twin, port, cut, log = "t-healed", free_port(), free_port(), tmp_path / "run.mcap"
+    # A peer that keeps trying its router every 0.2 s (Zenoh's connect retry) and runs on its own meanwhile.
+    rival = processes.start("rival", service_args(
+        "dtpf.entity.service", f"tcp/127.0.0.1:{cut}", "--mode", "peer", "--twin", twin, "--particles", "100",
+        "--steps", "100000", "--rate", "20", "--cloud-points", "0", "--startup-timeout", "1",
+        "--cfg", "connect/timeout_ms:100", "--cfg", "connect/exit_on_failure:false",
+        "--cfg", 'connect/retry:{"period_init_ms":200,"period_max_ms":200,"period_increase_factor":1}'))
+    partition = Partition(cut, port)
+    launcher = session = None
+    try:
+        wait_until(lambda: "going on without" in processes.output(rival) or rival.poll() is not None, START,
+                   "the rival entity runs on its own side")
+        launcher = processes.start("launcher", ["-m", "dtpf.scripts.cli", "launch", "--steps", "300", "--rate",
+                                                "30", "--particles", "100", "--twin", twin, "--port", str(port),
+                                                "-o", str(log), "--quiet"])
+        session = client(port)
+        estimates = Inbox(session, f"dtpf/{twin}/entity/estimate")
+        assert estimates.get(timeout=START) is not None, processes.output(launcher)
+        assert rival.poll() is None, processes.output(rival)
+        partition.heal()
+        launcher.wait(timeout=RUN)
+        estimates.close()
+    finally:
+        partition.close()
+        if session is not None:
+            session.close()
+    output = processes.output(launcher)
+    assert launcher.returncode == 1, output
+    assert re.search(rf"^competing +another entity ran this twin during the run \(twin {twin}: run run, process "
+                     rf"{rival.pid} on \S+\)$", output, re.MULTILINE), output
+    assert f"dtpf launch: error: another entity ran twin {twin} during the run" in output

@@ -350,6 +350,35 @@ def test_the_quick_evaluation_prints_every_variant_and_a_verdict_per_cell(capsys
     assert "every target met by choose: " in out and "every target met by choose, plain base: " in out
 
 
+def test_the_dtpf_compare_command_the_evaluation_prints_gives_every_run_s_error(tmp_path, capsys):
+    """The variants are dtpf compare's: the command printed for a cell (drift+100, the model reference of
+    evaluate_guard) runs each of them on each seed to the error the evaluation's CSV holds, to the last digit."""
+    import shlex
+    import subprocess
+    import sys
+
+    from conftest import ROOT
+    from dtpf.scripts.compare_csv import CompareCsv
+    from dtpf.scripts.paper import evaluate_chooser as ev
+
+    path = tmp_path / "chooser.csv"
+    assert ev.main(["--cells", "drift+100:20", "--seeds", "2", "--steps", "6", "--workers", "1", "--csv",
+                    str(path)]) == 0
+    out = capsys.readouterr().out
+    command = out.split("\n\n    dtpf compare ")[1].split("\n\n")[0]
+    assert command.startswith("--model dtpf.scripts.paper.evaluate_guard:DRIFT_PLUS_100 -n 20 -T 6 --twin choose-1 "
+                              "--seeds 2 ")
+    table = tmp_path / "compare.csv"
+    done = subprocess.run([sys.executable, "-m", "dtpf.scripts.cli", "compare", *shlex.split(command.replace(
+        "\\\n", " ")), "--workers", "1", "--csv", str(table)], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    direct = {(label, seed): row.value for (_, label, seed), row in CompareCsv(table).read()[0].items()}
+    with open(path, newline="") as handle:
+        held = {(row["variant"], int(row["seed"])): float(row["error"]) for row in csv.DictReader(handle)
+                if row["variant"] in ev.COMPARE_LABELS}
+    assert len(direct) == 2 * len(ev.COMPARE_LABELS) and direct == held
+
+
 def test_the_hindsight_reference_takes_per_seed_the_arm_whose_run_was_likeliest(tmp_path):
     """The hindsight row: per seed the error of the arm whose fixed filter had the highest summed log
     predictive; its share of seeds in the row's name; the sums go through the CSV and back; a run

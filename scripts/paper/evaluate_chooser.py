@@ -34,6 +34,14 @@ method::
 
 Progress goes to stderr, the tables to stdout; ``--csv`` keeps every run's figures, and
 ``--from-csv`` rebuilds the tables from such a file.
+
+The variants are ``dtpf compare`` variants (:data:`VARIANT_SPECS`) and the intervals and paired differences
+:mod:`dtpf.scripts.compare_stats`' (at the exact normal quantile): a cell's error and "difference vs
+systematic" columns are what the ``dtpf compare`` command printed at the end gives (``--baseline choose`` for
+"variant - choose"). The loop stays this script's own: the share of steps a chooser left its base arm
+needs the twin's decisions, which a compare row does not keep; ``--tune`` and ``--from-step`` replace a
+built filter's system layer, which no run setting does; the hindsight row and the Kalman filter are not
+runs of a variant.
 """
 from __future__ import annotations
 
@@ -51,32 +59,36 @@ import numpy as np
 
 from dtpf.entity import models
 from dtpf.messages.config import RunConfig
+from dtpf.scripts.compare_stats import BETTER, WORSE, mean_interval, paired_difference
+from dtpf.scripts.compare_stats import verdict as judged
+from dtpf.scripts.compare_variants import Variant, parse_variant
 from dtpf.scripts.console import TaskProgress
 from dtpf.scripts.inprocess import build, simulate
 from dtpf.scripts.paper import evaluate_guard
-from dtpf.scripts.paper.common import mean_ci, significance
+from dtpf.scripts.paper.common import Z95
 from dtpf.system.layer import SystemLayer
 from dtpf.system.policy import ChoosePS
 
-TRADITIONAL, RELATIVE, PAPER = evaluate_guard.TRADITIONAL, evaluate_guard.RELATIVE, evaluate_guard.PAPER
-#: The fixed cures, by label.
-CURES: dict[str, dict] = {
-    "DT paper rule, PS 0.81": dict(policy="fixed", **PAPER),
-    "DT relative rule, PS 0": dict(policy="fixed", **RELATIVE),
-    "roughening": dict(preprocess=False, jitter="roughening"),
-    "regularised": dict(preprocess=False, jitter="regularised"),
-}
+TRADITIONAL = evaluate_guard.TRADITIONAL
+#: The fixed cures, by label (``dtpf compare`` variants, evaluate_guard's).
+CURES: dict[str, Variant] = {label: evaluate_guard.VARIANTS[label] for label in
+                             ("DT paper rule, PS 0.81", "DT relative rule, PS 0", "roughening", "regularised")}
 #: The chooser as --policy choose runs it (its base arm roughening), and the one on plain resampling.
 CHOOSE, CHOOSE_PLAIN = "choose", "choose, plain base"
 #: The choosers, and the base arm of each.
 CHOOSERS = {CHOOSE: "roughening", CHOOSE_PLAIN: "plain"}
-VARIANTS: dict[str, dict] = {
-    **{name: dict(preprocess=False, resampler=name) for name in TRADITIONAL},
-    **CURES,
-    "guard-observed, relative rule": dict(policy="guard-observed", **RELATIVE),
-    CHOOSE: dict(policy="choose"),
-    CHOOSE_PLAIN: dict(policy="choose", choose_base="plain"),
-}
+#: The variants, as ``dtpf compare --variant`` reads them (LABEL:FIELD=VALUE,...).
+VARIANT_SPECS = (
+    *(spec for spec in evaluate_guard.VARIANT_SPECS if spec.split(":")[0] in (*TRADITIONAL, *CURES)),
+    next(spec for spec in evaluate_guard.VARIANT_SPECS if spec.startswith("guard-observed, relative rule:")),
+    f"{CHOOSE}:policy=choose",
+    f"{CHOOSE_PLAIN}:policy=choose,choose_base=plain",
+)
+#: Variants by label (the traditional resamplers, the cures, guard-observed, the choosers; and those the options
+#: add).
+VARIANTS: dict[str, Variant] = {variant.label: variant for variant in map(parse_variant, VARIANT_SPECS)}
+#: The variants of a dtpf compare cell.
+COMPARE_LABELS = tuple(VARIANTS)
 KALMAN = "Kalman (exact)"
 #: Not a method: per seed, the arm whose fixed filter gave the run's observations the highest likelihood.
 HINDSIGHT = "hindsight: the arm that predicted the run best"
@@ -92,7 +104,7 @@ def add_base(arm: str) -> str:
     if arm not in ARMS:
         raise ValueError(f"unknown arm {arm!r}; expected one of {', '.join(ARMS)}")
     label = CHOOSE if arm == CHOOSERS[CHOOSE] else CHOOSE_PLAIN if arm == "plain" else f"choose, {arm} base"
-    VARIANTS[label] = dict(policy="choose", choose_base=arm)
+    VARIANTS[label] = parse_variant(f"{label}:policy=choose,choose_base={arm}")
     CHOOSERS[label] = arm
     return label
 
@@ -130,7 +142,7 @@ def add_from_step(arm: str, start: int) -> str:
         raise ValueError(f"an arm of {', '.join(ARMS)} from a step >= 2 (step 1 runs the base arm), got "
                          f"{arm!r} from {start!r}")
     label = f"{arm} from step {int(start)}"
-    VARIANTS[label] = dict(policy="choose")
+    VARIANTS[label] = parse_variant(f"{label}:policy=choose")
     FROM_STEP[label] = (arm, int(start))
     return label
 
@@ -152,7 +164,7 @@ def add_tuned(setting: str) -> str:
         raise ValueError(f"{key} takes a number, got {value!r}") from None
     ChoosePS(**{key: parsed})  # a value the policy refuses is refused here, before any run
     label = f"choose, {key} {value}"
-    VARIANTS[label] = dict(policy="choose")
+    VARIANTS[label] = parse_variant(f"{label}:policy=choose")
     TUNED[label] = {key: parsed}
     CHOOSERS[label] = CHOOSERS[CHOOSE]
     return label
@@ -193,7 +205,7 @@ def task_config(task: Task, options: dict, **variant) -> RunConfig:
 
 def build_variant(task: Task, label: str, model, options: dict, observations: np.ndarray):
     """The in-process filter of one variant on the task's observations."""
-    config = task_config(task, options, **VARIANTS[label])
+    config = VARIANTS[label].config(task_config(task, options), seed=task.seed)
     pf = build(config, observations, model)
     if label in TUNED:
         pf.preprocessor.system = SystemLayer.from_config(config, model=model, policy_options=TUNED[label])
@@ -272,12 +284,12 @@ def cell_rows(by_seed: dict[int, dict[str, dict]]) -> list[dict]:
         error[HINDSIGHT] = np.array([picked[0][s] for s in seeds])
     rows = []
     for label in labels:
-        m, h = mean_ci(error[label])
-        d, dh = mean_ci(error[label] - error["systematic"])
-        c, ch = mean_ci(error[label] - error[CHOOSE])
+        m, h = mean_interval(error[label], Z95)
+        d, dh = paired_difference(error[label], error["systematic"], Z95)
+        c, ch = paired_difference(error[label], error[CHOOSE], Z95)
         # label - chooser, paired by seed: +1 where the chooser is significantly better.
-        significant_vs = {chooser: significance(*mean_ci(error[label] - error[chooser])) if label != chooser else 0
-                          for chooser in CHOOSERS if chooser in error}
+        significant_vs = {chooser: significance(*paired_difference(error[label], error[chooser], Z95))
+                          if label != chooser else 0 for chooser in CHOOSERS if chooser in error}
         ms = [by_seed[s][label].get("ms") if label != HINDSIGHT else None for s in seeds]
         rows.append(dict(variant=label, error=m, error_ci=h, vs_systematic=d, vs_systematic_ci=dh,
                          significant=significance(d, dh) if label != "systematic" else 0,
@@ -287,6 +299,25 @@ def cell_rows(by_seed: dict[int, dict[str, dict]]) -> list[dict]:
                                                   for s in seeds])),
                          share=picked[1] if label == HINDSIGHT else None))
     return rows
+
+
+def significance(difference: float, half: float) -> int:
+    """-1 where the interval lies below 0 (lower error: better), +1 above, 0 where it holds 0 or is unknown."""
+    return {BETTER: -1, WORSE: 1}.get(judged(difference, half, higher_is_better=False), 0)
+
+
+def compare_command(scenario: str, n: int, steps: int, seeds: int, first_seed: int = 0) -> str:
+    """The ``dtpf compare`` command that gives the error and "difference vs systematic" columns of a cell for
+    the variants of :data:`COMPARE_LABELS` (``--baseline choose`` for "variant - choose")."""
+    options = " ".join(f"--{name} {value}" for name, value in
+                       evaluate_guard.scenario_options(scenario, printed=True).items())
+    metric, components = evaluate_guard.metric_of(scenario)
+    judged_by = "" if metric == "mse" else f" --metric {metric} --components {components}"
+    seeded = f"--seeds {seeds}" if first_seed == 0 else f"--seed-list {first_seed}-{first_seed + seeds - 1}"
+    steps = min(steps, evaluate_guard.FRAMES) if scenario == "video" else steps
+    return " \\\n      ".join([f"dtpf compare {options} -n {n} -T {steps} --twin choose-1 {seeded}{judged_by}",
+                               *(f"--variant '{label}:{VARIANTS[label].spec}'" for label in COMPARE_LABELS),
+                               "--baseline systematic"])
 
 
 def table(scenario: str, n: int, seeds: int, rows: list[dict]) -> str:
@@ -591,6 +622,11 @@ def main(argv=None) -> int:
           f"over seeds; differences paired by seed ± their 95% CI, marked where the interval excludes 0.\n")
     text, met = report(results)
     print(text)
+    scenario, n = cells[0]
+    print(f"\nThe error and the difference against systematic of a cell (here {scenario}, N = {n}, run from the "
+          f"repository's root) with dtpf compare, for every variant but the hindsight row and the Kalman filter "
+          f"(--baseline choose for the other column; its intervals use z = 1.96):\n\n    "
+          f"{compare_command(scenario, n, args.steps, args.seeds, args.first_seed)}")
     print(f"\n({elapsed:.0f} s on {args.workers} workers)")
     return 0
 

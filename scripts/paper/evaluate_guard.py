@@ -64,9 +64,7 @@ from dtpf.scripts.inprocess import simulate
 from dtpf.scripts.paper.common import Z95
 
 TRADITIONAL = ("systematic", "multinomial", "stratified", "residual")
-#: The relative rule's options (PS and weights chosen on pilot seeds, see the module docstring).
-RELATIVE = dict(move_rule="relative", weight_rule="likelihood", ps=0.0)
-PAPER = dict(move_rule="paper", weight_rule="inherit", ps=0.81)
+#: The relative rule's options (PS and weights chosen on pilot seeds, see the module docstring) and the paper's.
 _RELATIVE, _PAPER = "move_rule=relative,weight_rule=likelihood,ps=0", "move_rule=paper,weight_rule=inherit,ps=0.81"
 
 #: The variants, as ``dtpf compare --variant`` reads them (LABEL:FIELD=VALUE,...).

@@ -767,7 +767,8 @@ def _npy_header(fp, where: str, source: str, size: int) -> _Header:
             row_bytes = need // shape[0]
             rows = max(have, 0) // row_bytes if row_bytes else 0
             missing = f"row {rows}" if rows == shape[0] - 1 else f"rows {rows} to {shape[0] - 1}"
-            held = f": {rows} whole row{'' if rows == 1 else 's'} of the {shape[0]} its header declares ({missing} missing)"
+            held = (f": {rows} whole row{'' if rows == 1 else 's'} of the {shape[0]} its header declares "
+                    f"({missing} missing)")
         raise ObservationError(f"{where}: cut short: shape {shape} of {dtype} needs {need} bytes of data, "
                                f"the file holds {max(have, 0)}{held}", source=source)
     return _Header(shape, fortran, dtype, need)

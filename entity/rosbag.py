@@ -31,8 +31,8 @@ messages than it declares, other messages than its index lists, or a chunk that 
 in one line naming how many can be read, how many it declares and which are missing (steps and log times);
 ``partial=True`` reads the messages the index finds intact and says in the table's ``problem`` what it
 skipped (a bag whose summary or index cannot be read: its records in file order, each chunk up to its first
-damaged record, as a cut bag's). A bag cut short (no summary) is read up to the cut, as before. Without CRCs (rosbags writes
-none), a flipped bit inside a message's data cannot be seen.
+damaged record, as a cut bag's). A bag cut short (no summary) is read up to the cut, as before. Without
+CRCs (rosbags writes none), a flipped bit inside a message's data cannot be seen.
 """
 from __future__ import annotations
 
@@ -540,6 +540,11 @@ class _Index:
                     chunks[key] = self.records(*key)
                 except ValueError as error:
                     chunks[key] = str(error)
+                compression = self.chunks[key].compression
+                if compression and not isinstance(chunks[key], str) and not _records_walk(chunks[key]):
+                    # a damaged compressed chunk that still decompresses: the damage spreads through what it
+                    # decompresses to (back-references), so none of its records is trusted
+                    chunks[key] = f"the chunk at byte {entry.chunk:,} ({compression}) decompresses to damaged records"
             data = chunks[key]
             if isinstance(data, str):
                 bad.append((position, entry, data))
@@ -568,6 +573,16 @@ class _Index:
                 except Exception as error:
                     raise ObservationError(f"{name}: its type {msgtype}: {_say(error)}", source=source) from None
         return lambda entry, raw: typestore.deserialize_cdr(raw, self.msgtypes[(entry.file, entry.channel)][0])
+
+
+def _records_walk(data: bytes) -> bool:
+    """Whether ``data`` is a sequence of sound Schema, Channel and Message records to its last byte."""
+    at = 0
+    while at < len(data):
+        if not _sound_after(data, at):
+            return False
+        at += 9 + struct.unpack_from("<Q", data, at + 1)[0]
+    return at == len(data)
 
 
 def _sound_after(data: bytes, at: int) -> bool:
@@ -639,11 +654,15 @@ def _whole_or_refused(path: Path, name: str, source: str, topic: str, taker: _Ta
         out_of_place = next((i for i, t in enumerate(seen) if i >= len(entries) or t != entries[i].log_time), None)
     if isinstance(failure, ObservationError) and out_of_place is None:
         raise failure  # the message is where the bag says and does not fit the model: the bag is sound
-    what = f"rosbags stopped after {read} messages ({failure})" if isinstance(failure, str) else (
-        f"{failure}" if failure is not None else
-        f"{read} were read" + ("" if out_of_place is None else f", from message {out_of_place + 1} on not the "
-                                                               f"ones its index lists") if whole or out_of_place is not None
-        else None)
+    if isinstance(failure, str):
+        what = f"rosbags stopped after {read} messages ({failure})"
+    elif failure is not None:
+        what = str(failure)
+    elif whole or out_of_place is not None:
+        what = f"{read} were read" + ("" if out_of_place is None else
+                                      f", from message {out_of_place + 1} on not the ones its index lists")
+    else:
+        what = None  # the first ``steps`` read agree with the index
     if entries is None:  # nothing to place a gap by: the counts alone
         if failure is None and (declared is None or read == declared or not whole and read < declared):
             return None
@@ -666,8 +685,9 @@ def _whole_or_refused(path: Path, name: str, source: str, topic: str, taker: _Ta
                 of = f"the {declared}" if declared is not None else "an unknown number"
                 return (f"{name}: {why}; read the {len(taker.rows)} messages on {topic} its records hold, in file "
                         f"order (--partial), of {of} it declares; where others were cannot be told")
-        raise ObservationError(f"{name}: the bag declares {declared if declared is not None else 'an unknown number of'} "
-                               f"messages on {topic}, {what}; {why}, so what is intact cannot be told{where}",
+        count = declared if declared is not None else "an unknown number of"
+        raise ObservationError(f"{name}: the bag declares {count} messages on {topic}, {what}; {why}, so what is "
+                               f"intact cannot be told{where}",
                                source=source)
     good = bad = None
     if failure is None and out_of_place is None and declared == len(entries):
@@ -683,9 +703,20 @@ def _whole_or_refused(path: Path, name: str, source: str, topic: str, taker: _Ta
     messages = []
     for position, entry, raw in good:
         try:
-            messages.append((entry, deserialize(entry, raw)))
+            messages.append((position, entry, deserialize(entry, raw)))
         except Exception as error:  # a payload damaged beyond decoding
             bad.append((position, entry, f"cannot deserialise it: {_say(error)}"))
+    spoilt = {(entry.file, entry.chunk) for _, entry, _ in bad if index.chunks[(entry.file, entry.chunk)].compression}
+    if spoilt:  # a compressed chunk with one damaged message: the damage spreads through the rest of it
+        keep = []
+        for position, entry, message in messages:
+            if (entry.file, entry.chunk) in spoilt:
+                bad.append((position, entry, f"the chunk at byte {entry.chunk:,} "
+                                                         f"({index.chunks[(entry.file, entry.chunk)].compression}) "
+                                                         f"decompresses to damaged records"))
+            else:
+                keep.append((position, entry, message))
+        messages = keep
     bad.sort(key=lambda item: item[0])
     intact = len(messages)
     gaps = _gaps(bad, entries, declared) if bad else f"none of the {len(entries)} its index lists"
@@ -700,7 +731,7 @@ def _whole_or_refused(path: Path, name: str, source: str, topic: str, taker: _Ta
     taker.rows.clear()
     taker.times.clear()
     taker.read = 0
-    for entry, message in messages:
+    for _, entry, message in messages:
         if not taker.wants_more():
             break
         taker.take(entry.log_time, lambda: message)

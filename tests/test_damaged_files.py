@@ -100,6 +100,7 @@ DAMAGE = {
     "flip a byte at 30%": lambda d: flip(d, int(len(d) * 0.3)),
     "flip 16 bytes at 50%": lambda d: flip(d, int(len(d) * 0.5), 16),
     "flip 4 bytes at 10%": lambda d: flip(d, int(len(d) * 0.1), 4),
+    "flip 8 bytes at byte 199": lambda d: flip(d, 199, 8),  # zstd: still decompresses, to garbled records
     "flip the first chunk's end time": lambda d: flip(d, chunk(d, 0)[0] + 9 + 8, 2),
     "cut at 50%": lambda d: d[:len(d) // 2],
     "cut in the summary": lambda d: d[:summary_start(d) + 40],

@@ -99,7 +99,7 @@ def read_table(config, model: StateSpaceModel | None = None, *, steps: int | Non
             model = model_ref.resolve(config.model_ref)
         read = family.READERS.get(config.reader)
         return read(path, obs_dim=model.obs_dim, state_dim=model.dim, steps=steps, topic=config.topic,
-                    fields=config.ros2_fields, model=model)
+                    fields=config.ros2_fields, model=model, partial=config.partial)
     if config.topic is not None or rosbag.is_bag(path):
         if model is None and config.ros2_fields is None:
             from dtpf.entity import model_ref

@@ -238,6 +238,13 @@ def test_the_testers_bag_is_refused_naming_the_gap_and_partial_runs_on_the_rest(
     table = rosbag.read_bag(bag, TOPIC, FIELDS, partial=True)
     expected = [k for k in range(MESSAGES) if not first - 1 <= k <= last - 1]
     np.testing.assert_array_equal(table.observations, np.asarray(rows)[expected])
+    # The built-in reader named with --reader takes --partial too.
+    for flags, code in (([], 2), (["--partial"], 0)):
+        named = subprocess.run([sys.executable, "-m", "dtpf.scripts.cli", "run", "-q", "--reader", "rosbag2", *flags,
+                                *common], cwd=ROOT, capture_output=True, text=True, timeout=300)
+        assert named.returncode == code, named.stdout + named.stderr
+        if code == 0:
+            assert f"T = {intact}," in named.stdout and named.stdout.split("time")[0] == done.stdout.split("time")[0]
 
 
 def test_dtpf_launch_refuses_the_bag_or_with_partial_runs_on_what_dtpf_run_does(tmp_path):

@@ -3,7 +3,8 @@
 A reader turns the text of ``--observations`` (a file, a folder, a device: the reader decides) into the
 observations to filter, one row per step::
 
-    table = reader(source, *, obs_dim=None, state_dim=None, steps=None, topic=None, fields=None, model=None)
+    table = reader(source, *, obs_dim=None, state_dim=None, steps=None, topic=None, fields=None, model=None,
+                   partial=False)
 
 Parameters
 ----------
@@ -16,6 +17,9 @@ steps : int or None
 topic, fields, model :
     A rosbag2 log's topic and field paths (``--topic``, ``--ros2-fields``) and the run's model; readers
     that have no use for them ignore them.
+partial : bool
+    ``--partial``: read what is intact of a damaged file and say what was skipped (the table's
+    ``problem``), instead of refusing it; a reader that cannot tell ignores it.
 
 Returns
 -------
@@ -59,7 +63,7 @@ class _Checked:
         self.__doc__ = getattr(function, "__doc__", None)
 
     def __call__(self, source, *, obs_dim=None, state_dim=None, steps=None, topic=None, fields=None,
-                 model=None) -> ObservationTable:
+                 model=None, partial=False) -> ObservationTable:
         source = os.fsdecode(source)
         try:
             result = self.function(source, steps=steps) if self.takes_steps else self.function(source)

@@ -25,7 +25,11 @@ LAUNCH_SECONDS = 300
 
 
 def dtpf(*args: str, cwd: Path, env: dict | None = None, timeout: float = LAUNCH_SECONDS) -> subprocess.CompletedProcess:
-    """``dtpf ARGS`` in ``cwd``; its process group is killed if it outlives ``timeout``."""
+    """``dtpf ARGS`` in ``cwd``; its process group is killed if it outlives ``timeout``. A launch waits up to 30 s
+    for a layer's answer (the default 2 s can run out on a loaded machine while a shared service loads a user's
+    code, and a degraded step changes the numbers compared here)."""
+    if args and args[0] == "launch" and "--help" not in args:
+        args = (*args, "--timeout", "30", "--startup-timeout", "120")
     environment = dict(os.environ, **(env or {}))
     process = subprocess.Popen([sys.executable, "-P", "-m", "dtpf", *args], cwd=cwd, stdout=subprocess.PIPE,
                                stderr=subprocess.PIPE, text=True, env=environment, start_new_session=True)

@@ -652,6 +652,8 @@ def launch(config: RunConfig, *, log_path: Path | None = None, port: int | None 
         # Final statuses of the other services arrive when they stop.
         _stop(children, ("information", "system"), result)
         _drain(watch, result, progress, layer_of_pid, quiet=0.3, entity_pid=children["entity"].pid)
+        if entity_code != 0 and (said := _entity_error(result.statuses_by_pid.get(children["entity"].pid))):
+            result.failure = said  # the entity's own line (a model failing at a step, say), not its exit code
         stopping.set()
         _stop(children, ("recorder",), result)
     except KeyboardInterrupt:
@@ -753,6 +755,19 @@ def _take(result: LaunchResult, item, progress, layer_of_pid: dict[int, str]) ->
         result.statuses_by_pid[message.pid] = message
         return True
     return False
+
+
+def _entity_error(status: Status | None) -> str | None:
+    """The one line a failed entity's final status gives (``step 5: the model's propagate raised ...``, as
+    ``dtpf run`` says it), without the exception's class name for the errors dtpf words itself; None when it
+    said nothing."""
+    if status is None or status.state != ServiceState.FAILED or not status.last_error:
+        return None
+    text = status.last_error
+    for name in ("FilterError: ", "ModelError: ", "ObservationError: "):
+        if text.startswith(name):
+            return text[len(name):]
+    return text
 
 
 def _drain(watch: Inbox, result: LaunchResult, progress, layer_of_pid, quiet: float, entity_pid=None) -> None:

@@ -387,3 +387,30 @@ def test_a_model_that_fails_mid_run_is_one_line_naming_the_step_the_method_and_i
     assert done.returncode == 2 and "Traceback" not in done.stderr
     assert done.stderr.strip() == ("dtpf run: error: step 5: the model's propagate raised IndexError: index 10 is "
                                    "out of bounds for axis 0 with size 3 (at late.py line 7)")
+
+
+def test_a_model_that_fails_mid_run_under_launch_ends_with_its_line_and_the_summary_says_the_run_failed(tmp_path):
+    """Under dtpf launch the same model ends the launch with the entity's one line (exit 1: the run started
+    and failed; 2 is for what is refused before it starts) and the summary of its log says the run failed at
+    step 5 rather than 'complete'."""
+    import subprocess
+    import sys
+
+    (tmp_path / "late.py").write_text(
+        "from dtpf.entity.models import get\n\n\nclass Late(type(get('ungm'))):\n"
+        "    def propagate(self, particles, k, rng, noise=None):\n"
+        "        if k == 5:\n"
+        "            return particles[[1, 2, 3]][10]\n"
+        "        return super().propagate(particles, k, rng, noise=noise)\n\n\nMODEL = Late()\n")
+    said = ("step 5: the model's propagate raised IndexError: index 10 is out of bounds for axis 0 with size 3 "
+            "(at late.py line 7)")
+    done = subprocess.run([sys.executable, "-P", "-m", "dtpf", "launch", "-T", "10", "-n", "200", "--model",
+                           "late.py:MODEL", "-o", "run.mcap"], cwd=tmp_path, capture_output=True, text=True,
+                          timeout=300)
+    assert done.returncode == 1 and "Traceback" not in done.stderr, done.stderr
+    assert done.stderr.strip().splitlines()[-1] == f"dtpf launch: error: {said}", done.stderr
+    summary = subprocess.run([sys.executable, "-P", "-m", "dtpf", "summary", "run.mcap"], cwd=tmp_path,
+                             capture_output=True, text=True, timeout=120)
+    lines = summary.stdout.splitlines()
+    assert lines[1] == "state         run failed at step 5: " + said.removeprefix("step 5: "), summary.stdout
+    assert lines[2] == "              (the file: complete)", summary.stdout

@@ -22,6 +22,7 @@ from __future__ import annotations
 import argparse
 import datetime as dt
 import json
+import re
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -136,14 +137,39 @@ def _time(ns: int) -> str:
     return f"{stamp:%Y-%m-%d %H:%M:%S}.{nsec:09d} UTC ({sec}.{nsec:09d})"
 
 
-def _state(label: str, complete: bool, problems: list[str], width: int) -> list[str]:
-    """'state  complete', or 'state  DAMAGED' and the problems, one a line."""
-    if not problems:
-        return [f"{label:<{width}}complete"]
-    lines = [f"{label:<{width}}{'complete (footer read), with problems' if complete else 'DAMAGED'}"]
+def _state(label: str, complete: bool, problems: list[str], width: int, failures: list[str] = ()) -> list[str]:
+    """'state  complete', or 'state  DAMAGED' and the problems, one a line; with ``failures`` (runs whose
+    entity failed), 'state  run failed at step K' and each failure, whatever the file's state."""
+    file_state = "complete" if not problems else "complete (footer read), with problems" if complete else "DAMAGED"
+    if failures:
+        lines = [f"{label:<{width}}{failures[0]}", *(f"{'':<{width}}{line}" for line in failures[1:]),
+                 f"{'':<{width}}(the file: {file_state})"]
+    else:
+        lines = [f"{label:<{width}}{file_state}"]
     for i, part in enumerate(problems):
         lines.append(f"{'problem' if i == 0 else '':<{width}}{part}")
     return lines
+
+
+def _failures(summary: "LogSummary") -> list[str]:
+    """'run failed at step K (twin T): what the entity said' for each twin whose entity's last status is
+    failed: the step its error names (``step 5: ...``), else the first step without an estimate."""
+    said = []
+    for t in summary.twins:
+        s = t.statuses.get("entity")
+        if s is None or s.state != "failed":
+            continue
+        error = s.last_error or ""
+        for name in ("FilterError: ", "ModelError: ", "ObservationError: "):
+            error = error[len(name):] if error.startswith(name) else error
+        named = re.match(r"step (\d+): ", error)
+        step = (int(named.group(1)) if named else t.missing_steps[0] if t.missing_steps
+                else t.steps[-1] + 1 if t.steps else None)
+        at = f" at step {step}" if step is not None else ""
+        twin = f" (twin {t.twin})" if len(summary.twins) > 1 else ""
+        rest = error[named.end():] if named else error
+        said.append(f"run failed{at}{twin}" + (f": {rest}" if rest else ""))
+    return said
 
 
 def format_info(info: LogInfo) -> str:
@@ -414,7 +440,7 @@ def format_summary(summary: LogSummary) -> str:
     """``summary`` as text: the file's state first, then each twin."""
     lines = [f"log           {summary.path} ({summary.size:,} bytes)",
              *([f"segments      {' + '.join(str(path) for path in summary.segments)}"] if summary.segments else []),
-             *_state("state", summary.complete, summary.problems, 14),
+             *_state("state", summary.complete, summary.problems, 14, _failures(summary)),
              f"messages      {summary.messages:,}"
              + (f" ({summary.undecodable:,} undecodable)" if summary.undecodable else "")]
     lines += [f"  undecodable: {error}" for error in summary.errors]

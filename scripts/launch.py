@@ -708,9 +708,11 @@ def open_router(port: int | None, secure=None):
     endpoint = secure.endpoint("127.0.0.1", port) if secure is not None else f"tcp/127.0.0.1:{port}"
     try:
         router = open_session(zenoh_config(mode="router", listen=[endpoint], secure=secure,
-                                           role="router" if secure is not None else None))
+                                           role="router" if secure is not None else None),
+                              in_use_hint="give --port another port, or leave --port out for a free one")
     except BusError as error:
-        raise LaunchError(f"embedded Zenoh router cannot start on {endpoint}: {error}") from None
+        said = str(error).removeprefix(f"cannot listen on {endpoint}: ")
+        raise LaunchError(f"embedded Zenoh router cannot start on {endpoint}: {said}") from None
     return router, endpoint, secure
 
 

@@ -278,8 +278,19 @@ def test_launch_says_when_its_port_is_in_use(tmp_path):
         completed = subprocess.run([sys.executable, "-m", "dtpf.scripts.cli", "launch", "--port", str(port),
                                     "-o", str(tmp_path / "y.mcap")], cwd=ROOT, capture_output=True,
                                    text=True, timeout=60)
+        router = subprocess.run([sys.executable, "-m", "dtpf.scripts.cli", "router", "--listen",
+                                 f"tcp/127.0.0.1:{port}"], cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert completed.returncode == 1
-    assert "already in use" in completed.stderr
+    # One line: the port is in use and how to pick another; Zenoh's reason without its Rust source paths.
+    said = completed.stderr.strip().splitlines()[-1]
+    assert said == (f"dtpf launch: error: embedded Zenoh router cannot start on tcp/127.0.0.1:{port}: the port is "
+                    f"already in use by another program (Address already in use (os error 98)); give --port "
+                    f"another port, or leave --port out for a free one, or stop the program that holds it"), said
+    assert router.returncode == 2 and ".rs" not in router.stderr and "/src/" not in router.stderr, router.stderr
+    assert router.stderr.strip() == (f"dtpf router: error: cannot listen on tcp/127.0.0.1:{port}: the port is already "
+                                     f"in use by another program (Address already in use (os error 98)); give "
+                                     f"--listen an endpoint with another port (tcp/HOST:PORT), or stop the program "
+                                     f"that holds it"), router.stderr
 
 
 @pytest.mark.parametrize("layer", ["entity", "information", "system", "recorder"])

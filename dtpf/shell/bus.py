@@ -184,14 +184,31 @@ def zenoh_config_from_args(args: argparse.Namespace, role: str | None = None) ->
                         role=getattr(args, "role", None) or role)
 
 
-def open_session(config: zenoh.Config) -> zenoh.Session:
-    """Open a Zenoh session; a busy port or a bad endpoint becomes a BusError naming it."""
+#: Where Zenoh's errors name its Rust sources (`` at /.../zenoh-link-tcp/src/unicast.rs:338``).
+_RUST_SOURCE = re.compile(r"\s+at \S+\.rs:\d+\.?")
+
+
+def zenoh_reason(text: str) -> str:
+    """Zenoh's error text without the Rust source paths it names."""
+    return _RUST_SOURCE.sub("", text).strip()
+
+
+def open_session(config: zenoh.Config, in_use_hint: str | None = None) -> zenoh.Session:
+    """Open a Zenoh session; a busy port or a bad endpoint becomes a BusError naming it, in one line
+    without Zenoh's Rust source paths. ``in_use_hint``: how the caller's user picks another port (by
+    default: another port in the --listen endpoint)."""
     try:
         return zenoh.open(config)
     except zenoh.ZError as error:
-        text = str(error)
+        text = zenoh_reason(str(error))
         if "Address already in use" in text or "in use" in text:
-            raise BusError(f"cannot listen, address already in use: {text}") from None
+            bound = re.search(r"bound to (\S+):\s", text)
+            os_error = re.search(r"Address already in use( \(os error \d+\))?", text)
+            where = f" on {bound.group(1)}" if bound else ""
+            reason = f" ({os_error.group(0)})" if os_error else f" ({text})"
+            hint = in_use_hint or "give --listen an endpoint with another port (tcp/HOST:PORT)"
+            raise BusError(f"cannot listen{where}: the port is already in use by another program{reason}; "
+                           f"{hint}, or stop the program that holds it") from None
         raise BusError(f"cannot open Zenoh session: {text}") from None
 
 

@@ -15,6 +15,8 @@ then, in Foxglove, Open connection, ``ws://127.0.0.1:8765``.
 from __future__ import annotations
 
 import argparse
+import logging
+import re
 import sys
 import threading
 import time
@@ -40,6 +42,39 @@ def parse_address(text: str) -> tuple[str, int]:
     return (host if sep and host else "127.0.0.1"), number
 
 
+#: The WebSocket subprotocol foxglove-sdk's server speaks; a client that offers only another one (the older
+#: ``foxglove.websocket.v1``) is refused with HTTP 400 (the SDK has no setting to accept it).
+SUBPROTOCOL = "foxglove.sdk.v1"
+
+
+class _RefusedClients(logging.Filter):
+    """One line per client host instead of the SDK's 'Dropping client HOST:PORT: handshake failed' per attempt
+    (a viewer retries about once a second, each time from a new port): the first says why it is refused and
+    what it must offer; later attempts from that host are not logged."""
+
+    _DROPPED = re.compile(r"^Dropping client (.+):(\d+): handshake failed")
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.hosts: set[str] = set()
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        dropped = self._DROPPED.match(record.getMessage())
+        if dropped is None:
+            return True
+        host = dropped.group(1)
+        if host in self.hosts:
+            return False
+        self.hosts.add(host)
+        record.msg, record.args = ("refused a Foxglove client at %s: its WebSocket handshake failed (this server "
+                                   "speaks the subprotocol %s; a client offering only foxglove.websocket.v1 gets "
+                                   "HTTP 400); further attempts from %s are not logged", (host, SUBPROTOCOL, host))
+        return True
+
+
+_REFUSED = _RefusedClients()
+
+
 class FoxgloveBridge:
     """Serves the JSON topics of ``twin`` that arrive on ``session`` to Foxglove clients."""
 
@@ -52,6 +87,9 @@ class FoxgloveBridge:
         self._foxglove = foxglove
         self.twin = twin
         self.context = foxglove.Context()  # its own: the process's other sinks (an MCAP file) are not fed
+        server_log = logging.getLogger("foxglove.websocket.server")
+        if _REFUSED not in server_log.filters:
+            server_log.addFilter(_REFUSED)
         self.server = foxglove.start_server(name=f"dtpf {twin}", host=host, port=port, context=self.context)
         self.port = self.server.port
         self.channels: dict[str, object] = {}

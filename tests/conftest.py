@@ -30,6 +30,8 @@ ROOT = Path(__file__).resolve().parent.parent
 #: (a hole of the product under load, not of the test; alone it passed 5 of 5).
 RUN_LAST = {"test_partition.py"}
 FILE_SECONDS = {
+    "test_components.py": 106, "test_one_twin.py": 57, "test_one_log.py": 51, "test_compare.py": 28,
+    "test_damaged_files.py": 23, "test_thresholds.py": 8,
     "test_fuzz.py": 104, "test_resilience.py": 97, "test_real_twin.py": 76, "test_fleet.py": 73,
     "test_services.py": 38, "test_nothing_lost.py": 36, "test_partition.py": 33, "test_packaging.py": 28,
     "test_ros2_live.py": 28, "test_schemas.py": 28, "test_security.py": 27, "test_tracking.py": 27,

@@ -224,8 +224,8 @@ def moments_and_covariances(particles: np.ndarray, weights: np.ndarray
                             ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """:func:`moments` and :func:`covariances` in one pass over the centred particles: the weighted mean and
     variances (d,), and the covariances between components (None unless 2 <= d <= MAX_COVARIANCE_DIM).
-    With covariances, sum_n (sqrt(w_n) c_n)(sqrt(w_n) c_n)^T gives them all, the variances on its diagonal
-    (N = 1e5, d = 4: 1.7 ms against 1.0 for the variances alone and 2.8 for both apart)."""
+    With covariances, sum_n (sqrt(w_n) c_n)(sqrt(w_n) c_n)^T gives them all, the variances on its diagonal:
+    one pass instead of two."""
     d = particles.shape[1]
     if not 2 <= d <= MAX_COVARIANCE_DIM:
         mean, var = moments(particles, weights)

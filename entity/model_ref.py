@@ -143,18 +143,10 @@ def _named(ref: str) -> StateSpaceModel:
 
 
 def _from_entry_point(ref: str, point: importlib.metadata.EntryPoint) -> StateSpaceModel:
-    dist = getattr(getattr(point, "dist", None), "name", None)
-    where = (f"model reference {ref!r} (entry point {point.value!r} of {ENTRY_POINT_GROUP}"
-             f"{f' from package {dist!r}' if dist else ''})")
-    value = re.sub(r"\s*\[[^\]]*\]\s*$", "", point.value).strip()  # drop old-style [extras]
-    module_name, _, attr = value.rpartition(":") if ":" in value else (value, "", "")
-    module_name, attr = module_name.strip(), attr.strip()
-    if _is_path(module_name):
-        module, shown = _load_file(module_name, ref, where), module_name
-    else:
-        module, shown = _import(module_name, ref, where), f"module {module_name!r}"
-    obj = module if not attr else _attribute(module, attr, shown, where)
-    return _finish(_build(obj, attr or module_name, where, module), ref, where)
+    where = references.entry_point_where(ref, point, ENTRY_POINT_GROUP, "model reference")
+    obj, module = references.load_entry_point(ref, point, where, ModelError, listing=_listing)
+    name = point.value.rpartition(":")[2].strip() if ":" in point.value else point.value.strip()
+    return _finish(_build(obj, name, where, module), ref, where)
 
 
 def _entry_points() -> dict[str, importlib.metadata.EntryPoint]:

@@ -88,8 +88,8 @@ def gather(particles: np.ndarray, ancestors: np.ndarray, out: np.ndarray | None 
     """The resampled set ``particles[ancestors]`` of an (N, d) float64 set, into ``out`` if given.
 
     ``threads`` > 1: from PARALLEL_GATHER particles on, the rows are copied on that many of
-    numba's threads, the same array whatever their number. It does not pay on the 2-core machine of ``dtpf.scripts.bench.resampling`` while
-    anything else runs there (2 threads were slower than one at large N), so the filter gathers on one.
+    numba's threads, the same array whatever their number. ``python -m dtpf.scripts.bench.resampling``
+    found it slower than one thread on a small machine with other work running, so the filter gathers on one.
     """
     x = np.ascontiguousarray(particles, dtype=np.float64)
     a = np.ascontiguousarray(ancestors, dtype=np.int64)

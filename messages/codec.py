@@ -152,7 +152,7 @@ def encode_with_base64(message: Message, raw: bytes) -> bytes:
     ``message`` is built with ``data=""``: pydantic validates and writes every other field, and the base64
     text goes into the JSON as it is made (its alphabet needs no escaping). The same bytes as
     ``encode(message)`` with ``data=base64(raw)``, without validating the text and writing it through pydantic
-    again: a point cloud of 1,000 points (43 kB) takes 58 us against 87, measured back to back.
+    again, which cost more than making the text.
     """
     empty = b'"data":""'
     payload = encode(message) if getattr(message, "data", None) == "" else b""

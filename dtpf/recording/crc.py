@@ -1,10 +1,9 @@
 """CRC-32 of MCAP records at memory speed.
 
-MCAP's chunk and summary CRCs are zlib's CRC-32. CPython's zlib computes it at
-about 4 GB/s on our machine: 0.37-0.49 ms per 1.6 MB particle set, two of them
-per step at N = 1e5, about as long as writing the set to the file. zlib-ng
-computes the same function with SIMD folding, 0.028-0.037 ms per 1.6 MB
-(``python -m dtpf.scripts.bench.recording`` prints both)::
+MCAP's chunk and summary CRCs are zlib's CRC-32. CPython's zlib takes about as
+long to checksum a large particle set as writing the set to the file takes;
+zlib-ng computes the same function with SIMD folding, an order of magnitude
+faster (``python -m dtpf.scripts.bench.recording`` prints both)::
 
     from dtpf.recording.crc import crc32, use_fast_crc
     crc32(data)          # == zlib.crc32(data), faster where zlib-ng is installed

@@ -521,10 +521,15 @@ def _query_claims(session: zenoh.Session, twins: list[str], timeout: float) -> l
 
 class Claims:
     """The claims on a twin as they come and go (a liveliness subscriber, with the tokens already there):
-    a launcher sees every entity of its twin, its own and any other, through the run."""
+    a launcher sees every entity of its twin, its own and any other, through the run.
 
-    def __init__(self, session: zenoh.Session, twin: str):
+    ``twin`` may be a key chunk pattern (``line-1-*``, a fleet's twins); ``twins`` then names the twins
+    whose claims are kept.
+    """
+
+    def __init__(self, session: zenoh.Session, twin: str, twins=None):
         self.twin = twin
+        self.twins = None if twins is None else frozenset(twins)
         self._lock = threading.Lock()
         #: Every claim seen during the run, gone since or not (at most MAX_CLAIMS).
         self.seen: list[Claim] = []
@@ -535,7 +540,7 @@ class Claims:
         if sample.kind != zenoh.SampleKind.PUT:
             return
         claim = Claim.of_key(sample.key_expr)
-        if claim is None or claim.twin != self.twin:
+        if claim is None or claim.twin != self.twin and (self.twins is None or claim.twin not in self.twins):
             return
         with self._lock:
             if claim not in self.seen and len(self.seen) < MAX_CLAIMS:

@@ -277,7 +277,11 @@ def _launch_fleet(config, args: argparse.Namespace, port: int) -> int:
     except (LaunchError, ValueError) as error:
         print(f"dtpf launch: error: {error}", file=sys.stderr)
         return 1
-    failure = f"{len(result.failures)} twins did not end their run" if result.failures else None
+    failure = None
+    if result.competitors:
+        failure = f"another entity ran {len({who.split(':')[0] for who in result.competitors})} of the fleet's twins"
+    elif result.failures:
+        failure = f"{len(result.failures)} twins did not end their run"
     return _finish(result.summary(), failure or _log_failure(result.log_problem), result.interrupted)
 
 

@@ -42,7 +42,7 @@ from dtpf.scripts.launch import (
     service_command,
     watch_recorder,
 )
-from dtpf.shell.bus import Inbox, Presence
+from dtpf.shell.bus import Claims, Inbox, Presence
 
 __all__ = ["launch_fleet", "FleetResult", "twin_configs", "entity_groups"]
 
@@ -93,6 +93,8 @@ class FleetResult:
     log_problem: str | None = None
     #: What the launcher did when a shared service died, in words.
     restarts: list[str] = field(default_factory=list)
+    #: Other entities that claimed a twin of the fleet during the run ('twin T: run R, process P on H').
+    competitors: list[str] = field(default_factory=list)
     #: The files that make up the log, in order (more than one when the recorder was restarted).
     segments: list[Path] = field(default_factory=list)
     elapsed: float = 0.0
@@ -127,6 +129,7 @@ class FleetResult:
             f"degraded steps  {sum(t.degraded for t in self.tallies.values())}",
             "rejected        " + (", ".join(f"{k} {v}" for k, v in sorted(self.rejected.items())) or "-"),
             *(["restarts        " + "; ".join(self.restarts)] if self.restarts else []),
+            *[f"competing       another entity ran {who}" for who in self.competitors],
             *([f"log ended       {self.log_problem}"] if self.log_problem else []),
             f"throughput      {rate:.0f} twin-steps/s (first estimate to last)",
             f"time            {self.elapsed:.2f} s",
@@ -187,10 +190,12 @@ def launch_fleet(config: RunConfig, count: int, *, log_path: Path | None = None,
             watchers[children[name].pid] = watch_recorder(
                 children[name], lambda: Inbox(router, "dtpf/**"), early, stopping.is_set)
 
-    watch = presence = None
+    watch = presence = claims = None
     try:
         watch = Inbox(router, f"dtpf/{chunk}/entity/estimate", f"dtpf/{chunk}/*/status",
                       keys.any_layer_pattern(config.twin, "status"), max_payload=1 << 20, max_items=100_000)
+        # One twin, one entity: every entity that claims a twin of the fleet, the fleet's own and any other.
+        claims = Claims(router, chunk, twins=[twin.twin for twin in twins])
         presence = Presence(router, config.twin, "launcher", names=[layer.value for layer in Layer])
         start_child("recorder", "recorder", config, "--all-twins")
         _wait_for_recorder(children["recorder"], presence, startup_timeout)
@@ -288,6 +293,13 @@ def launch_fleet(config: RunConfig, count: int, *, log_path: Path | None = None,
             result.stepping = last_estimate - first_estimate
         if presence is not None:
             presence.close()
+        if claims is not None:
+            mine = [pid for pid, layer in layer_of_pid.items() if layer == "entity"]
+            for claim in claims.others(mine):
+                result.competitors.append(claim.describe())
+                result.failures.setdefault(claim.twin, "another entity ran this twin during the run: its "
+                                                       "estimates are not one twin's run")
+            claims.close()
         if watch is not None:
             watch.close()
         router.close()

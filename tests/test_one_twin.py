@@ -184,6 +184,28 @@ def test_a_competitor_that_appears_mid_run_fails_the_launch_and_is_named(process
         assert "OK:" not in out
 
 
+def test_a_competitor_of_one_twin_of_a_fleet_fails_the_fleet_and_is_named(processes):
+    base, port = "t-crowd", free_port()
+    launcher = processes.start("fleet", ["-m", "dtpf.scripts.cli", "launch", "--twins", "2", "--steps", "150",
+                                         "--rate", "40", "--particles", "100", "--twin", base, "--port", str(port),
+                                         "--entities", "1", "--quiet"])
+    competitor = None
+    try:
+        competitor = Competitor(port, f"{base}-2", "run")
+        competitor.echo(3, START)
+        assert len(competitor.sent) == 3, processes.output(launcher)
+        launcher.wait(timeout=RUN)
+    finally:
+        if competitor is not None:
+            competitor.close()
+    output = processes.output(launcher)
+    assert launcher.returncode == 1, output
+    assert f"competing       another entity ran twin {base}-2: run run, process 4242 on elsewhere" in output
+    assert re.search(rf"^{base}-2 .*another entity ran this twin during the run", output, re.M), output
+    assert not re.search(rf"^{base}-1 .*another entity", output, re.M), output
+    assert "dtpf launch: error: another entity ran 1 of the fleet's twins" in output
+
+
 class Partition:
     """A TCP link from ``port`` to the router on ``target``, cut until :meth:`heal` (then it forwards both
     ways): the two sides of a partitioned network."""

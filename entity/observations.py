@@ -223,7 +223,8 @@ class ObservationTable:
                 raise ValueError(f"times must have shape ({z.shape[0]},), got shape {times.shape}")
         stamps = self.stamps
         if stamps is not None:
-            stamps = _frozen(np.asarray(stamps, dtype=np.int64))
+            stamps = np.array(stamps, dtype=np.int64, order="C", copy=True)  # integer ns: float64 would round
+            stamps.flags.writeable = False
             if stamps.shape != (z.shape[0],):
                 raise ValueError(f"stamps must have shape ({z.shape[0]},), got shape {stamps.shape}")
         for field, value in (("observations", z), ("truth", truth), ("times", times), ("stamps", stamps),

@@ -20,8 +20,10 @@ rclpy's message objects) and a rosbag2 log (here, on the messages ``rosbags`` de
 
 A rosbag2 log is a folder with ``metadata.yaml`` or its ``.mcap`` file (MCAP storage, CDR
 messages), read with ``rosbags`` (the ``[ros2]`` or ``[rosbag]`` extra). One message of the
-topic is one step; the bag's receive time becomes the step's time (the table's ``times`` in
-seconds, its ``stamps`` in nanoseconds: the stamps of the run's estimates). Every problem is
+topic is one step; the message's ``header.stamp`` becomes the step's time, as on a live topic
+(the bag's receive time for a message without a header or with a zero stamp): the table's
+``stamps`` in integer nanoseconds, the stamps of the run's estimates to the nanosecond, and its
+``times`` the same in seconds. Every problem is
 one line (:class:`~dtpf.entity.observations.ObservationError`): a bag without the topic, a
 field path the message type does not have, a NaN, a bag that cannot be read to its end.
 
@@ -58,6 +60,7 @@ __all__ = [
     "need_rosbags",
     "parse_fields",
     "read_bag",
+    "stamp_ns",
     "stamp_of",
     "type_name",
     "values_of",
@@ -209,6 +212,16 @@ def stamp_of(message) -> tuple[int, int] | None:
     return int(sec), int(nsec)
 
 
+def stamp_ns(message) -> int | None:
+    """The message's ``header.stamp`` as integer nanoseconds since the epoch (a nanosec of 1e9 or more
+    carried into the seconds, as rclpy's Time reads it), or None when it has no header or a stamp of zero or
+    before the epoch (a driver that leaves it unset): the caller then takes the receive time."""
+    stamp = stamp_of(message)
+    if stamp is None or stamp[0] < 0 or stamp == (0, 0):
+        return None
+    return stamp[0] * 1_000_000_000 + stamp[1]
+
+
 def is_bag(path) -> bool:
     """Whether ``path`` is a rosbag2 log: a folder with metadata.yaml, or an .mcap file."""
     p = Path(os.fsdecode(path))
@@ -247,8 +260,8 @@ def read_bag(path, topic: str | None, fields_spec: str | None, *, obs_dim: int |
              state_dim: int | None = None, steps: int | None = None, model=None,
              partial: bool = False) -> ObservationTable:
     """The observations of ``topic`` in the rosbag2 log ``path``: one step per message, in the bag's
-    order; times are the bag's receive times in seconds, stamps the same in nanoseconds (made non-decreasing
-    both). ObservationError for anything wrong.
+    order; stamps are the messages' header stamps in integer nanoseconds (:func:`stamp_ns`; the receive time
+    without one), made non-decreasing, and times the same in seconds. ObservationError for anything wrong.
 
     A bag whose MCAP file was cut short (a recording that did not end: no summary or footer) is read up to
     the cut, with the message types of ROS 2 Kilted and those its schemas define; the table's ``problem``
@@ -317,7 +330,7 @@ def read_bag(path, topic: str | None, fields_spec: str | None, *, obs_dim: int |
         raise ObservationError(f"{name} message {row + 1} on {topic}: {len(rows[row])} values, the first had "
                                f"{width}", source=source, row=row)
     columns = tuple(f"z{j}" for j in range(width)) if fields_spec is None else _column_names(fields_spec, width)
-    stamps = np.maximum.accumulate(np.asarray(times, dtype=np.int64))
+    stamps = np.maximum.accumulate(np.asarray(taker.stamps, dtype=np.int64))
     return ObservationTable(observations=np.asarray(rows, dtype=np.float64), truth=None, times=stamps / 1e9,
                             stamps=stamps, columns=columns, truth_columns=(), source=source, problem=problem)
 
@@ -330,6 +343,8 @@ class _Taker:
         self.obs_dim, self.steps, self.rows, self.times = obs_dim, steps, rows, times
         self.read = 0
         self.last: int | None = None  # the log time of the message taken last
+        #: Each row's time in integer ns: its message's header stamp, else its log time (:func:`stamp_ns`).
+        self.stamps: list[int] = []
 
     def wants_more(self) -> bool:
         return self.steps is None or len(self.rows) < self.steps
@@ -355,6 +370,8 @@ class _Taker:
                                    f"{self.obs_dim} per step", source=source, row=read - 1)
         self.rows.append(values)
         self.times.append(timestamp)
+        stamp = stamp_ns(message)
+        self.stamps.append(timestamp if stamp is None else stamp)
 
 
 def _cut_mcap(path: Path) -> Path | None:
@@ -676,6 +693,7 @@ def _whole_or_refused(path: Path, name: str, source: str, topic: str, taker: _Ta
         if partial and len(files) == 1:  # what its records hold, in file order, each at its own log time
             taker.rows.clear()
             taker.times.clear()
+            taker.stamps.clear()
             taker.read = 0
             try:
                 _read_cut_bag(files[0], name, source, topic, taker)
@@ -730,6 +748,7 @@ def _whole_or_refused(path: Path, name: str, source: str, topic: str, taker: _Ta
                                f"ones", source=source)
     taker.rows.clear()
     taker.times.clear()
+    taker.stamps.clear()
     taker.read = 0
     for _, entry, message in messages:
         if not taker.wants_more():

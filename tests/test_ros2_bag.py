@@ -31,9 +31,17 @@ def dtpf(*args: str, timeout: float = 180) -> subprocess.CompletedProcess:
                           text=True, timeout=timeout)
 
 
-def write_bag(path, rows, *, nan_at: int | None = None, topic: str = "/target") -> None:
-    """The (range, bearing) rows as geometry_msgs/msg/PointStamped (point.x, point.y) on ``topic``, 20 Hz from
-    t = 1000 s, with a std_msgs/msg/String on another topic between them."""
+#: 2026-12-01 as ns since the epoch: at such a time a float64 of seconds is off by up to 128 ns at 20 Hz stamps.
+EPOCH = 1_796_160_000_000_000_000
+#: How long after its header stamp each message of the example bag was received (its log time).
+DELAY = 3_000_017
+
+
+def write_bag(path, rows, *, nan_at: int | None = None, topic: str = "/target", start: int = 1_000_000_000_000,
+              delay: int = 0) -> None:
+    """The (range, bearing) rows as geometry_msgs/msg/PointStamped (point.x, point.y) on ``topic``, header
+    stamps at 20 Hz from ``start`` ns (default t = 1000 s), each logged ``delay`` ns after its stamp, with a
+    std_msgs/msg/String on another topic between them."""
     types = TYPESTORE.types
     point_stamped, header, time, point = (types["geometry_msgs/msg/PointStamped"], types["std_msgs/msg/Header"],
                                           types["builtin_interfaces/msg/Time"], types["geometry_msgs/msg/Point"])
@@ -42,12 +50,12 @@ def write_bag(path, rows, *, nan_at: int | None = None, topic: str = "/target") 
         target = writer.add_connection(topic, point_stamped.__msgtype__, typestore=TYPESTORE)
         other = writer.add_connection("/chatter", text.__msgtype__, typestore=TYPESTORE)
         for i, (r, b) in enumerate(rows):
-            ns = 1_000_000_000_000 + i * 50_000_000
+            ns = start + i * 50_000_000
             x = float("nan") if i == nan_at else r
             message = point_stamped(header=header(stamp=time(sec=ns // 10**9, nanosec=ns % 10**9), frame_id="radar"),
                                     point=point(x=x, y=b, z=0.0))
-            writer.write(target, ns, TYPESTORE.serialize_cdr(message, point_stamped.__msgtype__))
-            writer.write(other, ns + 1, TYPESTORE.serialize_cdr(text(data=f"row {i}"), text.__msgtype__))
+            writer.write(target, ns + delay, TYPESTORE.serialize_cdr(message, point_stamped.__msgtype__))
+            writer.write(other, ns + delay + 1, TYPESTORE.serialize_cdr(text(data=f"row {i}"), text.__msgtype__))
 
 
 def example_rows() -> list[tuple[float, float]]:
@@ -58,7 +66,7 @@ def example_rows() -> list[tuple[float, float]]:
 @pytest.fixture(scope="module")
 def bag(tmp_path_factory):
     path = tmp_path_factory.mktemp("bag") / "radar"
-    write_bag(path, example_rows())
+    write_bag(path, example_rows(), start=EPOCH, delay=DELAY)
     return path
 
 
@@ -134,17 +142,35 @@ def test_a_bag_drives_dtpf_launch_to_the_csv_numbers_and_exports_back_to_rosbag2
         assert covariance[0, 1] == covariance[1, 0] == estimate.covariance[0] != 0.0  # the estimate's own
         assert pose.header.frame_id == "map"
         assert (pose.header.stamp.sec, pose.header.stamp.nanosec) == (estimate.stamp.sec, estimate.stamp.nsec)
+        assert pose.header.stamp.sec * 10**9 + pose.header.stamp.nanosec == EPOCH + (estimate.step - 1) * 50_000_000
     assert ess == [e.ess for e in estimates]
     assert observed == [e.observation for e in estimates]
 
 
-def test_the_bag_time_of_each_message_is_the_stamp_of_its_estimate(bag_launch):
-    """Bag time becomes the step time: each estimate of a launch driven by a bag is stamped with the bag's
-    receive time of its step's message, to the nanosecond (write_bag: 1000 s, then every 50 ms)."""
+def test_the_header_stamp_of_each_message_is_the_stamp_of_its_estimate_to_the_nanosecond(bag_launch):
+    """The message's header stamp becomes the step time, as on a live topic (not the bag's receive time, DELAY
+    later): each estimate of a launch driven by a bag carries it to the nanosecond, at 20 Hz from EPOCH (where
+    seconds as a float64 are off by up to 128 ns every other step)."""
     _, result, _ = bag_launch
     estimates = sorted(result.estimates, key=lambda e: e.step)
     assert [e.step for e in estimates] == list(range(1, 31))
-    assert [e.stamp.to_ns() for e in estimates] == [1_000_000_000_000 + (k - 1) * 50_000_000 for k in range(1, 31)]
+    expected = [EPOCH + (k - 1) * 50_000_000 for k in range(1, 31)]
+    assert sum(round(ns / 1e9, 9) * 10**9 != ns for ns in expected) > 0  # a float would not carry them
+    assert [e.stamp.to_ns() for e in estimates] == expected
+
+
+def test_a_message_without_a_header_stamp_takes_its_receive_time():
+    from dtpf.entity.rosbag import stamp_ns
+
+    types = TYPESTORE.types
+    stamped = types["geometry_msgs/msg/PointStamped"](
+        header=types["std_msgs/msg/Header"](stamp=types["builtin_interfaces/msg/Time"](sec=7, nanosec=1_500_000_000),
+                                            frame_id="radar"),
+        point=types["geometry_msgs/msg/Point"](x=0.0, y=0.0, z=0.0))
+    assert stamp_ns(stamped) == 8_500_000_000  # nanosec carried into the seconds
+    zero = types["std_msgs/msg/Header"](stamp=types["builtin_interfaces/msg/Time"](sec=0, nanosec=0), frame_id="")
+    assert stamp_ns(types["geometry_msgs/msg/PointStamped"](header=zero, point=stamped.point)) is None
+    assert stamp_ns(types["std_msgs/msg/Float64"](data=1.0)) is None
 
 
 @pytest.mark.parametrize("case, extra, expected", [

@@ -25,6 +25,7 @@ from dtpf.messages.models import (
     ParticleSet,
     ParticleSetKind,
     PSCommand,
+    Missed,
     Rejected,
     Status,
     WeightState,
@@ -64,6 +65,7 @@ TOPICS: dict[tuple[Layer, str], Topic] = {
         Topic(Layer.ENTITY, "annotations", ImageAnnotations),  # the video scenario's particles over its frame
         Topic(Layer.SENSOR, "observation", Observation),  # the physical system's measurements
         Topic(Layer.RECORDER, "rejected", Rejected),  # a sample of what the recorder did not record
+        Topic(Layer.RECORDER, "missed", Missed),  # what the recorder missed and could not recover
         *(Topic(layer, "status", Status) for layer in Layer),
     )
 }
@@ -71,7 +73,7 @@ TOPICS: dict[tuple[Layer, str], Topic] = {
 #: Every message class, by name.
 MESSAGE_CLASSES: dict[str, type[Message]] = {
     cls.__name__: cls for cls in (ParticleSet, WeightState, PSCommand, Estimate, Status, CompressedImage,
-                                  Observation, Rejected, PointCloud, ImageAnnotations)
+                                  Observation, Rejected, Missed, PointCloud, ImageAnnotations)
 }
 
 

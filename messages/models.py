@@ -691,3 +691,24 @@ class Rejected(Message):
     sample: Annotated[str, AfterValidator(base64_text)] = Field(
         max_length=4 * MAX_REJECTED_SAMPLE // 3 + 4, json_schema_extra={"contentEncoding": "base64"},
         description=f"The payload's first {MAX_REJECTED_SAMPLE} bytes, base64.")
+
+
+class Missed(Message):
+    """Messages the recorder missed and could not recover: a gap in one publisher's sequence that its cache
+    (Zenoh's advanced publisher) no longer held when the recorder asked.
+
+    Twin and run are those of the publisher's messages; ``step`` is the first step the gap may hold
+    (``after_step + 1``, 0 when no message of the publisher was recorded before it). The steps lost are
+    those after ``after_step`` and before ``before_step`` on ``key`` (a per-step topic loses them all; a
+    status topic loses ``count`` statuses in that span).
+    """
+
+    producer: ClassVar[Layer] = Layer.RECORDER
+
+    key: str = Field(max_length=300, description="Key expression of the missed messages (empty when unknown).")
+    source: str = Field(max_length=300, description="The Zenoh publisher that sent them (its entity id).")
+    count: Count = Field(description="How many messages of that publisher were missed.")
+    after_step: Count | None = Field(default=None, description="Step of the last message of the publisher "
+                                                               "recorded before the gap (None: none was).")
+    before_step: Count | None = Field(default=None, description="Step of the first message of the publisher "
+                                                                "recorded after the gap (None: none came).")

@@ -48,6 +48,7 @@ from dtpf.messages.models import (
     ParticleSet,
     ParticleSetKind,
     PSCommand,
+    Missed,
     Rejected,
     ServiceState,
     Status,
@@ -320,6 +321,13 @@ def rejecteds(draw):
         size=draw(counts), sample=base64.b64encode(draw(st.binary(max_size=MAX_REJECTED_SAMPLE))).decode("ascii"))
 
 
+@st.composite
+def misseds(draw):
+    return Missed(**draw(headers()), layer=Layer.RECORDER, key=draw(st.text(max_size=40)),
+                  source=draw(st.text(max_size=40)), count=draw(counts), after_step=draw(optional(counts)),
+                  before_step=draw(optional(counts)))
+
+
 def _cloud_fields(names) -> list:
     return [foxglove.PackedElementField(name=name, offset=8 * i, type=8) for i, name in enumerate(names)]
 
@@ -369,7 +377,7 @@ def observations(draw) -> Observation:
 MESSAGE_STRATEGIES = {
     ParticleSet: particle_sets(), WeightState: weight_states(), PSCommand: ps_commands(), Estimate: estimates(),
     Status: statuses(), CompressedImage: compressed_images(), Observation: observations(), Rejected: rejecteds(),
-    foxglove.PointCloud: point_clouds(), foxglove.ImageAnnotations: image_annotations(),
+    Missed: misseds(), foxglove.PointCloud: point_clouds(), foxglove.ImageAnnotations: image_annotations(),
 }
 valid_messages = st.one_of(*MESSAGE_STRATEGIES.values())
 
@@ -494,6 +502,11 @@ def _seeded_rejected(v: Seeded):
                     sample=base64.b64encode(v.rng.randbytes(v.count(0, MAX_REJECTED_SAMPLE))).decode())
 
 
+def _seeded_missed(v: Seeded):
+    return Missed(**v.header(), layer=Layer.RECORDER, key=v.text(0, 40), source=v.text(0, 40), count=v.count(),
+                  after_step=v.maybe(v.count), before_step=v.maybe(v.count))
+
+
 def _seeded_point_cloud(v: Seeded):
     return foxglove.PointCloud(**v.header(), layer=Layer.ENTITY, timestamp=Time(sec=v.count(), nsec=v.count(0, 10**9 - 1)),
                              frame_id=v.text(0, 20), point_stride=v.rng.randint(1, 64),
@@ -522,7 +535,7 @@ def _seeded_observation(v: Seeded) -> Observation:
 SEEDED_BUILDERS = {
     ParticleSet: _seeded_particle_set, WeightState: _seeded_weight_state, PSCommand: _seeded_ps_command,
     Estimate: _seeded_estimate, Status: _seeded_status, CompressedImage: _seeded_compressed_image,
-    Observation: _seeded_observation, Rejected: _seeded_rejected, foxglove.PointCloud: _seeded_point_cloud,
+    Observation: _seeded_observation, Rejected: _seeded_rejected, Missed: _seeded_missed, foxglove.PointCloud: _seeded_point_cloud,
     foxglove.ImageAnnotations: _seeded_image_annotations,
 }
 

@@ -190,6 +190,9 @@ def launch_fleet(config: RunConfig, count: int, *, log_path: Path | None = None,
             watchers[children[name].pid] = watch_recorder(
                 children[name], lambda: Inbox(router, "dtpf/**"), early, stopping.is_set)
 
+    # The shared services serve the fleet's twins and load the fleet's own model (a service learns a twin's
+    # model from the bus and loads no other user code).
+    shared = ("--twins", f"{config.twin}-*", *(("--allow-model", config.model) if config.model else ()))
     watch = presence = claims = None
     try:
         watch = Inbox(router, f"dtpf/{chunk}/entity/estimate", f"dtpf/{chunk}/*/status",
@@ -199,8 +202,8 @@ def launch_fleet(config: RunConfig, count: int, *, log_path: Path | None = None,
         presence = Presence(router, config.twin, "launcher", names=[layer.value for layer in Layer])
         start_child("recorder", "recorder", config, "--all-twins")
         _wait_for_recorder(children["recorder"], presence, startup_timeout)
-        start_child("system", "system", config, "--twins", f"{config.twin}-*")
-        start_child("information", "information", config, "--twins", f"{config.twin}-*")
+        start_child("system", "system", config, *shared)
+        start_child("information", "information", config, *shared)
         groups = entity_groups([twin.twin for twin in twins], entities)
         for index, group in enumerate(groups, start=1):
             start_child(f"entity-{index}", "entity", config, "--twins", ",".join(group))
@@ -268,7 +271,7 @@ def launch_fleet(config: RunConfig, count: int, *, log_path: Path | None = None,
                     result.segments += [bridge, segment]
                     start_child("recorder", "recorder", config, "--all-twins", output=segment)
                 else:
-                    start_child(layer, layer, config, "--twins", f"{config.twin}-*")
+                    start_child(layer, layer, config, *shared)
             if time.monotonic() > deadline:
                 raise LaunchError("the fleet did not finish in time")
         for name, group in zip(entity_names, groups):

@@ -248,12 +248,9 @@ def test_a_model_that_imports_the_module_beside_it_runs_from_any_folder(user, tm
     assert figures(launched.stdout) == figures(ran.stdout) and len(figures(ran.stdout)) == 5
     fleet = dtpf("launch", *args, "--twins", "2", "--entities", "1", "-o", "fleet.mcap", cwd=elsewhere)
     assert fleet.returncode == 0, fleet.stderr
-    # Both twins load the model (and its helper module) in the fleet's entity and shared services and run. Their
-    # step counts are not asserted here: under a full parallel suite the launcher twice counted fewer than 30
-    # twin-steps while the recorder 'stopped before ungm-1-1, ungm-1-2 said their run ended' (a fleet under load,
-    # not the import); the fleet test below checks the numbers of a fleet with a user's members.
-    rows = [line.split() for line in fleet.stdout.splitlines() if line.startswith("ungm-1-")]
-    assert [row[0] for row in rows] == ["ungm-1-1", "ungm-1-2"] and all(int(row[1]) > 0 for row in rows), \
+    # Both twins load the model (and its helper module) in the fleet's entity and shared services, which serve
+    # every step: the launcher lets its shared services load the fleet's own model.
+    assert "degraded steps  0" in fleet.stdout and "twin-steps      30 of 30" in fleet.stdout, \
         fleet.stdout + fleet.stderr
     assert not (elsewhere / "rb_base.py").exists()
 

@@ -16,6 +16,16 @@ a file-size limit, a read-only file system, the file deleted) ends the
 recording: the recorder says in one line what happened and up to which step
 the file holds the run, and exits with code 3 (:data:`dtpf.recording.writer.EXIT_LOG_WRITE`).
 
+Nothing a publisher's cache holds is lost across a partition or a restart of
+the recorder: every service's publisher keeps its last messages (the services'
+``--cache-samples``, 600 by default: 30 s of a twin at 20 steps/s) and the
+recorder's subscriber (Zenoh's advanced subscriber) asks for what it missed
+when the publisher appears again or its sequence shows a gap, and, when it
+starts, for what the caches hold of the run so far. Recovered messages arrive
+late, each publisher's in its order; the log tools order by step. What a cache
+no longer held is noted in the log (``dtpf/<twin>/recorder/missed``: key, count
+and the steps around the gap) and named by ``dtpf summary`` and ``dtpf verify``.
+
 Run ``python -m dtpf.scripts.record --help`` for the options.
 """
 from __future__ import annotations
@@ -93,7 +103,7 @@ def _record(shell: ServiceShell, recording: McapRecording, pattern: str, compres
     # (a busy machine, N = 1e5 at 120 steps/s is 390 MB/s of particle sets) waits in a deeper inbox than a
     # layer's; 64 MiB dropped sets at N = 1e5 with the machine's 2 cores shared.
     inbox = shell.inbox_on(pattern, *extra, payloads=RECORDER_INBOX_PAYLOADS, min_bytes=RECORDER_INBOX_BYTES,
-                           max_items=RECORDER_INBOX_ITEMS)
+                           max_items=RECORDER_INBOX_ITEMS, recover=True)
     silences = Silences(shell.log, args.gap_after)
     admission = Admission(shell, all_twins=args.all_twins, silences=silences)
     shell.running()
@@ -139,6 +149,7 @@ def _record(shell: ServiceShell, recording: McapRecording, pattern: str, compres
             break
     shell.watchdog.step = "finishing the log"
     inbox.close()
+    admission.finish(recording)
     # The recorder's own last word goes into its log too (its published one would arrive too late).
     shell.state = ServiceState.FINISHED
     final = shell.status()
@@ -213,7 +224,13 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="python -m dtpf.scripts.record",
         description="dtpf recorder: writes every message of a twin into an MCAP file, one channel per key "
-                    "expression, schemas embedded.")
+                    "expression, schemas embedded.",
+        epilog="Recovery: every dtpf service's publishers keep their last messages (--cache-samples N, 600 by "
+               "default: 30 s of a twin at 20 steps/s; --cache-mb bounds a cache of large particle sets), and the "
+               "recorder recovers from them what a partition, a cut link or its own late start made it miss. A "
+               "partition longer than the cache loses the rest: the log notes it on dtpf/<twin>/recorder/missed "
+               "(key, count, the steps around the gap), and dtpf summary and dtpf verify name those steps. The "
+               "--cache-* options below size this recorder's own publishers (its status).")
     parser.add_argument("--output", "-o", required=True, help="MCAP file to write; created, never overwritten "
                                                                     "(an existing file is an error)")
     parser.add_argument("--all-twins", action="store_true", help="record dtpf/** instead of one twin")

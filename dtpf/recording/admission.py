@@ -7,6 +7,10 @@ can publish a well-formed estimate of any step: every copy is kept in the order 
 of one (key, step). A rejected message is counted in the recorder's status, and a sample of it (its first
 bytes, base64) written as a ``Rejected`` message, at most MAX_SAMPLES in all and MAX_SAMPLES_PER_KIND of one
 kind of reason.
+
+What the recorder missed and its publishers' caches could no longer give back (a partition longer than the
+cache) is noted as a ``Missed`` message of the twin (:mod:`dtpf.recording.missed`) when the publisher's next
+message, or the end of the recording, closes the gap.
 """
 from __future__ import annotations
 
@@ -16,6 +20,7 @@ from dtpf.messages import keys
 from dtpf.messages.admission import kind_of
 from dtpf.messages.codec import MessageError, decode_for_key, encode
 from dtpf.messages.models import MAX_REJECTED_SAMPLE, Estimate, Rejected
+from dtpf.recording.missed import Gaps
 
 __all__ = ["MAX_COPIES", "MAX_SAMPLES", "MAX_SAMPLES_PER_KIND", "MAX_TRACKED_STEPS", "Admission"]
 
@@ -23,6 +28,8 @@ __all__ = ["MAX_COPIES", "MAX_SAMPLES", "MAX_SAMPLES_PER_KIND", "MAX_TRACKED_STE
 MAX_SAMPLES, MAX_SAMPLES_PER_KIND = 1000, 10
 #: Estimates of one (key, step) the recorder keeps; the (key, step) pairs it counts them for, newest kept.
 MAX_COPIES, MAX_TRACKED_STEPS = 8, 1 << 16
+#: Gaps the recorder's log names one by one; later ones are summed up when the recording ends.
+MAX_GAPS_LOGGED = 20
 
 
 class Admission:
@@ -40,10 +47,19 @@ class Admission:
         self.samples = 0
         self.samples_of: dict[str, int] = {}
         self.estimate_copies: dict[tuple[str, int], int] = {}  # by (key, step), oldest first
+        #: The gaps in each publisher's messages that could not be recovered.
+        self.gaps = Gaps(shell.config.twin, shell.config.run_id)
 
     def record(self, recording, item) -> bool:
-        """Write ``item`` if a service would take it (True); else count it and maybe sample it."""
+        """Write ``item`` if a service would take it (True); else count it and maybe sample it. An item that
+        says messages were missed (``item.missed``) opens a gap of its publisher."""
         shell = self.shell
+        if item.missed:
+            self.gaps.missed(item.source, item.missed)
+            if self.gaps.gaps <= MAX_GAPS_LOGGED:
+                shell.log.warning("missed %d messages of publisher %s that its cache no longer held; the log "
+                                  "notes them on the twin's recorder/missed topic", item.missed, item.source)
+            return False
         shell.received += 1
         try:
             message = decode_for_key(item.key, item.payload)
@@ -69,9 +85,27 @@ class Admission:
                 del self.estimate_copies[next(iter(self.estimate_copies))]
             self.estimate_copies[item.key, message.step] = copies + 1
         recording.write(item.key, item.payload)
+        for note in self.gaps.heard(item.source, item.key, message):
+            self._note(recording, note)
         if self.silences is not None:
             self.silences.heard(message)
         return True
+
+    def _note(self, recording, note) -> None:
+        recording.write(keys.key_for(note), encode(note))
+        if self.gaps.gaps <= MAX_GAPS_LOGGED:
+            span = f"after step {note.after_step}" if note.after_step is not None else "before any recorded"
+            span += f", before step {note.before_step}" if note.before_step is not None else ", to the end"
+            self.shell.log.warning("twin %s: %d messages on %s lost (%s)", note.twin_id, note.count,
+                                   note.key or "an unknown key", span)
+
+    def finish(self, recording) -> None:
+        """Note the gaps still open: the recording ends before their publishers' next messages."""
+        for note in self.gaps.close_all():
+            self._note(recording, note)
+        if self.gaps.gaps > MAX_GAPS_LOGGED:
+            self.shell.log.warning("missed %d messages in %d gaps in all that the publishers' caches no longer "
+                                   "held", self.gaps.messages, self.gaps.gaps)
 
     def _reject(self, recording, item, reason: str, detail: str) -> bool:
         shell = self.shell

@@ -13,7 +13,12 @@ Every dtpf process takes the same Zenoh flags (after zenoh-python's
 Defaults are safe on a shared machine: multicast and gossip scouting are off,
 and a process that listens listens on loopback only unless told otherwise.
 Publishers use congestion control BLOCK: the default DROP loses most of a
-burst of large messages. A blocked put waits for room in the link's queue;
+burst of large messages. A publisher of what a recording needs keeps its last
+samples in a cache (:class:`PublisherCache`, Zenoh's advanced publisher) and
+says its last sequence number on a heartbeat, so that a recorder cut off by a
+partition recovers what it missed when the link comes back (:class:`Inbox`
+with ``recover=True``, Zenoh's advanced subscriber), and is told what the
+cache no longer held. A blocked put waits for room in the link's queue;
 Zenoh closes the link (and drops what its queue holds) when none comes
 within ``wait_before_close``. A router waits 5 s, Zenoh's default; every
 other process waits :data:`SERVICE_WAIT_BEFORE_CLOSE` (60 s) unless its
@@ -34,6 +39,7 @@ import time
 from dataclasses import dataclass
 
 import zenoh
+import zenoh.ext
 
 from dtpf.messages.errors import DtpfError
 
@@ -50,6 +56,9 @@ __all__ = [
     "Claims",
     "claims_alive",
     "publisher",
+    "PublisherCache",
+    "publisher_cache",
+    "set_publisher_cache",
     "free_port",
 ]
 
@@ -212,17 +221,78 @@ def open_session(config: zenoh.Config, in_use_hint: str | None = None) -> zenoh.
         raise BusError(f"cannot open Zenoh session: {text}") from None
 
 
-def publisher(session: zenoh.Session, key: str) -> zenoh.Publisher:
-    """A publisher that blocks instead of dropping when the network is congested."""
-    return session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK)
+@dataclass(frozen=True)
+class PublisherCache:
+    """How much a publisher keeps for subscribers that missed it (Zenoh's ``CacheConfig``).
+
+    A publisher keeps its last ``samples`` samples, fewer when they would weigh more than ``bytes``
+    (:meth:`samples_for`): the default, 600, is 30 s of a twin at 20 steps/s (60 s at 10) for the JSON
+    topics, whose messages weigh a few kB (600 statuses of 3 kB: 1.8 MB); a particle set of N = 1000 in
+    one dimension (16 kB) keeps 512, one of N = 1e5 (1.6 MB) keeps 5. So a process holds at most
+    ``bytes`` per publisher of a large topic, 8 MiB by default: an entity hosting 20 twins of large sets
+    keeps 160 MiB of its particle sets. What a partition outlasts is lost to a recorder on the other side
+    of it; the recorder says so (:class:`Inbox` ``on_miss``). ``heartbeat``: seconds between two
+    announcements of the last sequence number (sent only when it changed), by which a subscriber notices
+    missed samples even when no new one comes. ``samples = 0``: a plain publisher, no cache.
+    """
+
+    samples: int = 600
+    bytes: int = 8 << 20
+    heartbeat: float = 1.0
+
+    def samples_for(self, payload_size: int) -> int:
+        """How many samples of ``payload_size`` bytes the cache keeps (at least 1 when it keeps any)."""
+        if self.samples <= 0:
+            return 0
+        return max(1, min(self.samples, self.bytes // max(1, payload_size)))
+
+
+#: The cache of this process's publishers (:func:`set_publisher_cache`; the services' --cache-* options).
+_CACHE = [PublisherCache()]
+
+
+def publisher_cache() -> PublisherCache:
+    """The cache this process's publishers keep."""
+    return _CACHE[0]
+
+
+def set_publisher_cache(cache: PublisherCache) -> None:
+    """Set the cache of the publishers this process declares from now on."""
+    _CACHE[0] = cache
+
+
+def publisher(session: zenoh.Session, key: str, cache_samples: int = 0):
+    """A publisher that blocks instead of dropping when the network is congested.
+
+    ``cache_samples`` > 0: an advanced publisher keeping that many of its last samples, with sample-miss
+    detection (a heartbeat every :attr:`PublisherCache.heartbeat` seconds) and publisher detection (a
+    liveliness token under ``<key>/@adv/pub``, which a recorder's or a fleet service's history query follows),
+    so that an :class:`Inbox` with ``recover`` or ``history`` gets what it missed.
+    """
+    if cache_samples <= 0:
+        return session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK)
+    return zenoh.ext.declare_advanced_publisher(
+        session, key, congestion_control=zenoh.CongestionControl.BLOCK,
+        cache=zenoh.ext.CacheConfig(max_samples=cache_samples),
+        sample_miss_detection=zenoh.ext.MissDetectionConfig(heartbeat=None,
+                                                            sporadic_heartbeat=publisher_cache().heartbeat),
+        publisher_detection=True)
 
 
 @dataclass(frozen=True)
 class Received:
-    """One received sample: its key expression and a private copy of its payload."""
+    """One received sample: its key expression and a private copy of its payload.
+
+    From an inbox with ``recover``: ``source`` names the publisher (its Zenoh entity id, None for a plain
+    publisher); an item with ``missed`` > 0 is no sample but the news that ``missed`` samples of ``source``
+    could not be recovered, queued just before the next sample of that source (``key`` and ``payload``
+    empty).
+    """
 
     key: str
     payload: bytes
+    source: str | None = None
+    missed: int = 0
 
 
 #: Largest payload an inbox takes by default (a particle set of 1e6 particles in 16 dimensions fits).
@@ -271,12 +341,20 @@ class Inbox:
     (a flood cannot grow the process without bound) and reported to
     ``on_drop(key, reason, detail)`` if given; :attr:`dropped` counts them.
     A ``doorbell`` (:class:`Doorbell`) is rung with ``name`` for every sample queued.
+
+    ``history`` (a count) and ``recover`` make the subscribers Zenoh's advanced subscribers, which work
+    with the cache of :func:`publisher`: ``history`` asks every publisher found (at the start, and when
+    one appears again after a partition or a restart) for its last ``history`` samples; ``recover``
+    asks every publisher for the whole of its cache when it appears, recovers the samples missed in a
+    gap of its sequence numbers (seen on its next sample or heartbeat) and queues, for what its cache no
+    longer held, a :class:`Received` with ``missed`` set. Samples of one publisher are queued in the
+    order it published them, recovered or not.
     """
 
     def __init__(self, session: zenoh.Session, key_expr: str, *more_key_exprs: str,
                  max_payload: int = DEFAULT_MAX_PAYLOAD, max_items: int = DEFAULT_MAX_ITEMS,
                  max_bytes: int = DEFAULT_MAX_BYTES, on_drop=None, doorbell: Doorbell | None = None,
-                 name: str = ""):
+                 name: str = "", history: int | None = None, recover: bool = False):
         self.key_expr = key_expr
         self.doorbell = doorbell
         self.name = name
@@ -291,7 +369,27 @@ class Inbox:
         # timeout, when a signal handler runs beyond the timeout's end during the wait (a stopped service's main
         # loop then hung until the exit watchdog ended it with code 130); Queue's wait keeps its deadline.
         self._queue: queue.Queue[Received] = queue.Queue()
-        self._subscribers = [session.declare_subscriber(k, self._on_sample) for k in (key_expr, *more_key_exprs)]
+        self.recover = recover
+        self._misses = []
+        self._subscribers = [self._subscribe(session, k, history, recover) for k in (key_expr, *more_key_exprs)]
+
+    def _subscribe(self, session: zenoh.Session, key_expr: str, history: int | None, recover: bool):
+        if history is None and not recover:
+            return session.declare_subscriber(key_expr, self._on_sample)
+        subscriber = zenoh.ext.declare_advanced_subscriber(
+            session, key_expr, self._on_sample,
+            history=zenoh.ext.HistoryConfig(detect_late_publishers=True, max_samples=None if recover else history),
+            recovery=zenoh.ext.RecoveryConfig(periodic_queries=None, heartbeat=True) if recover else None)
+        if recover:
+            self._misses.append(subscriber.sample_miss_listener(self._on_miss))
+        return subscriber
+
+    def _on_miss(self, miss) -> None:
+        """Samples of a publisher that its cache no longer held: queued as news, never dropped for room
+        (one item per gap, not per sample)."""
+        self._queue.put(Received("", b"", str(miss.source), int(miss.nb)))
+        if self.doorbell is not None:
+            self.doorbell.ring(self.name)
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         size = len(sample.payload)
@@ -308,7 +406,11 @@ class Inbox:
             self._drop(key, "inbox full", f"inbox of {self.key_expr} full ({self.max_items} samples or "
                                           f"{self.max_bytes} bytes waiting): dropped a sample on {key[:200]}")
             return
-        self._queue.put(Received(key, sample.payload.to_bytes()))
+        source = None
+        if self.recover:
+            info = sample.source_info
+            source = str(info.source_id) if info is not None else None
+        self._queue.put(Received(key, sample.payload.to_bytes(), source))
         if self.doorbell is not None:
             self.doorbell.ring(self.name)
 
@@ -337,9 +439,9 @@ class Inbox:
         return self._queue.qsize()
 
     def close(self) -> None:
-        for subscriber in self._subscribers:
+        for handle in (*self._misses, *self._subscribers):
             try:
-                subscriber.undeclare()
+                handle.undeclare()
             except zenoh.ZError:
                 pass
 

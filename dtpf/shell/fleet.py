@@ -12,6 +12,11 @@ their entities and runs each of them on the process's one Zenoh session:
   layers and every second while it starts; the layer then declares
   ``dtpf/<twin>/<layer>/alive`` for that twin, which is what the entity waits
   for;
+- a service that starts while its twins run (a restart), or whose link to
+  them comes back, asks each entity's status publisher for its last status
+  (Zenoh's history of an advanced publisher, :class:`ConfigWatch`) and serves
+  again as soon as the answer comes, instead of waiting up to
+  FLEET_STATUS_INTERVAL for the next status;
 - a twin is dropped, its state freed, when its entity says it has finished or
   failed, when its entity's liveliness token goes after having been seen, or
   when its entity has not been seen for ``forget_after`` seconds;
@@ -111,13 +116,18 @@ class Learned:
 
 
 class ConfigWatch:
-    """The entities' statuses under a twin pattern, as the runs they announce and end."""
+    """The entities' statuses under a twin pattern, as the runs they announce and end.
+
+    Every entity's status publisher keeps its last statuses (:func:`~dtpf.shell.bus.publisher`); the watch
+    asks each one found for its last status when it starts and whenever the publisher appears again (its
+    liveliness token back after a partition), so the twins already running are known within a round trip.
+    """
 
     def __init__(self, session, pattern: str, on_reject):
         self.pattern = pattern
         self.on_reject = on_reject
         self.inbox = Inbox(session, f"{keys.PREFIX}/{keys.twins_chunk(pattern)}/entity/status",
-                           max_payload=1 << 20, max_items=10_000,
+                           max_payload=1 << 20, max_items=10_000, history=1,
                            max_bytes=64 << 20, on_drop=lambda key, reason, detail: on_reject(reason, detail))
         #: When each twin's entity was last heard (any status).
         self.heard: dict[str, float] = {}

@@ -35,8 +35,8 @@ from dtpf.messages.codec import MessageError, decode_for_key, encode
 from dtpf.messages.config import RunConfig
 from dtpf.messages.errors import DtpfError
 from dtpf.messages.models import Component, Layer, Message, NamedCount, ServiceState, Status
-from dtpf.shell.bus import (DEFAULT_MAX_ITEMS, BusError, Inbox, Presence, Received, claims_alive, open_session,
-                            publisher)
+from dtpf.shell.bus import (DEFAULT_MAX_ITEMS, BusError, Inbox, Presence, PublisherCache, Received, claims_alive,
+                            open_session, publisher, publisher_cache, set_publisher_cache)
 
 __all__ = ["ServiceShell", "TwinTaken", "refuse_taken_twins", "add_service_arguments", "run_service"]
 
@@ -85,6 +85,14 @@ def add_service_arguments(parser: argparse.ArgumentParser) -> None:
                        help="stop (as on SIGTERM) when the parent process dies; the launcher sets it")
     group.add_argument("--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"],
                        help="logging level on stderr (default: %(default)s)")
+    default = PublisherCache()
+    group.add_argument("--cache-samples", type=int, default=default.samples, metavar="N",
+                       help="each publisher of this process keeps its last N messages, from which a recorder "
+                            "cut off by a partition or a restart recovers what it missed (30 s of a twin at "
+                            "20 steps/s by default; 0: no cache, nothing recovered) (default: %(default)s)")
+    group.add_argument("--cache-mb", type=float, default=default.bytes / 2**20, metavar="MB",
+                       help="... and fewer when N of its messages would weigh more than this (large particle "
+                            "sets) (default: %(default)s)")
 
 
 class TwinTaken(DtpfError, RuntimeError):
@@ -302,6 +310,7 @@ class ServiceShell:
             for inbox in self._inboxes:
                 inbox.close()
             self.presence.close()
+            self._close_publishers()
             return
         # From here on the process exits within the grace, however Zenoh's close behaves.
         self.watchdog.arm(code=130 if self.stopping else (1 if self.state == ServiceState.FAILED else 0))
@@ -318,6 +327,15 @@ class ServiceShell:
         self.watchdog.step = "closing the Zenoh session"
         self.session.close()
         self.watchdog.step = "exiting the interpreter"
+
+    def _close_publishers(self) -> None:
+        """Undeclare the publishers (and free their caches): a fleet's twin that ends leaves nothing behind."""
+        for pub in self._publishers.values():
+            try:
+                pub.undeclare()
+            except zenoh.ZError:
+                pass
+        self._publishers.clear()
 
     def _on_signal(self, signum, frame) -> None:
         self.log.info("received %s, stopping", signal.Signals(signum).name)
@@ -352,14 +370,15 @@ class ServiceShell:
         return self.inbox_on(keys.key(self.config.twin, layer, topic))
 
     def inbox_on(self, key_expr: str, *more: str, payloads: int = _INBOX_PAYLOADS,
-                 min_bytes: int = MIN_INBOX_BYTES, max_items: int = DEFAULT_MAX_ITEMS) -> Inbox:
+                 min_bytes: int = MIN_INBOX_BYTES, max_items: int = DEFAULT_MAX_ITEMS, recover: bool = False) -> Inbox:
         """An inbox on key expressions (closed with the shell), bounded to what this run's messages
         can weigh: what is bigger, or arrives while the inbox is full, is counted as rejected.
-        It holds ``payloads`` of the run's largest payload, at least ``min_bytes``."""
+        It holds ``payloads`` of the run's largest payload, at least ``min_bytes``; ``recover``: it recovers
+        what it missed from the publishers' caches (:class:`~dtpf.shell.bus.Inbox`)."""
         largest = self.largest_payload()
         inbox = Inbox(self.session, key_expr, *more, max_payload=largest, max_items=max_items,
                       max_bytes=max(min_bytes, payloads * largest), on_drop=self._on_drop,
-                      doorbell=self.doorbell, name=self.config.twin)
+                      doorbell=self.doorbell, name=self.config.twin, recover=recover)
         self._inboxes.append(inbox)
         return inbox
 
@@ -431,10 +450,11 @@ class ServiceShell:
         bytes, made by a codec function such as :func:`~dtpf.messages.codec.encode_with_base64`), else
         ``encode(message)``."""
         key = keys.key_for(message)
+        data = encode(message) if payload is None else payload
         pub = self._publishers.get(key)
-        if pub is None:
-            pub = self._publishers[key] = publisher(self.session, key)
-        pub.put(encode(message) if payload is None else payload)
+        if pub is None:  # its cache holds what the publisher's first message says its size is
+            pub = self._publishers[key] = publisher(self.session, key, publisher_cache().samples_for(len(data)))
+        pub.put(data)
 
     def header(self, step: int) -> dict:
         """The header fields of a message of this run at ``step``."""
@@ -563,6 +583,10 @@ def run_service(layer: str, main, parser: argparse.ArgumentParser, argv=None) ->
         zconf = zenoh_config_from_args(args, role=layer)
     except (ValueError, BusError) as error:
         parser.exit(2, f"{parser.prog}: error: {error}\n")
+    if args.cache_samples < 0 or args.cache_mb <= 0:
+        parser.exit(2, f"{parser.prog}: error: --cache-samples must be 0 or more and --cache-mb more than 0, got "
+                       f"{args.cache_samples} and {args.cache_mb:g}\n")
+    set_publisher_cache(PublisherCache(args.cache_samples, int(args.cache_mb * 2**20)))
     if args.exit_with_parent:
         _watch_parent()
     try:

@@ -5,7 +5,8 @@
   encoding, schema and first and last step, run and twin ids, schemas.
 - ``summary LOG``: the run as the filter saw it, per twin: steps, RMSE
   against the recorded truth, ESS, resamplings, the PS trajectory, degraded
-  steps, and what each layer rejected.
+  steps, what each layer rejected, and the steps the recorder declared lost
+  (missed, and no longer in its publishers' caches).
 - ``recover LOG -o OUT``: rewrite a damaged log (a killed recorder, a cut
   copy) as a valid MCAP with every message that could be read.
 
@@ -30,8 +31,9 @@ from pathlib import Path
 import numpy as np
 
 from dtpf.messages.codec import MessageError, class_for_schema, schema_for
-from dtpf.messages.models import Estimate, PSCommand, Status
+from dtpf.messages.models import Estimate, Missed, PSCommand, Status
 from dtpf.recording.logfile import Log, LogError, MixedRunsError, in_step_order, read_log, read_logs, write_log
+from dtpf.recording.missed import lost_steps
 
 __all__ = ["LogInfo", "TopicInfo", "SchemaInfo", "LogSummary", "TwinSummary", "Trajectory", "LayerStatus",
            "log_info", "summarise", "format_info", "format_summary", "format_ranges",
@@ -280,6 +282,16 @@ class TwinSummary:
     last_reason: str | None = None
     degraded_steps: list[int] = field(default_factory=list)
     statuses: dict[str, LayerStatus] = field(default_factory=dict)
+    #: Steps the recorder declared lost (missed, and no longer in the publishers' caches), by topic
+    #: (``entity/estimate``, ...); with the messages and gaps its notes count.
+    lost: dict[str, list[int]] = field(default_factory=dict)
+    lost_messages: int = 0
+    lost_gaps: int = 0
+
+    @property
+    def lost_steps(self) -> list[int]:
+        """The steps any per-step topic of the twin lost, ascending."""
+        return sorted({step for steps in self.lost.values() for step in steps})
 
     @property
     def degraded(self) -> int:
@@ -307,7 +319,7 @@ class LogSummary:
 
 #: Decode errors kept in :attr:`LogSummary.errors`.
 MAX_ERRORS = 5
-_SUMMARY_TOPICS = {"estimate", "ps", "status"}
+_SUMMARY_TOPICS = {"estimate", "ps", "status", "missed"}
 
 
 def summarise(log: Log) -> LogSummary:
@@ -323,8 +335,11 @@ def summarise(log: Log) -> LogSummary:
             if len(errors) < MAX_ERRORS:
                 errors.append(str(message))
             continue
-        group = groups.setdefault((message.twin_id, message.run_id), {"estimates": [], "ps": [], "status": []})
-        if isinstance(message, Estimate):
+        group = groups.setdefault((message.twin_id, message.run_id),
+                                  {"estimates": [], "ps": [], "status": [], "missed": []})
+        if isinstance(message, Missed):
+            group["missed"].append(message)
+        elif isinstance(message, Estimate):
             group["estimates"].append(message)
         elif isinstance(message, PSCommand):
             group["ps"].append(message)
@@ -336,8 +351,13 @@ def summarise(log: Log) -> LogSummary:
 
 
 def _twin_summary(twin: str, run_id: str, estimates: list[Estimate], ps: list[PSCommand],
-                  status: list[Status]) -> TwinSummary:
+                  status: list[Status], missed: list[Missed] = ()) -> TwinSummary:
     out = TwinSummary(twin, run_id)
+    prefix = f"dtpf/{twin}/"
+    out.lost = {key[len(prefix):] if key.startswith(prefix) else key: steps
+                for key, steps in lost_steps(list(missed)).items()}
+    out.lost_messages = sum(note.count for note in missed)
+    out.lost_gaps = len(missed)
     last_of_process: dict[tuple[str, int], Status] = {}
     for message in status:
         last_of_process[(message.layer.value, message.pid)] = message
@@ -429,6 +449,16 @@ def _span(run: list[int]) -> str:
     return str(run[0]) if len(run) == 1 else f"{run[0]}-{run[-1]}"
 
 
+def _lost_steps(t: TwinSummary) -> str:
+    """'steps 50-120, declared lost by the recorder (entity/estimate 50-120, ...; N messages in G gaps its
+    publishers' caches no longer held)'."""
+    topics = ", ".join(f"{topic} {format_ranges(steps)}" for topic, steps in t.lost.items())
+    counts = (f"{t.lost_messages:,} message{'s' * (t.lost_messages != 1)} in {t.lost_gaps} "
+              f"gap{'s' * (t.lost_gaps != 1)} its publishers' caches no longer held")
+    head = f"steps {format_ranges(t.lost_steps)}" if t.lost_steps else "no step of a per-step topic"
+    return f"{head}, declared lost by the recorder ({topics + '; ' if topics else ''}{counts})"
+
+
 def _trajectory(t: Trajectory | None, what: str) -> str:
     if t is None:
         return "-"
@@ -466,6 +496,8 @@ def format_summary(summary: LogSummary) -> str:
         if t.missing_steps:
             more = f" ... ({t.missing_count} in all)" if t.missing_count > len(t.missing_steps) else ""
             lines.append(f"  missing       {format_ranges(t.missing_steps)}{more}")
+        if t.lost_gaps:
+            lines.append(f"  lost          {_lost_steps(t)}")
         if t.out_of_range:
             lines.append(f"  out of range  {t.out_of_range} estimates beyond step {t.expected_steps} (not used)")
         if t.competing_steps:

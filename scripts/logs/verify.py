@@ -9,7 +9,9 @@ arm) must be reproduced exactly. The system layer's
 simulation draws from its own random stream, so it is reproduced too. The report goes step by step; the first mismatch names the step,
 the topic and the field, and the exit code is 1. A log whose twin has more than one estimate (or entity
 particle set) at a step fails too, naming the steps: one twin, one entity, and such a log holds another
-entity's or a forger's messages beside the twin's.
+entity's or a forger's messages beside the twin's. A log whose recorder declared steps of the twin lost (it
+missed them and its publishers' caches no longer held them) fails, naming them: the steps before the first
+are re-run, what follows a lost step cannot be.
 """
 from __future__ import annotations
 
@@ -20,8 +22,9 @@ from dataclasses import dataclass, field
 
 from dtpf.information.layer import InformationLayer, arms_for
 from dtpf.messages.config import RunConfig
-from dtpf.messages.models import ParticleSet, Status
+from dtpf.messages.models import Missed, ParticleSet, Status
 from dtpf.recording.logfile import Log, LogError, in_step_order, read_logs
+from dtpf.recording.missed import lost_steps
 from dtpf.messages.family import component_records
 from dtpf.scripts.logs.rerun_entity import EntityRerun, first_difference, rerun_entity
 from dtpf.scripts.logs.summary import format_ranges
@@ -63,6 +66,8 @@ class Verification:
     entity: EntityRerun | None = None
     #: The user's code the run names whose file differs from the one the run used (or cannot be found now).
     changed_code: list[str] = field(default_factory=list)
+    #: Steps the recorder declared lost, by topic (it missed them, and its publishers' caches no longer held them).
+    lost: dict[str, list[int]] = field(default_factory=dict)
 
     @property
     def entity_competing(self) -> dict[str, list[int]]:
@@ -73,8 +78,9 @@ class Verification:
 
     @property
     def ok(self) -> bool:
-        """Every recorded output reproduced, and one entity's messages only (no competing estimates or sets)."""
-        return self.mismatch is None and not self.entity_competing
+        """Every recorded output reproduced, one entity's messages only (no competing estimates or sets), and
+        no step declared lost by the recorder."""
+        return self.mismatch is None and not self.entity_competing and not self.lost
 
 
 def _same(a, b) -> bool:
@@ -165,9 +171,13 @@ def verify_twin(by_topic: dict[str, list], twin: str, problem: str | None = None
                 if isinstance(m, Status)]
     config = _config_of(statuses, twin)
     result = Verification(twin, config, problem=problem, changed_code=changed_code(statuses, config))
+    result.lost = lost_steps([m for m in by_topic.get(f"dtpf/{twin}/recorder/missed", []) if isinstance(m, Missed)])
+    first_lost = min((steps[0] for steps in result.lost.values()), default=None)
     # The entity's sets are the re-run's input: where a step has several, the one in step order (as the
-    # entity publishes them) is used.
+    # entity publishes them) is used; a lost step ends it (what follows depends on what was lost).
     particle_sets, _ = in_step_order(by_topic.get(f"dtpf/{twin}/entity/particles", []))
+    if first_lost is not None:
+        particle_sets = {step: found for step, found in particle_sets.items() if step < first_lost}
     recorded("entity/particles")
     # Whether the entity took a step's answer is what its estimate says: the one in step order, as for its sets.
     estimates, competing_estimates = in_step_order(by_topic.get(f"dtpf/{twin}/entity/estimate", []))
@@ -332,7 +342,10 @@ def _report(result: Verification, verbose: bool) -> int:
         elif result.checked:
             print(f"steps {format_ranges(result.checked)} were reproduced exactly before it")
         return 1
-    if result.entity_competing:
+    for topic, steps in result.lost.items():
+        print(f"FAILED: the recorder declared steps {format_ranges(steps)} of {topic} lost (it missed them and "
+              f"the publishers' caches no longer held them); the re-run stops before the first")
+    if result.entity_competing or result.lost:
         print(f"the layers' outputs of {len(result.checked)} steps were reproduced exactly; the log fails all the "
               f"same")
         return 1

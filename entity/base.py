@@ -8,14 +8,43 @@ with observations, and says what else the entity publishes at a step
 (``step_messages``: the video scenario's frame). States are ``(N, d)`` arrays
 of float64, observations ``(m,)`` per step. The built-in models are in
 :mod:`dtpf.entity.models` and :mod:`dtpf.entity.tracking`.
+
+A model of a driven machine seen by several sensors declares two more things
+and takes them as keyword arguments (docs/guides/driven.md):
+
+``controls``
+    The names of the control input's components u = (u_0, .., u_(c-1)) (wheel
+    odometry: ``("v", "omega")``); empty (the default): the model is not driven.
+``sensors``
+    Each sensor's name and the dimension of its observation
+    (``{"gps": 2, "beacons": 3}``); empty (the default): one sensor of
+    ``obs_dim`` values. ``obs_dim`` of a model with sensors is the largest of them.
+
+``propagate(particles, k, rng, noise=None, *, dt=None, control=None)``
+    ``dt``: the seconds from the previous filter step to this one, from the
+    observations' stamps (0 when two observations share a stamp); ``control``:
+    the ``(c,)`` control held over that time (zero-order hold; zeros before the
+    first control). When the control changes inside the interval the filter
+    calls ``propagate`` once per piece, each with its own ``dt`` and ``control``.
+``log_likelihood(particles, observation, k, *, sensor=None)``, ``sample_observation(states, k, rng, *,
+sensor=None)``, ``observation_moments(particles, k, *, sensor=None)``
+    ``sensor``: the name of the sensor the observation is from (``observation``
+    has ``sensors[sensor]`` values).
+
+The filter passes ``dt``, ``control`` and ``sensor`` only to a method whose
+signature names them (:class:`dtpf.entity.calls.ModelCalls` reads it once), so a
+model written without them is called, and draws its random numbers, exactly as
+before.
 """
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+from types import MappingProxyType
+from typing import Mapping
 
 import numpy as np
 
-__all__ = ["StateSpaceModel"]
+__all__ = ["StateSpaceModel", "sensor_dims"]
 
 
 class StateSpaceModel(ABC):
@@ -25,8 +54,25 @@ class StateSpaceModel(ABC):
     name: str
     #: Dimension d of the state.
     dim: int
-    #: Dimension m of one observation.
-    obs_dim: int
+    #: Names of the control input's components (empty: not driven).
+    controls: tuple[str, ...] = ()
+    #: Sensor name -> dimension of its observation (empty: one sensor of ``obs_dim`` values).
+    sensors: Mapping[str, int] = MappingProxyType({})
+
+    @property
+    def obs_dim(self) -> int:
+        """Dimension m of one observation; a model with ``sensors``: the largest of theirs. A model with one
+        sensor sets it (a class attribute or a field)."""
+        if "obs_dim" in getattr(self, "__dict__", {}):
+            return self.__dict__["obs_dim"]
+        if self.sensors:
+            return max(int(m) for m in self.sensors.values())
+        raise AttributeError(f"{type(self).__name__} sets no obs_dim")
+
+    @obs_dim.setter
+    def obs_dim(self, value: int) -> None:
+        self.__dict__["obs_dim"] = value
+
     #: The most steps a simulation of the model can have (None: any number; the video has its frames).
     max_steps: int | None = None
 
@@ -46,6 +92,10 @@ class StateSpaceModel(ABC):
                   noise: np.ndarray | None = None) -> np.ndarray:
         """Draw x_k ~ p(x_k | x_(k-1)) for every particle: (N, d) -> (N, d).
 
+        A driven model adds keyword arguments ``*, dt=None, control=None`` (the
+        module docstring): the seconds since the last step and the ``(c,)``
+        control in force over them.
+
         ``noise``: what :meth:`propagation_noise` drew for this step, if it was
         drawn ahead; the model then uses it (and may overwrite it) instead of
         drawing. Only models whose ``propagation_noise`` returns an array get it.
@@ -64,14 +114,16 @@ class StateSpaceModel(ABC):
 
     @abstractmethod
     def log_likelihood(self, particles: np.ndarray, observation: np.ndarray, k: int) -> np.ndarray:
-        """log p(z_k | x_k) for every particle: (N, d), (m,) -> (N,)."""
+        """log p(z_k | x_k) for every particle: (N, d), (m,) -> (N,).
+
+        A model with several sensors adds ``*, sensor=None``: the sensor z_k is from."""
 
     def sample_observation(self, states: np.ndarray, k: int, rng: np.random.Generator) -> np.ndarray:
         """Draw z_k ~ p(z_k | x_k) for every state: (S, d) -> (S, m).
 
         Optional: a twin of a real system filters observations from outside and
         never draws them; only the simulating policies, ``simulate`` and
-        ``dtpf sensor`` need it.
+        ``dtpf sensor`` need it. A model with several sensors adds ``*, sensor=None``.
         """
         raise NotImplementedError(f"model {getattr(self, 'name', type(self).__name__)!r} does not "
                                   f"implement sample_observation")
@@ -81,7 +133,7 @@ class StateSpaceModel(ABC):
 
         Optional (default None). Where a model gives it, the filter reports the
         normalised innovation of each observation, the check of a filter that
-        runs without truth.
+        runs without truth. A model with several sensors adds ``*, sensor=None``.
         """
         return None
 
@@ -109,3 +161,12 @@ class StateSpaceModel(ABC):
         the video scenario returns the step's frame and the particles drawn over it, so a log plays
         as a video in Foxglove."""
         return []
+
+
+def sensor_dims(model) -> dict[str | None, int]:
+    """Each sensor of ``model`` and the dimension of its observation: its ``sensors``, or ``{None: obs_dim}``
+    for a model of one unnamed sensor."""
+    sensors = getattr(model, "sensors", None) or {}
+    if sensors:
+        return {str(name): int(m) for name, m in sensors.items()}
+    return {None: int(model.obs_dim)}

@@ -27,6 +27,11 @@ One step k:
    numbers from ``stream(seed, twin, k, "jitter")``; a twin whose answer names
    a move (the choosing system layer's arm in force at k) sets it for step k.
 
+A driven model (:mod:`dtpf.entity.base`) gets each step's time since the last one and the control held
+over it (``drives``: :class:`~dtpf.entity.timeline.Drive`, made from the observations' stamps by
+:mod:`dtpf.entity.timeline`) and the sensor each observation is from (``sensors``); a model written
+without them is called as before (:class:`~dtpf.entity.calls.ModelCalls`).
+
 Random numbers of step k come from ``stream(seed, twin, k, "entity")``:
 propagation first, then resampling. The propagation noise of step k + 1
 depends on nothing of step k, so :meth:`ParticleFilter.prepare_next_step` can
@@ -45,6 +50,7 @@ import numpy as np
 
 from dtpf.entity import jitter as jitters
 from dtpf.entity import resampling
+from dtpf.entity.calls import ModelCalls
 from dtpf.entity.models import StateSpaceModel
 from dtpf.messages.arrays import check_particles, check_set
 from dtpf.messages.errors import DtpfError
@@ -128,6 +134,11 @@ class FilterStep:
         The weighted covariances between the components of the set that was
         resampled, the pairs i < j row by row (:func:`covariances`); None unless
         2 <= d <= 8.
+    sensor : str or None
+        The sensor z_k is from (None: the model's one sensor).
+    drive : Drive or None
+        How the step was reached: dt and the control of each piece (None: the first step, or a model
+        that is not driven).
     """
 
     step: int
@@ -146,6 +157,8 @@ class FilterStep:
     log_predictive: float = float("nan")
     innovation: float | None = None
     covariance: np.ndarray | None = None
+    sensor: str | None = None
+    drive: object = None
 
 
 def _model_failed(model, k: int, method: str, exc: Exception) -> Exception:
@@ -189,15 +202,17 @@ def _shown(values: np.ndarray, most: int = 8) -> str:
 
 
 def normalised_innovation(model, particles: np.ndarray, prior_weights: np.ndarray, observation: np.ndarray,
-                          k: int) -> float | None:
+                          k: int, *, sensor: str | None = None, calls: ModelCalls | None = None) -> float | None:
     """Normalised innovation squared of z_k under the predictive law of the propagated set.
 
     zhat = sum_i W^i h(x^i), S = sum_i W^i (h(x^i) - zhat)^2 + R per observed
     dimension (diagonal), with h and R from ``model.observation_moments``; the
     result sum_j (z_j - zhat_j)^2 / S_j is about m on average for a consistent
-    filter. None where the model gives no moments.
+    filter. None where the model gives no moments. ``sensor``: the sensor z_k is from, passed to a model
+    whose ``observation_moments`` takes it.
     """
-    moments_of = model.observation_moments(particles, k)
+    calls = calls if calls is not None else ModelCalls(model)
+    moments_of = calls.observation_moments(particles, k, sensor=sensor)
     if moments_of is None:
         return None
     h, noise_var = moments_of
@@ -275,6 +290,11 @@ class ParticleFilter:
         Also compute each step's normalised innovation (where the model gives
         ``observation_moments``): one more pass over the particles, so off by
         default; a run without truth turns it on.
+    sensors : sequence of str, optional
+        The sensor of each observation (a model with ``sensors``); its rows then hold the sensor's values
+        first and NaN after them (rows as long as the longest sensor's).
+    drives : sequence of Drive or None, optional
+        How each step is reached from the one before (:mod:`dtpf.entity.timeline`); None: not driven.
 
     ``observations=None`` makes a filter for observations that arrive one at
     a time (a live sensor): call :meth:`update` with each z_k; there is no T
@@ -284,8 +304,9 @@ class ParticleFilter:
     def __init__(self, model: StateSpaceModel, observations, n_particles: int, *,
                  resampler: str = "systematic", resample_below: float | None = None,
                  seed: int = 0, twin: str = "twin", preprocessor: Preprocessor | None = None,
-                 innovation: bool = False, jitter: str = "none"):
+                 innovation: bool = False, jitter: str = "none", sensors=None, drives=None):
         self.move = jitters.get(jitter)  # a ValueError naming the move if it is unknown or breaks the contract
+        self.calls = ModelCalls(model)
         if observations is None:
             z = np.empty((0, model.obs_dim))
         else:
@@ -294,8 +315,19 @@ class ParticleFilter:
                 z = z[:, None]
             if z.ndim != 2 or z.shape[0] == 0:
                 raise ValueError(f"observations must have shape (T,) or (T, m) with T >= 1, got {z.shape}")
-            if not np.isfinite(z).all():
+            if sensors is not None:
+                sensors = tuple(sensors)
+                if len(sensors) != z.shape[0]:
+                    raise ValueError(f"{len(sensors)} sensor names for {z.shape[0]} observations")
+                for i, name in enumerate(sensors):
+                    if not np.isfinite(z[i, :self._width(name)]).all():
+                        raise ValueError(f"observation {i + 1} ({name}) contains non-finite values")
+            elif not np.isfinite(z).all():
                 raise ValueError("observations contain non-finite values")
+            if drives is not None and len(drives) != z.shape[0]:
+                raise ValueError(f"{len(drives)} drives for {z.shape[0]} observations")
+        self.sensors = sensors
+        self.drives = drives
         if int(n_particles) < 1:
             raise ValueError(f"n_particles must be at least 1, got {n_particles!r}")
         if resample_below is not None and not 0.0 < float(resample_below) <= 1.0:
@@ -420,33 +452,55 @@ class ParticleFilter:
         """One step of the particle filter, on the next of the observations it was given."""
         if self.k >= self.steps:
             raise StopIteration
-        return self._step(self.observations[self.k])
+        k = self.k
+        return self._step(self.observations[k], sensor=None if self.sensors is None else self.sensors[k],
+                          drive=None if self.drives is None else self.drives[k])
 
-    def update(self, observation) -> FilterStep:
+    def _width(self, sensor: str | None) -> int:
+        """m of ``sensor``'s observations; ValueError naming an unknown sensor."""
+        dims = self.calls.sensors
+        if sensor not in dims:
+            known = ", ".join(str(name) for name in dims)
+            if None in dims:
+                raise ValueError(f"observation from sensor {sensor!r}; the model has one sensor, unnamed")
+            raise ValueError(f"observation from {'no sensor' if sensor is None else f'sensor {sensor!r}'}; the "
+                             f"model's sensors are {known}")
+        return dims[sensor]
+
+    def update(self, observation, *, sensor: str | None = None, drive=None) -> FilterStep:
         """One step of the particle filter on ``observation`` (z_k, m values): for a live filter.
+        ``sensor``: the sensor it is from; ``drive``: how the step is reached (:mod:`dtpf.entity.timeline`).
 
-        Raises ValueError if z_k does not have the model's m finite values.
+        Raises ValueError if z_k does not have its sensor's m finite values.
         """
         z = np.asarray(observation, dtype=np.float64).reshape(-1)
-        if z.shape != (self.model.obs_dim,):
-            raise ValueError(f"observation has {z.size} values, the model observes {self.model.obs_dim}")
+        m = self._width(sensor)
+        if z.shape != (m,):
+            where = "the model observes" if sensor is None else f"sensor {sensor!r} observes"
+            raise ValueError(f"observation has {z.size} values, {where} {m}")
         if not np.isfinite(z).all():
             raise ValueError(f"observation contains non-finite values: {z.tolist()}")
-        return self._step(z)
+        return self._step(z, sensor=sensor, drive=drive)
 
-    def _step(self, observation: np.ndarray) -> FilterStep:
-        pending = self.begin_step(observation, ask=self.preprocessor is not None)
+    def _step(self, observation: np.ndarray, *, sensor: str | None = None, drive=None) -> FilterStep:
+        pending = self.begin_step(observation, ask=self.preprocessor is not None, sensor=sensor, drive=drive)
         answer = None
         if pending.asks:
             try:
-                answer = self.preprocessor(pending.step, pending.particles, pending.weights, observation,
-                                           pending.parents)
+                if pending.sensor is None and pending.drive is None:
+                    answer = self.preprocessor(pending.step, pending.particles, pending.weights,
+                                               pending.observation, pending.parents)
+                else:
+                    answer = self.preprocessor(pending.step, pending.particles, pending.weights,
+                                               pending.observation, pending.parents, sensor=pending.sensor,
+                                               drive=pending.drive)
             except BaseException:
                 self._waiting = None
                 raise
         return self.finish_step(pending, answer)
 
-    def begin_step(self, observation, *, ask: bool = True) -> "PendingStep":
+    def begin_step(self, observation, *, ask: bool = True, sensor: str | None = None,
+                   drive=None) -> "PendingStep":
         """Steps 1-2 of step k on z_k (propagate, weight, normalise, ESS), up to the preprocessor's question.
 
         For a caller that asks its preprocessor itself, without blocking (the
@@ -454,9 +508,12 @@ class ParticleFilter:
         and ``ask``), hand ``pending``'s set to the preprocessor, then call
         :meth:`finish_step` with its answer (None: no answer, a degraded step);
         :meth:`work_ahead` may run in between. Otherwise call
-        :meth:`finish_step` at once. The numbers are those of ``next()``.
+        :meth:`finish_step` at once. The numbers are those of ``next()``. ``sensor`` and ``drive``: as
+        :meth:`update` takes them (a row of a multi-sensor table is cut to its sensor's values here).
         """
         z = np.asarray(observation, dtype=np.float64).reshape(-1)
+        if sensor is not None or self.calls.named_sensors:
+            z = z[:self._width(sensor)]
         self.k += 1
         k = self.k
         ahead, self._ahead = self._ahead, None
@@ -464,9 +521,13 @@ class ParticleFilter:
             _, rng, noise = ahead
         else:
             rng, noise = stream(self.seed, self.twin, k, "entity"), None
+        if self.particles is None:
+            drive = None  # the first step starts from the prior
         try:
             if self.particles is None:
                 self.particles = check_particles(self.model.initial_particles(self.n, rng))
+            elif drive is not None:
+                self.particles = check_particles(self.calls.advance(self.particles, k, rng, drive, noise))
             elif noise is None:
                 self.particles = check_particles(self.model.propagate(self.particles, k, rng))
             else:
@@ -480,9 +541,10 @@ class ParticleFilter:
         innovation = None
         if self.innovation:
             prior = np.exp(self.log_weights - prior_log_total)
-            innovation = normalised_innovation(self.model, self.particles, prior, z, k)
+            innovation = normalised_innovation(self.model, self.particles, prior, z, k, sensor=sensor,
+                                               calls=self.calls)
         try:
-            log_likelihood = self.model.log_likelihood(self.particles, z, k)
+            log_likelihood = self.calls.log_likelihood(self.particles, z, k, sensor=sensor)
         except Exception as exc:
             raise _model_failed(self.model, k, "log_likelihood", exc) from exc
         if self._flat:  # 0 + l is l: no pass over zeros
@@ -502,7 +564,7 @@ class ParticleFilter:
         if not due:
             self.log_weights -= top  # keep log-weights near 0 between resamplings
         pending = PendingStep(k, self.particles, weights, z, self.parents, ess, due, due and ask, rng,
-                              log_predictive, innovation)
+                              log_predictive, innovation, sensor, drive)
         if pending.asks:
             self._waiting = (k, weights, rng)
         return pending
@@ -552,7 +614,7 @@ class ParticleFilter:
             self.parents = resampling.distinct(ancestors)
         return FilterStep(k, particles, weights, pending.ess, mean, var, mean - half, mean + half,
                           due, degraded, report, ancestors, parents, pending.log_predictive, pending.innovation,
-                          covariance)
+                          covariance, pending.sensor, pending.drive)
 
 
 @dataclass(frozen=True)
@@ -575,3 +637,6 @@ class PendingStep:
     rng: np.random.Generator
     log_predictive: float
     innovation: float | None
+    sensor: str | None = None
+    #: How the step was reached from the one before (None: the first step, or a model that is not driven).
+    drive: object = None

@@ -25,6 +25,17 @@ the model once, the way the filter does:
 7. ``observation_moments`` is None or ((n, obs_dim) finite means,
    (obs_dim,) finite non-negative variances).
 
+A driven model (:mod:`dtpf.entity.base`: ``controls``, ``sensors``, ``propagate`` taking ``dt`` or
+``control``) is checked the same way through :class:`~dtpf.entity.calls.ModelCalls`, and more:
+
+8. ``controls`` is a tuple of distinct names, ``sensors`` a mapping of names (a letter, then letters,
+   digits, ``_`` or ``-``) to positive ints, and ``obs_dim`` is at least the widest sensor's;
+9. ``propagate`` is called with ``dt=0.1`` and ``dt=0.0`` and a zero control of ``len(controls)`` values
+   (the pieces of :mod:`dtpf.entity.timeline`) and must give (n, dim) finite particles;
+10. for every sensor: ``sample_observation`` (where given) is (n, m_sensor), ``log_likelihood`` of the
+    run's first observation of that sensor (or a sampled one) is (n,) as in 6, ``observation_moments``
+    as in 7 with the sensor's m.
+
 Each failure is a :class:`~dtpf.entity.model_ref.ModelError` with a one-line
 message naming the model, the method, what it returned and what was
 expected; an exception raised by a model method is reported as
@@ -52,8 +63,9 @@ def check_model(model, *, observation=None, needs_sampling: bool | str = False, 
     Parameters
     ----------
     model : StateSpaceModel
-    observation : (obs_dim,) array_like, optional
-        The first observation of the run; the likelihood is evaluated on it.
+    observation : (obs_dim,) array_like or dict, optional
+        The first observation of the run; the likelihood is evaluated on it. A driven model's: a dict of
+        sensor name (None for a model of one unnamed sensor) to its first observation.
     needs_sampling : bool or str
         The run draws observations (a simulating policy, ``dtpf sensor``):
         the model must implement ``sample_observation``. A string names what
@@ -83,6 +95,12 @@ def check_model(model, *, observation=None, needs_sampling: bool | str = False, 
     if needs_sampling and not samples:
         reason = needs_sampling if isinstance(needs_sampling, str) else "this run (it draws observations)"
         raise ModelError(f"{where}: sample_observation is not implemented, but {reason} needs it")
+    from dtpf.entity.calls import ModelCalls
+
+    calls = _call(where, "reading its signatures", lambda: ModelCalls(model))
+    if calls.driven:
+        _check_driven(model, calls, where, dim, obs_dim, observation, samples, n, seed)
+        return
     z = None
     if observation is not None:
         z = _observation(observation, obs_dim, where)
@@ -136,6 +154,62 @@ def check_model(model, *, observation=None, needs_sampling: bool | str = False, 
             i = int(np.flatnonzero(var < 0)[0])
             raise ModelError(f"{where}: observation_moments variances are negative at index {i} ({var[i]!r}), "
                              f"expected variances >= 0")
+
+
+def _check_driven(model, calls, where: str, dim: int, obs_dim: int, observation, samples: bool, n: int,
+                  seed: int) -> None:
+    """Items 8-10 of the module docstring, with 2-7 through the driven calls."""
+    import re
+
+    controls = getattr(model, "controls", ())
+    if not isinstance(controls, (tuple, list)) or not all(isinstance(c, str) and c for c in controls) \
+            or len(set(controls)) != len(controls):
+        raise ModelError(f"{where}: controls is {controls!r}, expected a tuple of distinct names")
+    for name, m in calls.sensors.items():
+        if name is not None and not re.fullmatch(r"[A-Za-z][A-Za-z0-9_-]{0,63}", name):
+            raise ModelError(f"{where}: sensor name {name!r} must be a letter then letters, digits, '_' or '-'")
+        if isinstance(m, bool) or not isinstance(m, int) or m < 1:
+            raise ModelError(f"{where}: sensor {name!r} has dimension {m!r}, expected a positive int")
+    if obs_dim < max(calls.sensors.values()):
+        raise ModelError(f"{where}: obs_dim is {obs_dim}, less than its widest sensor's {max(calls.sensors.values())}")
+    given = {}
+    if observation is not None:
+        given = dict(observation) if isinstance(observation, dict) else {next(iter(calls.sensors)): observation}
+    for name in given:
+        if name not in calls.sensors:
+            raise ModelError(f"{where}: an observation from sensor {name!r}, which the model does not have")
+    rng = np.random.default_rng(seed)
+    shape, what = (n, dim), f"(N particles by dim {dim})"
+    prior = _array(where, "initial_particles", _call(where, "initial_particles",
+                                                     lambda: model.initial_particles(n, rng)), shape, what)
+    c = len(calls.controls)
+    moved = prior
+    for dt in (0.1, 0.0):
+        label = f"propagate(dt={dt}, control=zeros({c}))"
+        moved = _array(where, label, _call(where, label, lambda dt=dt: calls.propagate(
+            prior.copy(), 2, rng, dt=dt, control=np.zeros(c))), shape, what)
+    for name, m in calls.sensors.items():
+        said = "" if name is None else f"(sensor={name!r})"
+        sampled = None
+        if samples:
+            sampled = _array(where, f"sample_observation{said}", _call(
+                where, f"sample_observation{said}", lambda: calls.sample_observation(moved.copy(), 2, rng,
+                                                                                     sensor=name)),
+                (n, m), f"(N states by the sensor's {m} values)")
+        if name in given:
+            z = _observation(given[name], m, where)
+            _likelihood(calls, where, prior, z, 1, n, f"no particle explains the first observation{said}", name)
+        elif sampled is not None:
+            _likelihood(calls, where, moved, sampled[0], 2, n,
+                        f"no particle explains the observation{said} sampled from the first of them", name)
+        moments = _call(where, f"observation_moments{said}",
+                        lambda: calls.observation_moments(moved.copy(), 2, sensor=name))
+        if moments is not None:
+            if not isinstance(moments, (tuple, list)) or len(moments) != 2:
+                raise ModelError(f"{where}: observation_moments{said} returned {_a(moments)}, expected None or "
+                                 f"a pair (means (N, {m}), noise variances ({m},))")
+            _array(where, f"observation_moments{said} means", moments[0], (n, m), f"(N particles by {m})")
+            _array(where, f"observation_moments{said} variances", moments[1], (m,), f"({m} values)")
 
 
 def load_checked(ref: str, *, observation=None, needs_sampling: bool | str = False) -> StateSpaceModel:
@@ -197,8 +271,14 @@ def _array(where: str, method: str, value, shape: tuple, what: str) -> np.ndarra
     return x
 
 
-def _likelihood(model, where: str, particles: np.ndarray, z: np.ndarray, k: int, n: int, unexplained: str):
-    value = _call(where, "log_likelihood", lambda: model.log_likelihood(particles.copy(), z.copy(), k))
+def _likelihood(model, where: str, particles: np.ndarray, z: np.ndarray, k: int, n: int, unexplained: str,
+                sensor=None):
+    """``model``: the model, or its :class:`~dtpf.entity.calls.ModelCalls` (then with ``sensor``)."""
+    if sensor is None:
+        value = _call(where, "log_likelihood", lambda: model.log_likelihood(particles.copy(), z.copy(), k))
+    else:
+        value = _call(where, "log_likelihood", lambda: model.log_likelihood(particles.copy(), z.copy(), k,
+                                                                            sensor=sensor))
     if value is None:
         raise ModelError(f"{where}: log_likelihood returned None, expected an array of shape ({n},) (one per particle)")
     raw = np.asarray(value)

@@ -257,7 +257,8 @@ class ObservationTable:
 def read_observations(path, *, obs_dim: int | None = None, state_dim: int | None = None,
                       steps: int | None = None, observation_columns: list[str] | None = None,
                       truth_columns: list[str] | None = None,
-                      time_column: str | None = None, kind: str | None = None) -> ObservationTable:
+                      time_column: str | None = None, kind: str | None = None,
+                      exact_stamps: bool = False) -> ObservationTable:
     """Read the observations in ``path`` (.csv, .npy or .npz); see the module docstring.
 
     Parameters
@@ -281,6 +282,10 @@ def read_observations(path, *, obs_dim: int | None = None, state_dim: int | None
     kind : str, optional
         ".csv", ".npy" or ".npz": read the file as that kind whatever its extension (default: by the
         extension).
+    exact_stamps : bool
+        Also give each row's time as integer nanoseconds (``stamps``), from the time column's text (CSV:
+        exact to the nanosecond, never through a float; an .npz array ``stamps`` of integers is taken as it
+        is, a float ``time`` array is rounded to the nanosecond). Times must then be >= 0.
 
     Returns
     -------
@@ -309,12 +314,47 @@ def read_observations(path, *, obs_dim: int | None = None, state_dim: int | None
                                f"files only; a {kind} file has no column names", source=source)
     _open_check(source, name, kind)
     if kind == ".csv":
-        table = _read_csv(source, name, steps, *explicit, obs_dim=obs_dim, state_dim=state_dim)
+        table = _read_csv(source, name, steps, *explicit, obs_dim=obs_dim, state_dim=state_dim,
+                          exact_stamps=exact_stamps)
     elif kind == ".npy":
         table = _read_npy(source, name, steps, obs_dim=obs_dim)
     else:
         table = _read_npz(source, name, steps, obs_dim=obs_dim, state_dim=state_dim)
+        if exact_stamps and table.stamps is None and table.times is not None:
+            table = _with_stamps(table, _float_stamps(table.times, name, source))
     return table
+
+
+def _with_stamps(table: ObservationTable, stamps: np.ndarray) -> ObservationTable:
+    return ObservationTable(observations=table.observations, truth=table.truth, times=table.times,
+                            columns=table.columns, truth_columns=table.truth_columns, source=table.source,
+                            truth_components=table.truth_components, stamps=stamps)
+
+
+#: The latest stamp a message's time can hold (uint32 seconds).
+_LAST_STAMP = (2**32) * 1_000_000_000 - 1
+_DECIMAL = re.compile(r"^\s*\+?(\d*)(?:\.(\d*))?\s*$")
+
+
+def stamp_of_text(text: str) -> int | None:
+    """Integer nanoseconds of a time in seconds written in decimal ('12.000000001'), exactly; None for text
+    that is not a non-negative decimal number (an exponent, a sign, more than 9 decimals that are not 0)."""
+    match = _DECIMAL.match(text)
+    if match is None or not (match.group(1) or match.group(2)):
+        return None
+    whole, fraction = match.group(1) or "0", match.group(2) or ""
+    if len(fraction) > 9 and fraction[9:].strip("0"):
+        return None
+    return int(whole) * 1_000_000_000 + int((fraction[:9]).ljust(9, "0"))
+
+
+def _float_stamps(times: np.ndarray, name: str, source: str) -> np.ndarray:
+    bad = np.flatnonzero((times < 0) | (times * 1e9 > _LAST_STAMP))
+    if bad.size:
+        r = int(bad[0])
+        raise ObservationError(f"{name} row {r}: time {float(times[r])!r} is not between 0 and 2^32 s",
+                               source=source, row=r)
+    return np.round(times * 1e9).astype(np.int64)
 
 
 # --- checks shared by every kind of file ----------------------------------------------
@@ -521,14 +561,14 @@ def _is_number(text: str) -> bool:
     return True
 
 
-def _read_csv(source, name, steps, obs_names, truth_names, time_name, *, obs_dim, state_dim):
+def _read_csv(source, name, steps, obs_names, truth_names, time_name, *, obs_dim, state_dim, exact_stamps=False):
     try:
         with open(source, encoding="utf-8-sig", newline="") as handle:
             lines = _Lines(handle, name, source)
             reader = csv.reader(lines, skipinitialspace=True)
             try:
                 return _parse_csv(reader, lines, source, name, steps, obs_names, truth_names, time_name,
-                                  obs_dim=obs_dim, state_dim=state_dim)
+                                  obs_dim=obs_dim, state_dim=state_dim, exact_stamps=exact_stamps)
             except csv.Error as exc:
                 raise ObservationError(f"{name} line {lines.number}: not valid CSV ({exc})",
                                        source=source, line=lines.number) from None
@@ -558,7 +598,8 @@ def _first_bad_utf8(source: str, exc: UnicodeDecodeError) -> tuple[int | None, i
     return None, exc.object[exc.start]
 
 
-def _parse_csv(reader, lines, source, name, steps, obs_names, truth_names, time_name, *, obs_dim, state_dim):
+def _parse_csv(reader, lines, source, name, steps, obs_names, truth_names, time_name, *, obs_dim, state_dim,
+               exact_stamps=False):
     # The header: the first line that is not a comment.
     try:
         header = next(reader)
@@ -608,6 +649,10 @@ def _parse_csv(reader, lines, source, name, steps, obs_names, truth_names, time_
     parsed = array("d")  # the chosen values, row after row
     extend, numbers = parsed.extend, array("q")  # numbers: the line of each row
     blank = 0  # the line of a blank line not yet followed by a row
+    if exact_stamps and time_i is None:
+        raise ObservationError(f"{name}: no time column (time, t, timestamp or stamp, in seconds); each row "
+                               f"needs its time", source=source)
+    stamp_texts = [] if exact_stamps else None
     for row in reader:
         if len(row) == ncols:
             try:
@@ -630,6 +675,8 @@ def _parse_csv(reader, lines, source, name, steps, obs_names, truth_names, time_
         else:
             break
         numbers.append(lines.number)
+        if stamp_texts is not None:
+            stamp_texts.append(row[time_i])
         if len(numbers) == steps:
             break
     else:
@@ -659,10 +706,21 @@ def _parse_csv(reader, lines, source, name, steps, obs_names, truth_names, time_
                                    f"before {float(times[r - 1])!r} {above}", source=source, line=numbers[r],
                                    column=header[time_i])
         times.flags.writeable = False
+    stamps = None
+    if stamp_texts is not None:
+        stamps = np.empty(count, dtype=np.int64)
+        for r, text in enumerate(stamp_texts):
+            stamp = stamp_of_text(text)
+            if stamp is None or stamp > _LAST_STAMP:
+                raise ObservationError(f"{name} line {numbers[r]}, column {header[time_i]!r}: {_cell(text)} is not "
+                                       f"a time in seconds from 0 to 2^32 written as a decimal (e.g. 12.25)",
+                                       source=source, line=numbers[r], column=header[time_i])
+            stamps[r] = stamp
     observations = _take(values, [position[c] for c in obs_i])
     truth = _take(values, [position[c] for c in truth_i]) if truth_i else None
     return ObservationTable(observations=observations, truth=truth, times=times, columns=columns,
-                            truth_columns=truth_columns, source=source, truth_components=components)
+                            truth_columns=truth_columns, source=source, truth_components=components,
+                            stamps=stamps)
 
 
 def _take(values: np.ndarray, positions: list[int]) -> np.ndarray:

@@ -10,6 +10,10 @@ model is simulated, so the truth is known), a file, or a live sensor::
     data.observations, data.truth                      # (T, m), (T, d) or None
     data.known_truth, data.truth_components            # (T, k), the k state components the truth covers
 
+A driven model (its ``propagate`` takes ``dt`` or ``control``, or it declares ``controls`` or ``sensors``)
+reads its sensors' files and its control file in stamp order (:mod:`dtpf.entity.stamped`): ``data.sensors``
+and ``data.drives`` give each step's sensor and how it is reached from the one before.
+
 Every layer process calls :func:`load_model`, so the information layer's
 likelihood rule and the system layer's simulation use the model the entity
 filters with. Mistakes raise :class:`~dtpf.entity.model_ref.ModelError` or
@@ -56,6 +60,11 @@ class RunData:
     stamps: np.ndarray | None = None
     #: What was wrong with the file and how it was read anyway (a rosbag2 log cut short), or None.
     problem: str | None = None
+    #: Each step's sensor (a driven run of a model with sensors), or None.
+    sensors: tuple | None = None
+    #: How each step is reached from the one before (:class:`~dtpf.entity.timeline.Drive`; None for the
+    #: first), a driven run's; None for a model that is not driven.
+    drives: list | None = None
 
     def __post_init__(self):
         if self.truth is not None and self.known_truth is None:
@@ -79,7 +88,13 @@ def sampling_need(config, *, sensor: bool = False) -> str | bool:
 
 
 def _check_simulation(config, model: StateSpaceModel) -> None:
-    """A simulated run needs a model that can simulate: its own ``simulate``, or ``sample_observation``."""
+    """A simulated run needs a model that can simulate: its own ``simulate``, or ``sample_observation``; a
+    driven model's run needs observation files (a simulation has no stamps, sensors or controls)."""
+    from dtpf.entity.calls import ModelCalls
+
+    if config.simulated and ModelCalls(model).driven:
+        raise ModelError(f"model {config.model_ref!r} is driven (time steps, controls or several sensors): give "
+                         f"its observations with --observations (NAME=FILE per sensor) and --controls")
     if config.simulated and type(model).simulate is StateSpaceModel.simulate and not model.samples_observations:
         raise ModelError(f"model {config.model_ref!r}: sample_observation is not implemented, so it cannot be "
                          f"simulated; give the observations to filter with --observations")
@@ -115,6 +130,14 @@ def read_table(config, model: StateSpaceModel | None = None, *, steps: int | Non
 def _probe_observation(config, model: StateSpaceModel) -> np.ndarray | None:
     """The first row of the observation file, to probe the likelihood with (its columns checked
     against the model's dimensions first, so a file that does not fit is named as the problem)."""
+    from dtpf.entity.calls import ModelCalls
+
+    if ModelCalls(model).driven:
+        if config.simulated or config.live:
+            return None
+        from dtpf.entity import stamped
+        run = stamped.read_stamped(config, model, steps=1)
+        return {run.sensors[0]: run.observations[0][~np.isnan(run.observations[0])]}
     if config.observation_file is None:
         return None
     return read_table(config, model, steps=1).observations[0]
@@ -144,6 +167,15 @@ def observations_of(config, model: StateSpaceModel) -> RunData | None:
     """
     if config.live:
         return None
+    from dtpf.entity.calls import ModelCalls
+
+    if ModelCalls(model).driven and not config.simulated:
+        from dtpf.entity import stamped
+        run = stamped.read_stamped(config, model, steps=config.steps)
+        whole = run.truth is not None and run.truth_components == tuple(range(model.dim))
+        return RunData(run.observations, run.truth if whole else None, run.source, known_truth=run.truth,
+                       truth_components=run.truth_components, truth_columns=run.truth_columns, stamps=run.stamps,
+                       sensors=run.sensors, drives=run.drives)
     if config.observation_file is not None:
         table: ObservationTable = read_table(config, model, steps=config.steps)
         whole = table.covers(model.dim)

@@ -25,6 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from dtpf.entity.calls import ModelCalls
 from dtpf.entity.models import StateSpaceModel
 from dtpf.information import rules
 from dtpf.information.mirror import WeightSummary, summarise
@@ -218,13 +219,15 @@ class InformationLayer:
             return ahead[1]
         return stream(self.seed, self.twin, step, "information")
 
-    def preprocess(self, step: int, particles, weights, observation, *, checked: bool = False) -> rules.PreprocessResult:
+    def preprocess(self, step: int, particles, weights, observation, *, checked: bool = False,
+                   sensor: str | None = None) -> rules.PreprocessResult:
         """Eq. 28-30 on the entity's particle set of ``step``, with the PS in force.
 
         The first half of :meth:`process`: what the entity waits for. W comes
         from the layer's threshold rule, as the mirror computes it.
         ``checked``: the arrays come from a decoded (validated) message; see
-        :func:`dtpf.information.rules.preprocess`.
+        :func:`dtpf.information.rules.preprocess`. ``sensor``: the sensor the observation is from (a model
+        with several sensors weighs it by that sensor's likelihood).
         """
         ps = self.ps_for(step)
         if not self.enabled:
@@ -236,8 +239,14 @@ class InformationLayer:
         move_rule = self.move_rule if arm is None else arm.move_rule
         log_likelihood = None
         if weight_rule == "likelihood":
-            def log_likelihood(x):
-                return self.model.log_likelihood(x, z, step)
+            if sensor is None:
+                def log_likelihood(x):
+                    return self.model.log_likelihood(x, z, step)
+            else:
+                calls = ModelCalls(self.model)
+
+                def log_likelihood(x):
+                    return calls.log_likelihood(x, z, step, sensor=sensor)
         return rules.preprocess(particles, weights, ps, self._stream(step),
                                 threshold_rule=self.threshold_rule, weight_rule=weight_rule,
                                 log_likelihood=log_likelihood, checked=checked, move_rule=move_rule)
@@ -251,9 +260,10 @@ class InformationLayer:
         return summarise(particles, weights, self.threshold_rule if threshold is None else threshold, parents,
                          checked=checked)
 
-    def process(self, step: int, particles, weights, observation, parents: int | None = None) -> InformationOutput:
+    def process(self, step: int, particles, weights, observation, parents: int | None = None, *,
+                sensor: str | None = None) -> InformationOutput:
         """Mirror and preprocess the entity's particle set of ``step`` (``parents``: see
-        :func:`dtpf.information.mirror.summarise`)."""
-        result = self.preprocess(step, particles, weights, observation)
+        :func:`dtpf.information.mirror.summarise`; ``sensor``: see :meth:`preprocess`)."""
+        result = self.preprocess(step, particles, weights, observation, sensor=sensor)
         summary = self.mirror(particles, weights, parents, result.report.threshold)
         return InformationOutput(step, result, summary, self.jitter)

@@ -51,6 +51,8 @@ class RunConfig(BaseModel):
         if "steps" not in values and isinstance(observations, str) and observations != "live" \
                 and not observations.startswith(("live:", "ros2:")):
             values["steps"] = None  # an observation file: every row, as dtpf run reads it
+        if "steps" not in values and values.get("sensor_files"):
+            values["steps"] = None  # every row of every sensor's file
         try:
             super().__init__(**values)
         except ValidationError as error:
@@ -82,6 +84,15 @@ class RunConfig(BaseModel):
     partial: bool = Field(False, description="Read what is intact of a damaged observation file (a rosbag2 log "
                           "whose messages are fewer than it declares, or whose chunks do not decode) and say "
                           "what was skipped; False refuses such a file.")
+    sensor_files: dict[str, str] | None = Field(None, max_length=64, description="A driven twin's observation "
+                                                "files, one per sensor: sensor name (the model's sensors) -> "
+                                                "file with a time column (--observations NAME=FILE).")
+    controls: str | None = Field(None, max_length=4096, description="A file of the control input: a time column "
+                                 "and the model's control columns (zero-order hold between rows); live, the "
+                                 "controls come on dtpf/<twin>/sensor/control.")
+    reorder_window: float = Field(0.1, ge=0.0, le=3600.0, description="Seconds of stamp time within which "
+                                  "observations (and controls) that arrive out of order are put in stamp order; "
+                                  "older ones are counted and skipped.")
     particles: int = Field(1000, ge=1, description="Number of particles N.")
     steps: int | None = Field(100, ge=1, description="Number of time points T (k = 1 .. T). With observations "
                               "from a file: at most this many of its rows (None, the default for a file: every "
@@ -191,7 +202,19 @@ class RunConfig(BaseModel):
     @property
     def simulated(self) -> bool:
         """Whether the observations (and the truth) come from simulating the model."""
-        return self.observations is None
+        return self.observations is None and not self.sensor_files
+
+    @field_validator("sensor_files")
+    @classmethod
+    def _sensor_files(cls, value: dict[str, str] | None) -> dict[str, str] | None:
+        import re
+
+        for name, path in (value or {}).items():
+            if not re.fullmatch(r"[A-Za-z][A-Za-z0-9_-]{0,63}", name):
+                raise ValueError(f"sensor name {name!r} must be a letter then letters, digits, '_' or '-'")
+            if not path or len(path) > 4096:
+                raise ValueError(f"sensor {name!r} needs a file")
+        return value or None
 
     def observation_key(self) -> str | None:
         """The Zenoh key of live observations: ``dtpf/<twin>/sensor/observation`` or the one given."""
@@ -250,6 +273,8 @@ class RunConfig(BaseModel):
     def _policy_fits_scenario(self) -> "RunConfig":
         if self.steps is None and self.simulated:
             raise ValueError("steps: a simulated scenario needs a number of steps")
+        if self.sensor_files and self.observations is not None:
+            raise ValueError("observations: give every sensor as NAME=FILE, or one source without names")
         if self.reader is not None and (self.observations is None or self.live):
             raise ValueError(f"reader: a reader ({self.reader}) reads the observations a run is given "
                              f"(--observations SOURCE), not a simulation or a live stream")
@@ -265,6 +290,26 @@ class RunConfig(BaseModel):
                              f"{self.scenario!r} cannot draw (the video scenario does not support the "
                              f"simulating system-layer policies rule, predictive); use policy 'fixed'")
         return self
+
+
+class _ObservationsAction(argparse.Action):
+    """``--observations SOURCE`` once, or ``--observations NAME=FILE`` once per sensor (into ``sensor_files``)."""
+
+    def __call__(self, parser, namespace, value, option_string=None):
+        import os
+        import re
+
+        match = re.fullmatch(r"([A-Za-z][A-Za-z0-9_-]{0,63})=(.+)", value)
+        if match and not os.path.exists(value):
+            files = dict(getattr(namespace, "sensor_files", None) or {})
+            if match.group(1) in files:
+                parser.error(f"--observations {match.group(1)}= is given twice")
+            files[match.group(1)] = match.group(2)
+            namespace.sensor_files = files
+            return
+        if getattr(namespace, self.dest, None) is not None:
+            parser.error("--observations takes one source, or NAME=FILE once per sensor")
+        setattr(namespace, self.dest, value)
 
 
 def add_run_arguments(parser: argparse.ArgumentParser) -> None:
@@ -288,11 +333,18 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
                        help="your own model instead of a scenario: 'package.module:NAME' or "
                             "'path/to/file.py:NAME', a StateSpaceModel instance, subclass or zero-argument "
                             "factory; checked on a few particles at startup")
-    group.add_argument("--observations", default=None, metavar="SOURCE",
+    group.add_argument("--observations", default=None, metavar="SOURCE", action=_ObservationsAction,
                        help="observations to filter instead of a simulation: a file (.csv with a header, "
                             ".npy or .npz; one row per step; truth columns optional), or 'live' to take them "
                             "from a sensor on dtpf/<twin>/sensor/observation ('live:KEY' for another key), "
-                            "'ros2:TOPIC' for a ROS 2 topic, or a rosbag2 log (folder or .mcap) with --topic")
+                            "'ros2:TOPIC' for a ROS 2 topic, or a rosbag2 log (folder or .mcap) with --topic; "
+                            "a driven model's sensors: NAME=FILE, once per sensor")
+    group.add_argument("--controls", default=None, metavar="FILE",
+                       help="a driven model's control input: a file with a time column and the model's control "
+                            "columns (docs/guides/driven.md)")
+    group.add_argument("--reorder-window", type=float, default=None, metavar="SECONDS",
+                       help="put observations that arrive out of order within this much stamp time in order; "
+                            f"older ones are counted and skipped (default: {defaults.reorder_window})")
     group.add_argument("--reader", default=None, metavar="NAME",
                        help="how --observations is read: " + family.READERS.help(
                            "your own read(source) -> observations", "by the file's kind"))
@@ -347,7 +399,7 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 #: The RunConfig fields the run flags set (argparse dest = field name).
-_FLAG_FIELDS = ("scenario", "model", "observations", "reader", "topic", "ros2_fields", "partial", "particles", "steps", "resampler", "resample_below",
+_FLAG_FIELDS = ("scenario", "model", "observations", "sensor_files", "controls", "reorder_window", "reader", "topic", "ros2_fields", "partial", "particles", "steps", "resampler", "resample_below",
                 "preprocess", "threshold", "weight_rule", "move_rule", "jitter", "policy", "choose_base", "ps", "ps_rate", "seed", "twin", "run_id")
 
 
@@ -380,6 +432,8 @@ def write_config_file(config: dict, path) -> None:
             text = "true" if value else "false"
         elif isinstance(value, (int, float)):
             text = repr(value)
+        elif isinstance(value, dict):  # a TOML inline table (the sensors' files)
+            text = "{ " + ", ".join(f"{json.dumps(str(k))} = {json.dumps(str(v))}" for k, v in value.items()) + " }"
         else:
             text = json.dumps(str(value))  # a TOML basic string
         lines.append(f"{name} = {text}")
@@ -391,7 +445,7 @@ def config_from_args(args: argparse.Namespace) -> RunConfig:
     raises ValueError naming a bad option."""
     values = read_config_file(args.config) if getattr(args, "config", None) else {}
     values.update({name: getattr(args, name) for name in _FLAG_FIELDS if getattr(args, name, None) is not None})
-    if "steps" not in values and values.get("observations") is None:
+    if "steps" not in values and values.get("observations") is None and not values.get("sensor_files"):
         values["steps"] = RunConfig.model_fields["steps"].default
     elif "steps" not in values:
         values["steps"] = None  # an observation file's rows, or a live stream's end

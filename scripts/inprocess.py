@@ -41,8 +41,14 @@ class InProcessTwin:
         self.system = system
         self.decisions: list[PSDecision] = []
 
-    def __call__(self, step, particles, weights, observation, parents=None) -> Preprocessed:
-        out = self.information.process(step, particles, weights, observation, parents)
+    def __call__(self, step, particles, weights, observation, parents=None, *, sensor=None,
+                 drive=None) -> Preprocessed:
+        """``sensor``, ``drive``: a driven step's sensor and drive (:mod:`dtpf.entity.timeline`), as the
+        particle set carries them over Zenoh."""
+        if sensor is None and drive is None:
+            out = self.information.process(step, particles, weights, observation, parents)
+        else:
+            out = self.information.process(step, particles, weights, observation, parents, sensor=sensor)
         result = out.preprocessed
         snapshot = Snapshot.of(result.particles, result.weights, observation) if self.system.needs_particles else None
         decision = self.system.observe(step, out.summary, snapshot)
@@ -151,11 +157,13 @@ def simulate(config: RunConfig, model=None) -> tuple[np.ndarray, np.ndarray]:
     return model.simulate(config.steps, stream(config.seed, config.twin, 0, "scenario"))
 
 
-def build(config: RunConfig, observations, model=None, innovation: bool = False) -> ParticleFilter:
+def build(config: RunConfig, observations, model=None, innovation: bool = False, *, sensors=None,
+          drives=None) -> ParticleFilter:
     """The filter of ``config``, wired to an in-process twin when preprocessing is on.
 
     ``model``: the run's model if it is loaded already (default: the one the
-    configuration names); ``innovation``: see :class:`~dtpf.entity.filter.ParticleFilter`.
+    configuration names); ``innovation``, ``sensors``, ``drives``: see
+    :class:`~dtpf.entity.filter.ParticleFilter`.
     """
     if model is None:
         model = sources.load_model(config, check=False)
@@ -170,7 +178,8 @@ def build(config: RunConfig, observations, model=None, innovation: bool = False)
         twin = InProcessTwin(information, system)
     return ParticleFilter(model, observations, config.particles, resampler=config.resampler,
                           resample_below=config.resample_below, seed=config.seed, twin=config.twin,
-                          preprocessor=twin, innovation=innovation, jitter=config.jitter)
+                          preprocessor=twin, innovation=innovation, jitter=config.jitter, sensors=sensors,
+                          drives=drives)
 
 
 def run(config: RunConfig, progress=None, model=None, note=None) -> RunResult:
@@ -190,7 +199,8 @@ def run(config: RunConfig, progress=None, model=None, note=None) -> RunResult:
         note(data.problem)
     result = RunResult(config, data.known_truth, data.observations, truth_components=data.truth_components,
                        truth_columns=data.truth_columns)
-    pf = build(config, data.observations, model, innovation=data.known_truth is None)
+    pf = build(config, data.observations, model, innovation=data.known_truth is None, sensors=data.sensors,
+               drives=data.drives)
     start = time.perf_counter()
     for step in pf:
         result.steps.append(step)

@@ -77,7 +77,7 @@ class ZenohTwin:
         shell.publish(ParticleSet.model_validate(dict(
             **shell.header(step), kind=ParticleSetKind.PROPAGATED, particles=pending.particles,
             weights=pending.weights, observation=[float(v) for v in pending.observation],
-            parents=pending.parents), context=ARRAYS_CHECKED))
+            parents=pending.parents, **drive_fields(pending.sensor, pending.drive)), context=ARRAYS_CHECKED))
         self.step, self.deadline, self._looks_left = step, now + self.timeout, None
         return alive  # nobody to wait for: do not stall the filter
 
@@ -195,7 +195,8 @@ class TwinRun:
         self.data = data
         self.cloud = args.cloud_points
         self.steps = config.steps if config.steps is not None or data is None else len(data.observations)
-        shell.expect(RunShape(config.particles, model.dim, model.obs_dim, self.steps,
+        named = bool(getattr(model, "sensors", None))  # observations of several widths: checked per sensor
+        shell.expect(RunShape(config.particles, model.dim, None if named else model.obs_dim, self.steps,
                               own_move=RunShape.of(config).own_move))
         self.wait_for = set(args.wait_for if args.wait_for is not None else (
             ["information", "system"] if config.preprocess else []))
@@ -254,7 +255,8 @@ class TwinRun:
         self.pf = ParticleFilter(self.model, None if data is None else data.observations, config.particles,
                                  resampler=config.resampler, resample_below=config.resample_below,
                                  seed=config.seed, twin=config.twin, innovation=data is None or data.truth is None,
-                                 jitter=config.jitter)
+                                 jitter=config.jitter, sensors=None if data is None else data.sensors,
+                                 drives=None if data is None else data.drives)
         self.pf.warm_up()
         self.shell.running()
         if self.live is not None:
@@ -278,6 +280,8 @@ class TwinRun:
             if self.period and now < self.next_tick:
                 return self.next_tick
             observation = self.data.observations[pf.k]
+            sensor = None if self.data.sensors is None else self.data.sensors[pf.k]
+            drive = None if self.data.drives is None else self.data.drives[pf.k]
             self.truth = None if self.data.truth is None else self.data.truth[pf.k]
         else:
             if self.steps is not None and pf.k >= self.steps:
@@ -293,7 +297,8 @@ class TwinRun:
                 self._end(0, "the sensor ended its stream after %d observations", pf.k)
                 return None
             observation, self.truth = message.values, message.truth
-        self.pending = pending = pf.begin_step(observation, ask=self.twin is not None)
+            sensor, drive = message.sensor, getattr(message, "drive", None)
+        self.pending = pending = pf.begin_step(observation, ask=self.twin is not None, sensor=sensor, drive=drive)
         if pending.asks:
             if self.twin.ask(pending, now):
                 pf.work_ahead()  # off the lockstep's critical path; the same numbers
@@ -305,8 +310,11 @@ class TwinRun:
         pending, self.pending = self.pending, None
         step = self.pf.finish_step(pending, answer)
         stamps = None if self.data is None else self.data.stamps
+        stamp = None if stamps is None else int(stamps[step.step - 1])
+        if self.live is not None and self.live.stamp is not None:
+            stamp = self.live.stamp  # a driven twin's step is at its observation's time
         self.done.append(StepOutputs.of(self.shell, step, self.truth, pending.observation, self.model, self.config,
-                                        self.cloud, None if stamps is None else int(stamps[step.step - 1])))
+                                        self.cloud, stamp))
         if self.period:
             self.next_tick += self.period
 
@@ -343,6 +351,8 @@ class StepOutputs:
             log_predictive=step.log_predictive if np.isfinite(step.log_predictive) else None,
             innovation=step.innovation if step.innovation is not None and np.isfinite(step.innovation) else None,
             covariance=None if step.covariance is None else step.covariance.tolist())
+        if step.sensor is not None:
+            estimate["sensor"] = step.sensor
         if stamp is not None:
             estimate["stamp"] = Time.from_ns(stamp)
         # In the video scenario, its frame; the particle set as Foxglove draws it (entity/cloud.py says which
@@ -363,6 +373,19 @@ class StepOutputs:
             shell.publish(cloud, encode_with_base64(cloud, self.points.tobytes()))
 
 
+def drive_fields(sensor, drive) -> dict:
+    """The fields a particle set carries of a driven step: its sensor, each piece's dt and control (none for a
+    step that is not driven)."""
+    fields = {}
+    if sensor is not None:
+        fields["sensor"] = sensor
+    if drive is not None:
+        fields["dt"] = drive.pieces[:, 0].tolist()
+        if drive.pieces.shape[1] > 1:
+            fields["control"] = drive.pieces[:, 1:].ravel().tolist()
+    return fields
+
+
 class LiveObservations:
     """The sensor's observations as they arrive: decoded, checked by the intake, counted; never blocks."""
 
@@ -375,6 +398,8 @@ class LiveObservations:
         self.last = time.monotonic()
         #: Whether the last :meth:`take` left samples in the inbox (a flood: look again at once).
         self.more = False
+        #: The stamp (ns) of the last observation taken, for a driven twin (None: estimates carry their own time).
+        self.stamp = None
         shell.observation_counts = self.intake.counts
 
     def take(self, now: float) -> Observation | None:

@@ -25,7 +25,7 @@ from dtpf.entity.calls import ModelCalls
 from dtpf.entity.observations import ObservationError, ObservationTable, read_observations
 from dtpf.entity.timeline import Drive, TimeError, Timeline
 
-__all__ = ["StampedRun", "read_stamped", "sensor_sources"]
+__all__ = ["StampedRun", "read_stamped", "sensor_sources", "rows"]
 
 
 class StampedRun:
@@ -114,6 +114,11 @@ def read_stamped(config, model, *, steps: int | None = None, calls: ModelCalls |
     return StampedRun(observations, tuple(name for _, _, _, name in events),
                       np.array([stamp for stamp, _, _, _ in events], dtype=np.int64), drives, truth, components,
                       columns, ", ".join(str(path) for path in sources.values()))
+
+
+def rows(config) -> int:
+    """The number of steps in the run's sensor files (the sum of their rows), without the model."""
+    return sum(read_observations(path).steps for path in (config.sensor_files or {}).values())
 
 
 def read_controls(path, controls: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:

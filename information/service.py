@@ -159,7 +159,7 @@ class TwinInformation:
         # The decoded message's arrays are validated: the layer does not scan them again.
         try:
             result = layer.preprocess(step, message.particles, message.weights, message.observation,
-                                      checked=True)
+                                      checked=True, sensor=message.sensor)
         except ValueError as error:  # a set the rules cannot take: counted, the service goes on
             shell.reject("particle set the rules cannot take", f"step {step}: {error}",
                          key=self.particle_sets.key_expr)
@@ -170,7 +170,9 @@ class TwinInformation:
         shell.publish(ParticleSet.model_validate(dict(
             **shell.header(step), kind=ParticleSetKind.PREPROCESSED, particles=result.particles,
             weights=result.weights, observation=message.observation, ps=report.ps,
-            threshold=min(report.threshold, 1.0), jitter=layer.jitter, **counts), context=ARRAYS_CHECKED))
+            threshold=min(report.threshold, 1.0), jitter=layer.jitter, **counts,
+            **{name: getattr(message, name) for name in ("sensor", "dt", "control")
+               if getattr(message, name) is not None}), context=ARRAYS_CHECKED))
         summary = layer.mirror(message.particles, message.weights, message.parents, report.threshold,
                                checked=True)
         shell.publish(WeightState(**shell.header(step), **summary.as_dict(), ps=report.ps, **counts))

@@ -71,8 +71,10 @@ class RunShape:
         """The shape of the run of ``config`` (a RunConfig) with its loaded ``model``."""
         from dtpf.messages.family import MOVES
 
+        # A model with several sensors has observations of several widths: not checked here (the entity does).
         return cls(particles=config.particles, dim=getattr(model, "dim", None),
-                   obs_dim=getattr(model, "obs_dim", None), steps=config.steps,
+                   obs_dim=None if getattr(model, "sensors", None) else getattr(model, "obs_dim", None),
+                   steps=config.steps,
                    own_move=config.jitter not in MOVES.builtins())
 
     @property

@@ -18,6 +18,7 @@ from typing import NamedTuple
 
 from dtpf.messages.foxglove import CompressedImage, ImageAnnotations, PointCloud
 from dtpf.messages.models import (
+    Control,
     Estimate,
     Layer,
     Message,
@@ -64,6 +65,7 @@ TOPICS: dict[tuple[Layer, str], Topic] = {
         Topic(Layer.ENTITY, "cloud", PointCloud),  # the particle set as Foxglove draws it
         Topic(Layer.ENTITY, "annotations", ImageAnnotations),  # the video scenario's particles over its frame
         Topic(Layer.SENSOR, "observation", Observation),  # the physical system's measurements
+        Topic(Layer.SENSOR, "control", Control),  # a driven machine's control input
         Topic(Layer.RECORDER, "rejected", Rejected),  # a sample of what the recorder did not record
         Topic(Layer.RECORDER, "missed", Missed),  # what the recorder missed and could not recover
         *(Topic(layer, "status", Status) for layer in Layer),
@@ -73,7 +75,7 @@ TOPICS: dict[tuple[Layer, str], Topic] = {
 #: Every message class, by name.
 MESSAGE_CLASSES: dict[str, type[Message]] = {
     cls.__name__: cls for cls in (ParticleSet, WeightState, PSCommand, Estimate, Status, CompressedImage,
-                                  Observation, Rejected, Missed, PointCloud, ImageAnnotations)
+                                  Observation, Control, Rejected, Missed, PointCloud, ImageAnnotations)
 }
 
 

@@ -159,6 +159,12 @@ WeightsArray = Annotated[
 RunId = Annotated[str, AfterValidator(_run_id), Field(json_schema_extra={"pattern": ID_PATTERN})]
 TwinId = Annotated[str, AfterValidator(_twin_id), Field(json_schema_extra={"pattern": ID_PATTERN})]
 Count = Annotated[int, Field(ge=0, le=UINT32_MAX)]
+#: A sensor's name (a model's ``sensors``): a letter, then letters, digits, '_' or '-'.
+SENSOR_PATTERN = r"^[A-Za-z][A-Za-z0-9_-]{0,63}$"
+SensorName = Annotated[str, Field(max_length=64, pattern=SENSOR_PATTERN)]
+#: Most control components a message carries, and most pieces a step's drive has.
+MAX_CONTROLS = 64
+MAX_DRIVE_PIECES = 4096
 
 #: Every model: unknown fields rejected, frozen, finite floats only.
 STRICT_CONFIG = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
@@ -296,6 +302,14 @@ class ParticleSetHeader(Message):
         default=None, ge=1, le=UINT32_MAX, description="Number of distinct particles this set descends from "
                                                         "(distinct ancestors of the last resampling); absent "
                                                         "before the first resampling.")
+    sensor: SensorName | None = Field(default=None, description="The sensor z_k is from (a model with several "
+                                                                "sensors); absent: the model's one sensor.")
+    dt: list[Annotated[float, Field(ge=0.0)]] | None = Field(
+        default=None, max_length=MAX_DRIVE_PIECES, description="A driven step: the seconds of each piece of the "
+        "interval from step k - 1 (pieces split at control changes; docs/guides/driven.md).")
+    control: list[float] | None = Field(
+        default=None, max_length=MAX_DRIVE_PIECES * MAX_CONTROLS, description="A driven step: the control held "
+        "over each piece of dt, row by row (len(dt) rows of the model's control components).")
     jitter: Literal[(*family.MOVES.builtins(), names.OWN_ARM)] | None = Field(
         default=None, description="Preprocessed sets: the move the entity applies after resampling this set, "
                                   "the arm the system layer chose ('own': the run's own move of "
@@ -317,6 +331,10 @@ class ParticleSetHeader(Message):
             raise ValueError(f"a propagated particle set carries no preprocessing fields, got {', '.join(extras)}")
         if self.kind == ParticleSetKind.PREPROCESSED and self.ps is None:
             raise ValueError("a preprocessed particle set must say which ps was used, got ps=None")
+        if self.control is not None and (not self.dt or len(self.control) % len(self.dt)
+                                         or len(self.control) // len(self.dt) > MAX_CONTROLS):
+            raise ValueError(f"control must hold up to {MAX_CONTROLS} values per piece of dt, got "
+                             f"{len(self.control)} values for {len(self.dt or [])} pieces")
         _check_counts(self, None)
         return self
 
@@ -506,6 +524,8 @@ class Estimate(Message):
         default=None, ge=0.0, description="Normalised innovation squared of z_k (about the number of "
                                           "observed values when the filter is consistent), where the model "
                                           "gives the observation's moments.")
+    sensor: SensorName | None = Field(default=None, description="The sensor z_k is from (a model with several "
+                                                                "sensors).")
     covariance: list[float] | None = Field(
         default=None, description="(d(d-1)/2,) weighted covariances between the components, the pairs i < j "
                                   "row by row: (0, 1), (0, 2), ..., (1, 2), ...; given when 2 <= d <= "
@@ -655,6 +675,8 @@ class Observation(Message):
     ``step`` is the sensor's sequence number (1, 2, ...: one more for every
     measurement), ``stamp`` the time of the measurement. ``end`` closes the
     stream: the entity finishes its run (``values`` may then be empty).
+    ``sensor`` names the sensor of a model with several (each numbers its own
+    measurements); a driven twin filters them in ``stamp`` order.
     """
 
     producer: ClassVar[Layer] = Layer.SENSOR
@@ -664,12 +686,27 @@ class Observation(Message):
     truth: list[float] | None = Field(default=None, max_length=MAX_OBSERVATION_VALUES,
                                       description="The true state, when the sensor is a simulation.")
     end: bool = Field(default=False, description="True on the last message of the stream: no more observations.")
+    sensor: SensorName | None = Field(default=None, description="The sensor (a model's sensors); absent: the "
+                                                                "model's one sensor.")
 
     @model_validator(mode="after")
     def _check_values(self) -> "Observation":
         if not self.end and not self.values:
             raise ValueError("an observation must carry at least one value (or end=true)")
         return self
+
+
+class Control(Message):
+    """The control input of a driven machine (wheel odometry, a commanded velocity): control source -> entity.
+
+    ``step`` is the source's sequence number, ``stamp`` the time from which ``values`` is in force (zero-order
+    hold until the next control; docs/guides/driven.md).
+    """
+
+    producer: ClassVar[Layer] = Layer.SENSOR
+
+    values: list[float] = Field(min_length=1, max_length=MAX_CONTROLS,
+                                description="u, the model's control components in the order of its controls.")
 
 
 #: Longest part of a rejected payload the recorder keeps (as base64 in :class:`Rejected`).

@@ -37,6 +37,9 @@ def resolved_config(args: argparse.Namespace):
     config = config_from_args(args)
     if config.observation_file is not None and config.steps is None:
         config = config.model_copy(update={"steps": read_table(config).steps})
+    if config.sensor_files and config.steps is None:  # a driven twin's sensors: every row of every file
+        from dtpf.entity import stamped
+        config = config.model_copy(update={"steps": stamped.rows(config)})
     return fit_simulation(config, args)
 
 

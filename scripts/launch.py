@@ -404,6 +404,12 @@ def service_command(layer: str, config: RunConfig, endpoint: str, *, timeout: fl
         command += ["--model", config.model]
     if config.observations is not None:
         command += ["--observations", config.observations]
+    for sensor, path in (config.sensor_files or {}).items():  # a driven twin's sensors
+        command += ["--observations", f"{sensor}={path}"]
+    if config.controls is not None:
+        command += ["--controls", config.controls]
+    if config.reorder_window != RunConfig.model_fields["reorder_window"].default:
+        command += ["--reorder-window", repr(config.reorder_window)]
     if config.reader is not None:
         command += ["--reader", config.reader]
     if config.topic is not None:

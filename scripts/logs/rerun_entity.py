@@ -4,7 +4,8 @@ The entity's filter runs again, in process, on the observations its particle set
 model, resampler and move (a user's own included, loaded by the reference the log names), taking at each
 step the answer it took in the run: the recorded preprocessed set when the step's estimate is not marked
 degraded, none when it is. Every recorded propagated set must come out bit for bit: so the resampling and
-the move of step k are checked through the set of step k + 1 they lead to.
+the move of step k are checked through the set of step k + 1 they lead to. A driven twin's set carries its
+sensor and its drive (each piece's dt and control), which the re-run steps with.
 """
 from __future__ import annotations
 
@@ -13,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from dtpf.entity.filter import ParticleFilter, Preprocessed
+from dtpf.entity.timeline import Drive
 from dtpf.messages.config import RunConfig
 from dtpf.messages.models import Estimate, ParticleSet
 
@@ -41,6 +43,16 @@ def first_difference(recorded: np.ndarray, rerun: np.ndarray) -> tuple[str, obje
     return f"[{', '.join(map(str, index))}]", float(recorded[index]), float(rerun[index])
 
 
+def drive_of(recorded: ParticleSet) -> Drive | None:
+    """The drive a propagated set carries (its pieces' dt and control), or None."""
+    if recorded.dt is None:
+        return None
+    dt = np.asarray(recorded.dt, dtype=np.float64)[:, None]
+    if recorded.control is None:
+        return Drive(dt)
+    return Drive(np.hstack([dt, np.asarray(recorded.control, dtype=np.float64).reshape(dt.shape[0], -1)]))
+
+
 def rerun_entity(config: RunConfig, model, twin: str, propagated: dict[int, ParticleSet],
                  preprocessed: dict[int, ParticleSet], estimates: dict[int, Estimate]) -> EntityRerun:
     """Re-run the entity of ``twin`` (module docstring); each dict holds one message per step (the one the
@@ -52,7 +64,7 @@ def rerun_entity(config: RunConfig, model, twin: str, propagated: dict[int, Part
         return result
     answers: dict[int, Preprocessed | None] = {}
 
-    def answer(step, particles, weights, observation, parents):
+    def answer(step, particles, weights, observation, parents, **driven):
         return answers.get(step)
 
     pf = ParticleFilter(model, None, config.particles, resampler=config.resampler,
@@ -64,7 +76,8 @@ def rerun_entity(config: RunConfig, model, twin: str, propagated: dict[int, Part
             return result
         recorded = propagated[step]
         z = np.asarray(recorded.observation, dtype=np.float64)
-        if z.size != model.obs_dim:
+        sensor, drive = recorded.sensor, drive_of(recorded)
+        if z.size != (model.obs_dim if sensor is None else pf.calls.sensors.get(sensor, -1)):
             result.skipped = f"step {step}'s particle set does not carry its observation"
             return result
         estimate = estimates.get(step)
@@ -75,7 +88,7 @@ def rerun_entity(config: RunConfig, model, twin: str, propagated: dict[int, Part
                 return result
             answers[step] = Preprocessed(answer_set.particles, answer_set.weights, checked=True,
                                          jitter=answer_set.jitter)
-        filtered = pf._step(z)
+        filtered = pf._step(z, sensor=sensor, drive=drive)
         answers.pop(step, None)
         for name in ("particles", "weights"):
             where = first_difference(getattr(recorded, name), getattr(filtered, name))

@@ -13,6 +13,7 @@ import pytest
 from dtpf.messages.config import RunConfig
 from dtpf.scripts import inprocess
 from dtpf.scripts.launch import launch
+from dtpf.scripts.ros2 import convert
 
 from conftest import ROOT
 
@@ -113,20 +114,27 @@ def test_a_bag_drives_dtpf_launch_to_the_csv_numbers_and_exports_back_to_rosbag2
 
     # dtpf export --ros2: a rosbag2 folder that rosbags (not dtpf) reads back, every estimate equal.
     out = tmp_path / "exported"
-    done = dtpf("export", "--ros2", str(log), str(out), "--ros2-pose", "x=0,y=1")
+    done = dtpf("export", "--ros2", str(log), str(out), "--ros2-pose", "x=0,y=1", "--ros2-frame", "world",
+                "--ros2-child-frame", "{twin}_base")
     assert done.returncode == 0, done.stderr
     assert (out / "metadata.yaml").is_file()
     with Reader(out) as reader:
         topics = {c.topic: c.msgtype for c in reader.connections}
         assert topics["/dtpf/rb_bag/pose"] == "geometry_msgs/msg/PoseWithCovarianceStamped"
+        assert topics["/dtpf/rb_bag/odom"] == "nav_msgs/msg/Odometry"
+        assert topics["/tf"] == "tf2_msgs/msg/TFMessage"
         assert topics["/dtpf/rb_bag/particles"] == "geometry_msgs/msg/PoseArray"
         assert topics["/dtpf/rb_bag/observation"] == "std_msgs/msg/Float64MultiArray"
         assert topics["/dtpf/rb_bag/ess"] == "std_msgs/msg/Float64"
-        poses, ess, clouds, observed = [], [], 0, []
+        poses, odoms, transforms, ess, clouds, observed = [], [], [], [], 0, []
         for connection, _, raw in reader.messages():
             message = TYPESTORE.deserialize_cdr(raw, connection.msgtype)
             if connection.topic.endswith("/pose"):
                 poses.append(message)
+            elif connection.topic.endswith("/odom"):
+                odoms.append(message)
+            elif connection.topic == "/tf":
+                transforms.extend(message.transforms)
             elif connection.topic.endswith("/ess"):
                 ess.append(message.data)
             elif connection.topic.endswith("/particles"):
@@ -134,13 +142,31 @@ def test_a_bag_drives_dtpf_launch_to_the_csv_numbers_and_exports_back_to_rosbag2
                 assert len(message.poses) == 500
             elif connection.topic.endswith("/observation"):
                 observed.append(list(message.data))
-    assert len(poses) == 30 and clouds == 30
+    assert len(poses) == len(odoms) == len(transforms) == 30 and clouds == 30
+    unknown = convert.UNKNOWN_VARIANCE
+    for pose, odom, transform, estimate in zip(poses, odoms, transforms, estimates):
+        stamp = EPOCH + (estimate.step - 1) * 50_000_000
+        for header in (odom.header, transform.header):
+            assert (header.frame_id, header.stamp.sec * 10**9 + header.stamp.nanosec) == ("world", stamp)
+        assert odom.child_frame_id == transform.child_frame_id == "rb_bag_base"
+        position = (estimate.mean[0], estimate.mean[1], 0.0)
+        assert (odom.pose.pose.position.x, odom.pose.pose.position.y, odom.pose.pose.position.z) == position
+        t = transform.transform
+        assert (t.translation.x, t.translation.y, t.translation.z) == position
+        assert (t.rotation.x, t.rotation.y, t.rotation.z, t.rotation.w) == (0.0, 0.0, 0.0, 1.0)
+        np.testing.assert_array_equal(odom.pose.covariance, pose.pose.covariance)
+        # z, roll, pitch and yaw are not in the state: unknown by a large variance, none between axes.
+        covariance = pose.pose.covariance.reshape(6, 6)
+        assert [covariance[i, i] for i in (2, 3, 4, 5)] == [unknown] * 4
+        assert np.count_nonzero(covariance[2:, :]) == np.count_nonzero(covariance[:, 2:]) == 4
+        assert (odom.twist.covariance.reshape(6, 6) == np.eye(6) * unknown).all()
+        assert (odom.twist.twist.linear.x, odom.twist.twist.angular.z) == (0.0, 0.0)
     for pose, estimate in zip(poses, estimates):
         assert (pose.pose.pose.position.x, pose.pose.pose.position.y) == (estimate.mean[0], estimate.mean[1])
         covariance = pose.pose.covariance.reshape(6, 6)
         assert (covariance[0, 0], covariance[1, 1]) == (estimate.var[0], estimate.var[1])
         assert covariance[0, 1] == covariance[1, 0] == estimate.covariance[0] != 0.0  # the estimate's own
-        assert pose.header.frame_id == "map"
+        assert pose.header.frame_id == "world"
         assert (pose.header.stamp.sec, pose.header.stamp.nanosec) == (estimate.stamp.sec, estimate.stamp.nsec)
         assert pose.header.stamp.sec * 10**9 + pose.header.stamp.nanosec == EPOCH + (estimate.step - 1) * 50_000_000
     assert ess == [e.ess for e in estimates]
@@ -271,6 +297,21 @@ def test_the_ros2_messages_are_the_bytes_rosbags_serialises():
         particles = rng.normal(size=(7, 4))
         assert convert.pose_array_cdr(1000, 5, frame, particles) == serialised(
             "geometry_msgs/msg/PoseArray", header=header, poses=[pose(*p) for p in particles.tolist()])
+        for child in ("b", "base_link", "rb_1_base"):
+            twist = types["geometry_msgs/msg/TwistWithCovariance"](
+                twist=types["geometry_msgs/msg/Twist"](linear=types["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0),
+                                                       angular=types["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0)),
+                covariance=np.eye(6).reshape(36) * convert.UNKNOWN_VARIANCE)
+            assert convert.odometry_cdr(1000, 5, frame, child, poses) == serialised(
+                "nav_msgs/msg/Odometry", header=header, child_frame_id=child, twist=twist,
+                pose=types["geometry_msgs/msg/PoseWithCovariance"](pose=pose(1.5, -2.0, 0.25, 0.7),
+                                                                   covariance=covariance))
+            placed = pose(1.5, -2.0, 0.25, 0.7)
+            transform = types["geometry_msgs/msg/Transform"](
+                translation=types["geometry_msgs/msg/Vector3"](x=1.5, y=-2.0, z=0.25), rotation=placed.orientation)
+            assert convert.tf_cdr(1000, 5, frame, child, poses) == serialised(
+                "tf2_msgs/msg/TFMessage", transforms=[types["geometry_msgs/msg/TransformStamped"](
+                    header=header, child_frame_id=child, transform=transform)])
         values = rng.normal(size=3)
         layout = types["std_msgs/msg/MultiArrayLayout"](
             dim=[types["std_msgs/msg/MultiArrayDimension"](label=frame, size=3, stride=3)], data_offset=0)
@@ -371,8 +412,8 @@ def test_the_bridge_formats_an_observation_that_decodes_as_the_one_pydantic_buil
 
 
 class _FakePublisher:
-    def __init__(self):
-        self.sent, self.subscribers = [], 0
+    def __init__(self, cls=None):
+        self.sent, self.subscribers, self.cls = [], 0, cls
 
     def get_subscription_count(self):
         return self.subscribers
@@ -386,7 +427,7 @@ class _FakeNode:
         self.publishers = {}
 
     def create_publisher(self, cls, topic, profile):
-        return self.publishers.setdefault(topic.rsplit("/", 1)[1], _FakePublisher())
+        return self.publishers.setdefault(topic.rsplit("/", 1)[1], _FakePublisher(cls))
 
 
 class _FakeSubscriber:
@@ -414,16 +455,16 @@ class _FakeSession:
         return True
 
 
-def _outbound(monkeypatch, dim: int, pose: str | None = None):
+def _outbound(monkeypatch, dim: int, pose: str | None = None, classes=lambda msgtype: msgtype):
     from types import SimpleNamespace
 
     from dtpf.scripts.ros2 import bridge
 
-    monkeypatch.setattr(bridge, "message_class", lambda msgtype: msgtype)
+    monkeypatch.setattr(bridge, "message_class", classes)
     monkeypatch.setattr(bridge, "qos", lambda args: None)
     node, session = _FakeNode(), _FakeSession()
-    args = SimpleNamespace(ros2_pose=pose, ros2_namespace=None, ros2_frame="map", ros2_covariance=None,
-                           ros2_depth=100, ros2_best_effort=False)
+    args = SimpleNamespace(ros2_pose=pose, ros2_namespace=None, ros2_frame="map", ros2_child_frame="base_{twin}",
+                           ros2_covariance=None, ros2_depth=100, ros2_best_effort=False)
     outbound = bridge.Outbound(node, session, RunConfig(twin="fake"), dim, args, OrderedDict())
     return outbound, node.publishers, session
 
@@ -520,3 +561,42 @@ def test_the_latency_benchmark_says_when_its_target_lies_below_the_floor_of_the_
     assert verdict(0.95, 0.49) == "PASS"
     assert verdict(1.04, 0.49) == "FAIL"
     assert verdict(2.09, 1.116) == "FAIL, below its floor (1.116 ms) on this machine"
+
+
+def test_the_bridge_publishes_odometry_and_tf_where_their_packages_import(monkeypatch, caplog):
+    """Each pose goes out as nav_msgs/Odometry and on /tf too, the bytes dtpf export --ros2 writes. tf2_msgs has
+    no wheel (a system ROS 2 installation provides it): a stand-in module takes its place here; without one,
+    /tf is left out and the log says why, once."""
+    import sys
+    import types
+
+    from dtpf.scripts.ros2 import bridge
+
+    real = bridge.message_class
+    package, module = types.ModuleType("tf2_msgs"), types.ModuleType("tf2_msgs.msg")
+    module.TFMessage = type("TFMessage", (), {})
+    package.msg = module
+    monkeypatch.setitem(sys.modules, "tf2_msgs", package)
+    monkeypatch.setitem(sys.modules, "tf2_msgs.msg", module)
+    only_tf = lambda msgtype: real(msgtype) if msgtype.startswith("tf2_msgs/") else msgtype  # noqa: E731
+    rng = np.random.default_rng(4)
+    _, published, session = _outbound(monkeypatch, dim=4, classes=only_tf)
+    assert published["tf"].cls is module.TFMessage
+    estimate, payload, _ = _estimate_and_cloud(1, 4, rng)
+    session.deliver("dtpf/fake/entity/estimate", payload)
+    poses = convert.pose_set(estimate, None, {"x": 0, "y": 1})
+    assert published["tf"].sent == [convert.tf_cdr(1001, 5, "map", "base_fake", poses)]
+    assert published["odom"].sent == [convert.odometry_cdr(1001, 5, "map", "base_fake", poses)]
+    odom = TYPESTORE.deserialize_cdr(published["odom"].sent[0], "nav_msgs/msg/Odometry")
+    assert (odom.header.frame_id, odom.child_frame_id) == ("map", "base_fake")
+
+    monkeypatch.setitem(sys.modules, "tf2_msgs", None)  # cannot be imported, installed or not
+    monkeypatch.setitem(sys.modules, "tf2_msgs.msg", None)
+    with caplog.at_level("WARNING", logger="dtpf.ros2"):
+        _, published, session = _outbound(monkeypatch, dim=4, classes=only_tf)
+    assert "tf" not in published and "odom" in published
+    lines = [r.getMessage() for r in caplog.records if r.name == "dtpf.ros2"]
+    assert len(lines) == 1 and lines[0].startswith("/tf not published: message type tf2_msgs/msg/TFMessage: its "
+                                                   "Python package tf2_msgs is not installed"), lines
+    session.deliver("dtpf/fake/entity/estimate", payload)
+    assert len(published["odom"].sent) == 1

@@ -40,29 +40,39 @@ from dtpf.messages.config import RunConfig, add_run_arguments, config_from_args
 from dtpf.messages.foxglove import PointCloud
 from dtpf.messages.models import MAX_OBSERVATION_VALUES, Estimate, Layer, Observation
 from dtpf.scripts.console import run_command
-from dtpf.scripts.ros2 import Ros2Error, require_rclpy
+from dtpf.scripts.ros2 import Ros2Error, params, require_rclpy
 from dtpf.scripts.ros2.convert import (
+    TF_TOPIC,
+    TF_TYPE,
     TOPICS,
     bool_cdr,
     cloud_covariances,
     cloud_points_of,
     float64_cdr,
+    odometry_cdr,
     parse_pose,
     pose_array_cdr,
     pose_cdr,
     pose_set,
     pose_set_particles,
+    tf_cdr,
 )
-from dtpf.scripts.ros2.export import namespace_of
+from dtpf.scripts.ros2.export import DEFAULT_CHILD_FRAME, DEFAULT_FRAME, frame_of, namespace_of
 from dtpf.shell.bus import BusError, add_zenoh_arguments, open_session, publisher, zenoh_config, zenoh_config_from_args
 from dtpf.shell.service import ServiceShell
 
-__all__ = ["bridge_arguments", "command_line", "main", "register"]
+__all__ = ["bridge_arguments", "bridge_words", "command_line", "main", "register", "resolve_options"]
 
 log = logging.getLogger("dtpf.ros2")
 
 #: How long an estimate waits for its step's particle cloud before its pose goes out without the cloud.
 CLOUD_WAIT = 0.5
+#: The bridge's options when neither the command line nor --ros2-params gives them.
+DEFAULTS = {"ros2_frame": DEFAULT_FRAME, "ros2_child_frame": DEFAULT_CHILD_FRAME, "ros2_depth": 100,
+            "ros2_best_effort": False}
+#: The options dtpf launch passes on to its bridge (their argparse destinations).
+BRIDGE_OPTIONS = ("ros2_type", "ros2_pose", "ros2_namespace", "ros2_frame", "ros2_child_frame", "ros2_depth",
+                  "ros2_covariance", "ros2_params")
 
 
 def message_class(msgtype: str):
@@ -128,12 +138,55 @@ def ros2_executor():
     return SingleThreadedExecutor()
 
 
-def qos(args):
+def qos(args, best_effort: bool | None = None):
+    """The QoS profile of ``args`` (``best_effort`` None: --ros2-best-effort's choice)."""
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
+    best_effort = args.ros2_best_effort if best_effort is None else best_effort
     return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=args.ros2_depth,
-                      reliability=ReliabilityPolicy.BEST_EFFORT if args.ros2_best_effort else ReliabilityPolicy.RELIABLE,
+                      reliability=ReliabilityPolicy.BEST_EFFORT if best_effort else ReliabilityPolicy.RELIABLE,
                       durability=DurabilityPolicy.VOLATILE)
+
+
+def resolve_options(args: argparse.Namespace, config: RunConfig) -> argparse.Namespace:
+    """``args`` with what ``--ros2-params`` gives where the command line gave nothing (the topic only when
+    neither --topic nor --observations ros2:TOPIC names one), then :data:`DEFAULTS`."""
+    if getattr(args, "ros2_params", None):
+        for parameter, value in params.load(args.ros2_params, params.node_name(config.twin)).items():
+            dest = params.PARAMETERS[parameter][0]
+            if parameter == "topic":
+                if getattr(args, "topic", None) is None and config.ros2_topic is None:
+                    args.topic = value
+            elif getattr(args, dest, None) is None:
+                setattr(args, dest, value)
+    for dest, value in DEFAULTS.items():
+        if getattr(args, dest, None) is None:
+            setattr(args, dest, value)
+    return args
+
+
+def bridge_words(args: argparse.Namespace) -> list[str]:
+    """The bridge's options given on a command line (dtpf launch's), as the bridge's command-line words."""
+    words = []
+    for dest in BRIDGE_OPTIONS:
+        value = getattr(args, dest, None)
+        if value is not None:
+            words += ["--" + dest.replace("_", "-"), str(value)]
+    if getattr(args, "ros2_best_effort", None):
+        words.append("--ros2-best-effort")
+    return words
+
+
+def optional_publisher(node, msgtype: str, topic: str, profile):
+    """A publisher of ``msgtype`` on ``topic``, or None (said once in the log) when its Python package is not
+    installed here: nav_msgs comes with the [ros2] extra; tf2_msgs has no wheel, a system ROS 2 installation
+    provides it (``source /opt/ros/<distro>/setup.bash`` before starting the bridge)."""
+    try:
+        cls = message_class(msgtype)
+    except Ros2Error as error:
+        log.warning("%s not published: %s", topic, error)
+        return None
+    return node.create_publisher(cls, topic, profile)
 
 
 class Outbound:
@@ -153,13 +206,17 @@ class Outbound:
         self.mapping = parse_pose(args.ros2_pose, dim)
         self.dim = dim
         self.cloud_stamps: OrderedDict = OrderedDict()
-        self.frame = args.ros2_frame
+        self.frame = frame_of(args.ros2_frame, config.twin)
+        self.child_frame = frame_of(args.ros2_child_frame, config.twin)
         self.stamps = stamps
         ns = namespace_of(args.ros2_namespace, config.twin)
         self.namespace = ns
         profile = qos(args)
         self.pub = {name: node.create_publisher(message_class(msgtype), f"{ns}/{name}", profile)
-                    for name, msgtype in TOPICS.items() if name != "observation"}
+                    for name, msgtype in TOPICS.items() if name not in ("observation", "odom")}
+        #: nav_msgs/Odometry and /tf, each where its package can be imported (else None, said in the log).
+        self.odom = optional_publisher(node, TOPICS["odom"], f"{ns}/odom", profile)
+        self.tf = optional_publisher(node, TF_TYPE, TF_TOPIC, profile)
         self.pending: dict[int, tuple[Estimate, float]] = {}
         self.clouds: OrderedDict = OrderedDict()  # a step's cloud that came before its estimate
         #: True once an estimate waited CLOUD_WAIT for its cloud in vain (an entity with --cloud-points 0).
@@ -254,6 +311,10 @@ class Outbound:
         stamp = self.stamps.get(tuple(estimate.observation or ()))
         sec, nsec = stamp if stamp is not None else (estimate.stamp.sec, estimate.stamp.nsec)
         self.pub["pose"].publish(pose_cdr(sec, nsec, self.frame, poses))
+        if self.odom is not None:
+            self.odom.publish(odometry_cdr(sec, nsec, self.frame, self.child_frame, poses))
+        if self.tf is not None:
+            self.tf.publish(tf_cdr(sec, nsec, self.frame, self.child_frame, poses))
         self.pub["ess"].publish(float64_cdr(estimate.ess))
         if estimate.ps is not None:
             self.pub["ps"].publish(float64_cdr(estimate.ps))
@@ -288,9 +349,57 @@ class Outbound:
             if subscriber is not None:
                 subscriber.undeclare()
         deadline = time.monotonic() + acked
-        for publisher in self.pub.values():
+        for publisher in [*self.pub.values(), *filter(None, (self.odom, self.tf))]:
             while not publisher.wait_for_all_acked(Duration(seconds=0.5)) and time.monotonic() < deadline:
                 progress()
+
+
+class Input:
+    """The input topic's subscription, its reliability matched to its publishers'. Reliable (each message
+    retransmitted until received) unless --ros2-best-effort or a publisher offers best effort only (as most
+    sensor drivers do): a reliable subscriber never matches such a publisher, so the subscription is then
+    made best effort, which receives from reliable and best-effort publishers alike, and the log says so in
+    one line naming --ros2-best-effort. A publisher that appears later is looked at by :meth:`tick`."""
+
+    def __init__(self, node, cls, topic: str, callback, args, say):
+        self.node, self.cls, self.topic, self.callback, self.args, self.say = node, cls, topic, callback, args, say
+        self.best_effort = bool(args.ros2_best_effort)
+        self.offered = False  # an incompatible publisher was reported (an rclpy thread)
+        if not self.best_effort and self._best_effort_publisher():
+            self._switch()
+        self.subscription = self._create()
+
+    def _best_effort_publisher(self) -> bool:
+        from rclpy.qos import ReliabilityPolicy
+
+        return any(info.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT
+                   for info in self.node.get_publishers_info_by_topic(self.topic))
+
+    def _create(self):
+        from rclpy.event_handler import SubscriptionEventCallbacks
+
+        events = SubscriptionEventCallbacks(incompatible_qos=self._on_incompatible)
+        return self.node.create_subscription(self.cls, self.topic, self.callback, qos(self.args, self.best_effort),
+                                             event_callbacks=events)
+
+    def _on_incompatible(self, info) -> None:
+        self.offered = True
+
+    def _switch(self) -> None:
+        self.best_effort = True
+        self.say(f"a publisher of {self.topic} offers best-effort QoS only: the bridge subscribes best effort, "
+                 f"which hears it (--ros2-best-effort does so from the start)")
+
+    def tick(self) -> None:
+        """The executor's thread, about once a second: a best-effort publisher met while subscribed reliable
+        makes the subscription best effort."""
+        if self.best_effort or not (self.offered or self._best_effort_publisher()):
+            return
+        self.offered = False
+        if self._best_effort_publisher():
+            self.node.destroy_subscription(self.subscription)
+            self._switch()
+            self.subscription = self._create()
 
 
 class Inbound:
@@ -400,12 +509,19 @@ def main(config: RunConfig, zconf, args: argparse.Namespace) -> int:
     from dtpf.scripts.sensor import resume_point
 
     require_rclpy()
+    resolve_options(args, config)
     topic = args.topic or config.ros2_topic
     if topic is None and args.no_out:
         raise Ros2Error("nothing to bridge: give --topic (in) or leave the outputs on")
     if topic is not None and not topic.startswith("/"):
         topic = "/" + topic
     model = model_ref.resolve(config.model_ref)
+    mapper = cls = None
+    if topic is not None and args.ros2_type is not None:  # a type given: its field paths checked first
+        cls = message_class(args.ros2_type)
+        mapper = _mapper(args, config, model, cls)
+    elif args.ros2_fields or config.ros2_fields:  # a path that does not parse: one line now
+        rosbag.parse_fields(args.ros2_fields or config.ros2_fields)
     import rclpy
     from rclpy.signals import SignalHandlerOptions
 
@@ -415,12 +531,8 @@ def main(config: RunConfig, zconf, args: argparse.Namespace) -> int:
     rclpy.init(args=[], signal_handler_options=SignalHandlerOptions.NO)
     viewer = outbound = None
     try:
-        node = rclpy.create_node(f"dtpf_{namespace_of(None, config.twin).rsplit('/', 1)[1]}")
+        node = rclpy.create_node(params.node_name(config.twin))
         with ServiceShell("sensor", config, zconf) as shell:
-            mapper = cls = None
-            if topic is not None and args.ros2_type is not None:  # a type given: its field paths checked first
-                cls = message_class(args.ros2_type)
-                mapper = _mapper(args, config, model, cls)
             stamps: OrderedDict = OrderedDict()
             if not args.no_out:  # the twin's topics exist before the input's publisher is awaited
                 if args.secure:  # the viewer role reads the twin; the sensor role only publishes
@@ -442,7 +554,7 @@ def main(config: RunConfig, zconf, args: argparse.Namespace) -> int:
                                           args.wait_for_entity)
                 start = resume_point(shell, args.resume_wait) + 1
                 inbound = Inbound(shell, mapper, start, stamps)
-                node.create_subscription(cls, topic, inbound, qos(args))
+                subscription = Input(node, cls, topic, inbound, args, shell.log.warning)
                 shell.log.info("bridging %s (%s) to %s from sequence %d%s", topic, msgtype,
                                config.observation_key() or keys.key(config.twin, "sensor", "observation"), start,
                                f"; the twin out under {outbound.namespace}/" if outbound else "")
@@ -457,6 +569,7 @@ def main(config: RunConfig, zconf, args: argparse.Namespace) -> int:
                     outbound.tick()
                 if topic is not None and time.monotonic() > next_look:  # a publisher of another type never matches
                     next_look = time.monotonic() + 1.0
+                    subscription.tick()
                     for other in set(_types_of(node, topic)) - {msgtype} - foreign:
                         foreign.add(other)
                         shell.reject("a publisher of another message type on the topic",
@@ -475,10 +588,15 @@ def main(config: RunConfig, zconf, args: argparse.Namespace) -> int:
 
 
 def bridge_arguments(parser: argparse.ArgumentParser, defaults: bool = True) -> None:
-    """The bridge's own options (also those ``dtpf launch`` passes on for ``--observations ros2:TOPIC``;
-    ``defaults`` False: every option defaults to None, not given)."""
+    """The bridge's own options (also those ``dtpf launch`` passes on for ``--observations ros2:TOPIC``,
+    ``defaults`` False). Every option defaults to None (not given): :func:`resolve_options` fills in what
+    --ros2-params gives, then :data:`DEFAULTS`."""
     group = parser.add_argument_group("ROS 2 (with --observations ros2:TOPIC)" if not defaults else "ROS 2")
-    frame, depth = ("map", 100) if defaults else (None, None)
+    group.add_argument("--ros2-params", default=None, metavar="FILE",
+                       help="a ROS 2 parameters file (node: ros__parameters: ...; the node is dtpf_<twin> or /**) "
+                            "giving any of these options by their names without 'ros2-' (topic, type, fields, "
+                            "pose, namespace, frame, child_frame, depth, covariance, best_effort); the command "
+                            "line wins")
     group.add_argument("--ros2-type", default=None, metavar="TYPE",
                        help="the topic's message type, e.g. sensor_msgs/msg/Range (default: learnt from its "
                             "publishers)")
@@ -487,16 +605,20 @@ def bridge_arguments(parser: argparse.ArgumentParser, defaults: bool = True) -> 
                             "yaw; default: x=0, and y=1 for a state of 2 or more)")
     group.add_argument("--ros2-namespace", default=None, metavar="NS",
                        help="namespace of the published topics; '{twin}' is the twin id (default: /dtpf/{twin})")
-    group.add_argument("--ros2-frame", default=frame, metavar="FRAME",
-                       help="frame_id of the published headers (default: map)")
-    group.add_argument("--ros2-depth", type=int, default=depth, metavar="N",
-                       help="QoS history depth, in and out (default: 100)")
+    group.add_argument("--ros2-frame", default=None, metavar="FRAME",
+                       help=f"frame_id of the published headers, the parent of /tf (default: {DEFAULT_FRAME})")
+    group.add_argument("--ros2-child-frame", default=None, metavar="FRAME",
+                       help="child_frame_id of the odometry and /tf, the twin's body; '{twin}' is the twin id "
+                            f"(default: {DEFAULT_CHILD_FRAME})")
+    group.add_argument("--ros2-depth", type=int, default=None, metavar="N",
+                       help=f"QoS history depth, in and out (default: {DEFAULTS['ros2_depth']})")
     group.add_argument("--ros2-covariance", choices=("full", "diagonal"), default=None,
                        help="the pose's covariance: 'full', the weighted covariances between the mapped components "
                             "(the estimate's for a state of 2 to 8 components; beyond, the step's particle cloud's, "
                             "which the pose then waits for); 'diagonal', the variances only (default: full)")
-    group.add_argument("--ros2-best-effort", action="store_true",
-                       help="QoS best effort instead of reliable (in and out), as sensor drivers often publish")
+    group.add_argument("--ros2-best-effort", action="store_true", default=None,
+                       help="QoS best effort instead of reliable, in and out (a publisher that offers best effort "
+                            "only is heard without it: the input then subscribes best effort)")
 
 
 def register(subparsers) -> None:

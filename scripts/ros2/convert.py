@@ -8,7 +8,11 @@ and, for a state of 2 or more dimensions, y = x[1]). For each step:
   variances on the diagonal and the weighted covariances between the mapped components: the estimate's
   own (``Estimate.covariance``, a state of 2 to 8 components), else, between components the particle
   cloud carries (x[0], x[1], x[2]), those of the cloud's particles (every particle when N <= the
-  entity's --cloud-points, 1000 by default); rows of axes not mapped are zero.
+  entity's --cloud-points, 1000 by default). An axis the state does not have (roll and pitch always; z
+  and yaw unless mapped) is marked unknown: :data:`UNKNOWN_VARIANCE` on its diagonal, 0 off it.
+- ``odom``: ``nav_msgs/msg/Odometry``, the same pose and covariance, ``child_frame_id`` the twin's body
+  frame; its twist is unknown (zero, :data:`UNKNOWN_VARIANCE` on the diagonal of its covariance).
+- ``/tf``: ``tf2_msgs/msg/TFMessage``, one transform from the parent frame to the body frame, the pose.
 - ``particles``: ``geometry_msgs/msg/PoseArray`` of the cloud's particles (components beyond x[2] are 0).
 - ``ess``, ``ps``: ``std_msgs/msg/Float64``; ``degraded``: ``std_msgs/msg/Bool``; ``observation``:
   ``std_msgs/msg/Float64MultiArray`` (the values filtered at that step).
@@ -28,15 +32,24 @@ import numpy as np
 from dtpf.messages.foxglove import PointCloud
 from dtpf.messages.models import MAX_COVARIANCE_DIM, Estimate
 
-__all__ = ["AXES", "TOPICS", "PoseSet", "bool_cdr", "cloud_covariances", "cloud_points_of", "float64_array_cdr",
-           "float64_cdr", "parse_pose", "pose_array_cdr", "pose_cdr", "pose_set", "pose_set_particles"]
+__all__ = ["AXES", "TF_TOPIC", "TF_TYPE", "TOPICS", "UNKNOWN_VARIANCE", "PoseSet", "bool_cdr", "cloud_covariances",
+           "cloud_points_of", "float64_array_cdr", "float64_cdr", "odometry_cdr", "parse_pose", "pose_array_cdr",
+           "pose_cdr", "pose_set", "pose_set_particles", "tf_cdr"]
 
 #: The pose axes a state component may be mapped to, and their rows in a ROS 2 6 x 6 covariance.
 AXES = {"x": 0, "y": 1, "z": 2, "yaw": 5}
 #: Topic (under the namespace) -> ROS 2 type.
 TOPICS = {"pose": "geometry_msgs/msg/PoseWithCovarianceStamped", "particles": "geometry_msgs/msg/PoseArray",
           "ess": "std_msgs/msg/Float64", "ps": "std_msgs/msg/Float64", "degraded": "std_msgs/msg/Bool",
-          "observation": "std_msgs/msg/Float64MultiArray"}
+          "observation": "std_msgs/msg/Float64MultiArray", "odom": "nav_msgs/msg/Odometry"}
+#: The transforms' topic (absolute: one tree for the whole system) and its type.
+TF_TOPIC, TF_TYPE = "/tf", "tf2_msgs/msg/TFMessage"
+#: The variance of a pose or twist axis the twin does not estimate. A PoseWithCovariance has no flag for
+#: "unknown" (the -1 in element 0 is sensor_msgs/Imu's convention, per 3 x 3 block, and would void the
+#: known axes too); a zero variance reads as perfectly known. A large variance, as odometry drivers give
+#: their unused axes (REP 105 practice), makes a fusing filter (robot_localization, an EKF) weigh the
+#: axis as no information.
+UNKNOWN_VARIANCE = 1e6
 
 
 def parse_pose(spec: str | None, dim: int) -> dict[str, int]:
@@ -108,6 +121,8 @@ def pose_set(estimate: Estimate, points: np.ndarray | None, mapping: dict[str, i
             position[row] = float(estimate.mean[mapping[axis]])
     yaw = float(estimate.mean[mapping["yaw"]]) if "yaw" in mapping else 0.0
     covariance = np.zeros((6, 6), dtype=np.float64)
+    for row in set(range(6)) - {AXES[axis] for axis in mapping}:
+        covariance[row, row] = UNKNOWN_VARIANCE
     columns = {axis: _cloud_column(component, dim) for axis, component in mapping.items()}
     weighted = None
     pairs = estimate.covariance if covariances else None
@@ -164,9 +179,42 @@ def pose_cdr(sec: int, nsec: int, frame: str, poses: PoseSet) -> bytes:
     """The ``geometry_msgs/msg/PoseWithCovarianceStamped`` of ``poses`` as CDR bytes."""
     head = _header_cdr(sec, nsec, frame)
     head += b"\0" * (-len(head) % 8)
+    return _CDR + head + _pose_cdr(poses)
+
+
+def _pose_cdr(poses: PoseSet) -> bytes:
+    """A ``geometry_msgs/msg/PoseWithCovariance`` (8-aligned doubles only)."""
     x, y, z = poses.position
-    return (_CDR + head + struct.pack("<7d", x, y, z, 0.0, 0.0, math.sin(poses.yaw / 2.0), math.cos(poses.yaw / 2.0))
+    return (struct.pack("<7d", x, y, z, 0.0, 0.0, math.sin(poses.yaw / 2.0), math.cos(poses.yaw / 2.0))
             + np.asarray(poses.covariance, dtype="<f8").tobytes())
+
+
+def _string_cdr(text: str) -> bytes:
+    """A string's CDR bytes (length with its NUL, then the bytes), starting 4-aligned."""
+    name = text.encode("utf-8") + b"\0"
+    return struct.pack("<I", len(name)) + name
+
+
+#: An unknown twist: zero, with UNKNOWN_VARIANCE on its covariance's diagonal.
+_UNKNOWN_TWIST = struct.pack("<6d", *[0.0] * 6) + (np.eye(6) * UNKNOWN_VARIANCE).astype("<f8").tobytes()
+
+
+def odometry_cdr(sec: int, nsec: int, frame: str, child: str, poses: PoseSet) -> bytes:
+    """The ``nav_msgs/msg/Odometry`` of ``poses`` in ``frame``, its body ``child``, as CDR bytes (its twist
+    unknown)."""
+    head = _header_cdr(sec, nsec, frame)
+    head += _string_cdr(child)
+    head += b"\0" * (-len(head) % 8)
+    return _CDR + head + _pose_cdr(poses) + _UNKNOWN_TWIST
+
+
+def tf_cdr(sec: int, nsec: int, frame: str, child: str, poses: PoseSet) -> bytes:
+    """A ``tf2_msgs/msg/TFMessage`` of one transform, ``frame`` -> ``child``, the pose (no covariance), as
+    CDR bytes."""
+    head = struct.pack("<I", 1) + _header_cdr(sec, nsec, frame) + _string_cdr(child)
+    head += b"\0" * (-len(head) % 8)
+    x, y, z = poses.position
+    return _CDR + head + struct.pack("<7d", x, y, z, 0.0, 0.0, math.sin(poses.yaw / 2.0), math.cos(poses.yaw / 2.0))
 
 
 def pose_array_cdr(sec: int, nsec: int, frame: str, particles: np.ndarray) -> bytes:

@@ -4,12 +4,14 @@ For every twin of the log, one message per step on each of (namespace ``/dtpf/<t
 ``--ros2-namespace``)::
 
     pose         geometry_msgs/msg/PoseWithCovarianceStamped   the estimate (dtpf.scripts.ros2.convert)
+    odom         nav_msgs/msg/Odometry                         the same pose, child_frame_id the body frame
     particles    geometry_msgs/msg/PoseArray                   the step's particle cloud
     observation  std_msgs/msg/Float64MultiArray                the values filtered at the step
     ess, ps      std_msgs/msg/Float64
     degraded     std_msgs/msg/Bool
 
-Each at the time the recorder received the estimate (the bag's time), its header stamp the estimate's.
+and on ``/tf`` (``tf2_msgs/msg/TFMessage``) the transform from ``--ros2-frame`` (default ``map``) to
+``--ros2-child-frame`` (default ``base_link``; '{twin}' is the twin id) of each step's pose. Each at the time the recorder received the estimate (the bag's time), its header stamp the estimate's.
 Written with rosbags (pure Python, the ``[rosbag]`` or ``[ros2]`` extra), so ``ros2 bag play OUTDIR``
 replays the run into a ROS 2 system and Foxglove opens it as a ROS 2 bag. A log holds a twin's messages
 in step order; where a step has competing estimates, the one :func:`in_step_order` chooses is exported.
@@ -28,18 +30,25 @@ from dtpf.messages.models import Estimate
 from dtpf.recording.logfile import in_step_order, read_logs
 from dtpf.scripts.ros2 import Ros2Error
 from dtpf.scripts.ros2.convert import (
+    TF_TOPIC,
+    TF_TYPE,
     TOPICS,
     bool_cdr,
     cloud_points_of,
     float64_array_cdr,
     float64_cdr,
+    odometry_cdr,
     parse_pose,
     pose_array_cdr,
     pose_cdr,
     pose_set,
+    tf_cdr,
 )
 
-__all__ = ["export_ros2", "register"]
+__all__ = ["DEFAULT_CHILD_FRAME", "DEFAULT_FRAME", "export_ros2", "frame_of", "register"]
+
+#: The parent frame of the pose, the odometry and the transform, and the body frame they place in it.
+DEFAULT_FRAME, DEFAULT_CHILD_FRAME = "map", "base_link"
 
 
 def _rosbags():
@@ -55,13 +64,21 @@ def _rosbags():
 def namespace_of(template: str | None, twin: str) -> str:
     """The ROS 2 namespace of ``twin``: ``template`` with '{twin}' filled in (default /dtpf/<twin>),
     absolute, without a trailing '/'. ROS 2 names allow letters, digits and '_': '-' and '.' become '_'."""
-    ros_twin = "".join(c if c.isalnum() or c == "_" else "_" for c in twin)
-    text = (template or "/dtpf/{twin}").replace("{twin}", ros_twin).rstrip("/")
+    text = (template or "/dtpf/{twin}").replace("{twin}", _ros_name(twin)).rstrip("/")
     return text if text.startswith("/") else "/" + text
 
 
+def _ros_name(twin: str) -> str:
+    return "".join(c if c.isalnum() or c == "_" else "_" for c in twin)
+
+
+def frame_of(template: str, twin: str) -> str:
+    """A frame id with '{twin}' filled in (the twin id as a ROS 2 name: '-' and '.' become '_')."""
+    return template.replace("{twin}", _ros_name(twin))
+
+
 def export_ros2(logs: list[Path], out: Path, *, pose: str | None = None, namespace: str | None = None,
-                frame: str = "map") -> dict[str, int]:
+                frame: str = DEFAULT_FRAME, child_frame: str = DEFAULT_CHILD_FRAME) -> dict[str, int]:
     """Write the rosbag2 folder ``out`` from the dtpf log(s); the number of steps written, by twin."""
     Writer, StoragePlugin, store = _rosbags()
     if out.exists():
@@ -82,6 +99,7 @@ def export_ros2(logs: list[Path], out: Path, *, pose: str | None = None, namespa
         raise Ros2Error(f"{', '.join(str(p) for p in logs)}: no estimate in the log: nothing to export")
     written: dict[str, int] = {}
     with Writer(out, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        tf = writer.add_connection(TF_TOPIC, TF_TYPE, typestore=store)
         for twin in sorted(estimates):
             chosen, _ = in_step_order(estimates[twin])
             dim = len(next(iter(chosen.values())).mean)
@@ -90,6 +108,7 @@ def export_ros2(logs: list[Path], out: Path, *, pose: str | None = None, namespa
             except ValueError as error:
                 raise Ros2Error(str(error)) from None
             ns = namespace_of(namespace, twin)
+            parent, child = frame_of(frame, twin), frame_of(child_frame, twin)
             connection = {name: writer.add_connection(f"{ns}/{name}", msgtype, typestore=store)
                           for name, msgtype in TOPICS.items()}
 
@@ -97,9 +116,11 @@ def export_ros2(logs: list[Path], out: Path, *, pose: str | None = None, namespa
                 at = times[id(estimate)]
                 sec, nsec = estimate.stamp.sec, estimate.stamp.nsec
                 poses = pose_set(estimate, clouds.get((twin, step)), mapping)
-                writer.write(connection["pose"], at, pose_cdr(sec, nsec, frame, poses))
+                writer.write(connection["pose"], at, pose_cdr(sec, nsec, parent, poses))
+                writer.write(connection["odom"], at, odometry_cdr(sec, nsec, parent, child, poses))
+                writer.write(tf, at, tf_cdr(sec, nsec, parent, child, poses))
                 if poses.particles is not None:
-                    writer.write(connection["particles"], at, pose_array_cdr(sec, nsec, frame, poses.particles))
+                    writer.write(connection["particles"], at, pose_array_cdr(sec, nsec, parent, poses.particles))
                 if estimate.observation is not None:
                     writer.write(connection["observation"], at, float64_array_cdr(estimate.observation, "observation"))
                 writer.write(connection["ess"], at, float64_cdr(estimate.ess))
@@ -117,7 +138,7 @@ def cmd_export(args: argparse.Namespace) -> int:
     if not logs:
         raise Ros2Error("--ros2 takes the log (one or more files of one run) and then the rosbag2 folder to write")
     written = export_ros2([Path(p) for p in logs], Path(out), pose=args.ros2_pose, namespace=args.ros2_namespace,
-                          frame=args.ros2_frame)
+                          frame=args.ros2_frame, child_frame=args.ros2_child_frame)
     for twin, steps in written.items():
         print(f"twin {twin}: {steps} steps as ROS 2 messages under {namespace_of(args.ros2_namespace, twin)}/")
     print(f"wrote {out} (rosbag2, MCAP storage)")
@@ -141,6 +162,9 @@ def register(subparsers) -> None:
                              "default: x=0 and y=1 when the state has 2 or more)")
     parser.add_argument("--ros2-namespace", default=None, metavar="NS",
                         help="namespace of the topics; '{twin}' is the twin id (default: /dtpf/{twin})")
-    parser.add_argument("--ros2-frame", default="map", metavar="FRAME",
-                        help="frame_id of the headers (default: %(default)s)")
+    parser.add_argument("--ros2-frame", default=DEFAULT_FRAME, metavar="FRAME",
+                        help="frame_id of the headers, the parent of /tf (default: %(default)s)")
+    parser.add_argument("--ros2-child-frame", default=DEFAULT_CHILD_FRAME, metavar="FRAME",
+                        help="child_frame_id of the odometry and /tf, the twin's body; '{twin}' is the twin id "
+                             "(default: %(default)s)")
     parser.set_defaults(handler=cmd_export)

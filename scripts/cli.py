@@ -147,15 +147,15 @@ def cmd_launch(args: argparse.Namespace) -> int:
     # SIGINT stops the launch even when it was started in the background of a script (a non-interactive
     # shell starts such a job with SIGINT ignored, and Python then installs no handler of its own).
     signal.signal(signal.SIGINT, signal.default_int_handler)
+    ros2_words = None
     if config.ros2_topic is not None:
         from dtpf.scripts.ros2 import Ros2Error, require_rclpy
         if args.twins is not None:
             raise Ros2Error("--observations ros2:TOPIC feeds one twin; for a fleet, start 'dtpf ros2 --twin NAME "
                             "--topic TOPIC' per twin with --observations live")
         require_rclpy()
-        if config.ros2_fields is not None:  # a path that does not parse: one line now, not from the bridge
-            from dtpf.entity.rosbag import parse_fields
-            parse_fields(config.ros2_fields)
+        from dtpf.scripts.ros2.preflight import check_before_start
+        ros2_words = check_before_start(config, args, model)  # every field path checked before anything starts
     source = f", observations from {config.observations}" if config.observations else ""
     how = "embedded Zenoh on 127.0.0.1"
     # The router's port is chosen here, so that a live run can print the sensor's --connect.
@@ -199,7 +199,7 @@ def cmd_launch(args: argparse.Namespace) -> int:
                         restarts=0 if args.no_restart else args.restarts, keep_estimates=False,
                         notify=lambda text: print(f"\ndtpf launch: {text}", file=sys.stderr, flush=True),
                         cloud_points=args.cloud_points, foxglove=args.foxglove, secure=args.secure,
-                        ros2=_ros2_options(args))
+                        ros2=ros2_words)
     except LaunchError as error:
         print(f"dtpf launch: error: {error}", file=sys.stderr)
         return 1
@@ -220,18 +220,6 @@ def _claim_log(args: argparse.Namespace) -> bool:
     if removed:
         print(f"dtpf launch: --overwrite: removed {', '.join(str(path) for path in removed)}", file=sys.stderr)
     return True
-
-
-def _ros2_options(args: argparse.Namespace) -> list[str]:
-    """The ROS 2 bridge's options given to dtpf launch, as its command-line words."""
-    words = []
-    for flag in ("ros2_type", "ros2_pose", "ros2_namespace", "ros2_frame", "ros2_depth", "ros2_covariance"):
-        value = getattr(args, flag, None)
-        if value is not None:
-            words += ["--" + flag.replace("_", "-"), str(value)]
-    if getattr(args, "ros2_best_effort", False):
-        words.append("--ros2-best-effort")
-    return words
 
 
 def _note_partial_truth(config, model) -> None:

@@ -51,23 +51,25 @@ needs_ros2 = pytest.mark.skipif(PYTHON is None, reason="no Python with rclpy and
                                 "(.ci/run does), or name it in DTPF_ROS2_PYTHON")
 
 PUBLISHER = r'''
-import csv, math, sys, time
+import csv, math, os, sys, time
 import rclpy
 from rclpy.qos import QoSProfile, ReliabilityPolicy, HistoryPolicy
 from geometry_msgs.msg import PointStamped
 path, topic, rate, count, nan_after = sys.argv[1], sys.argv[2], float(sys.argv[3]), int(sys.argv[4]), int(sys.argv[5])
+reliability = ReliabilityPolicy.BEST_EFFORT if sys.argv[6:7] == ["best_effort"] else ReliabilityPolicy.RELIABLE
+go = sys.argv[7] if len(sys.argv) > 7 else None  # a file: publish once it exists (the test's subscriber is ready)
 rows = [(float(r["range"]), float(r["bearing"])) for r in csv.DictReader(open(path))][:count]
 rclpy.init()
 node = rclpy.create_node("test_publisher")
-pub = node.create_publisher(PointStamped, topic, QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE,
+pub = node.create_publisher(PointStamped, topic, QoSProfile(depth=1000, reliability=reliability,
                                                             history=HistoryPolicy.KEEP_LAST))
-deadline = time.monotonic() + 120
-while pub.get_subscription_count() < 1:
+deadline = time.monotonic() + 240
+while pub.get_subscription_count() < 1 or (go is not None and not os.path.exists(go)):
     if time.monotonic() > deadline:
-        sys.exit("no subscriber in 120 s")
+        sys.exit("no subscriber in 240 s")
     rclpy.spin_once(node, timeout_sec=0.05)
 print("matched", flush=True)
-messages = [(1000 + i, 5, r, b) for i, (r, b) in enumerate(rows)]
+messages = [(1_796_160_000 + i // 20, (i % 20) * 50_000_000 + 7, r, b) for i, (r, b) in enumerate(rows)]  # 20 Hz stamps
 if nan_after:
     messages.insert(nan_after, (999, 0, math.nan, 0.5))  # not a measurement: the bridge counts it, sends nothing
 t0 = time.monotonic()
@@ -87,12 +89,19 @@ import json, sys, time
 import rclpy
 from rclpy.qos import QoSProfile, ReliabilityPolicy, HistoryPolicy
 from geometry_msgs.msg import PoseArray, PoseWithCovarianceStamped
+from nav_msgs.msg import Odometry
 from std_msgs.msg import Bool, Float64
 ns, count, out = sys.argv[1], int(sys.argv[2]), open(sys.argv[3], "w")
 rclpy.init()
 node = rclpy.create_node("test_subscriber")
 qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST)
-got = {"pose": 0, "particles": 0, "ess": 0}
+got = {"pose": 0, "particles": 0, "ess": 0, "odom": 0}
+def odom(m):
+    got["odom"] += 1
+    p = m.pose.pose.position
+    out.write(json.dumps({"topic": "odom", "x": p.x, "y": p.y, "cov": list(m.pose.covariance),
+                          "twist_cov": list(m.twist.covariance), "stamp": [m.header.stamp.sec, m.header.stamp.nanosec],
+                          "frame": m.header.frame_id, "child": m.child_frame_id}) + "\n")
 def pose(m):
     got["pose"] += 1
     p = m.pose.pose.position
@@ -105,7 +114,8 @@ def ess(m):
     got["ess"] += 1
 subs = [node.create_subscription(PoseWithCovarianceStamped, ns + "/pose", pose, qos),
         node.create_subscription(PoseArray, ns + "/particles", particles, qos),
-        node.create_subscription(Float64, ns + "/ess", ess, qos)]
+        node.create_subscription(Float64, ns + "/ess", ess, qos),
+        node.create_subscription(Odometry, ns + "/odom", odom, qos)]
 deadline = time.monotonic() + 300
 while min(s.get_publisher_count() for s in subs) < 1:
     if time.monotonic() > deadline:
@@ -117,6 +127,11 @@ while min(got.values()) < count and time.monotonic() < deadline:
 out.close()
 print("received", json.dumps(got), flush=True)
 '''
+
+
+def published_stamp(k: int) -> list[int]:
+    """The header stamp [sec, nanosec] of PUBLISHER's k-th message (1, 2, ...): 20 Hz from 2026-12-01, + 7 ns."""
+    return [1_796_160_000 + (k - 1) // 20, (k - 1) % 20 * 50_000_000 + 7]
 
 
 def ros_env() -> dict:
@@ -153,6 +168,10 @@ def wait_for_line(processes, process, text: str, timeout: float, watch=None) -> 
 @pytest.mark.parametrize("secure", [False, True], ids=["plain", "secured"])
 def test_a_ros2_publisher_drives_the_twin_to_dtpf_run_numbers_and_a_subscriber_gets_every_estimate(
         processes, tmp_path, secure):
+    """Plain: the publisher offers best effort only (as sensor drivers do), the frames come from a ROS 2
+    parameters file; secured: a reliable publisher, the default frames. A subscriber of the twin's pose and
+    odometry gets every estimate, its stamp the observation's to the nanosecond, the axes the state lacks
+    marked unknown."""
     steps, n = (20, 300) if secure else (60, 500)
     env = ros_env()
     extra = []
@@ -161,23 +180,38 @@ def test_a_ros2_publisher_drives_the_twin_to_dtpf_run_numbers_and_a_subscriber_g
                               cwd=ROOT, capture_output=True, text=True, timeout=120)
         assert done.returncode == 0, done.stderr
         extra = ["--secure", str(tmp_path / "sec" / "tls")]
+        frame, child, reliability = "map", "base_link", "reliable"
+    else:
+        (tmp_path / "bridge.yaml").write_text("dtpf_rb_ros:\n  ros__parameters:\n    frame: world\n"
+                                              "    child_frame: '{twin}_base'\n")
+        extra = ["--ros2-params", str(tmp_path / "bridge.yaml")]
+        frame, child, reliability = "world", "rb_ros_base", "best_effort"
     (tmp_path / "pub.py").write_text(PUBLISHER)
     (tmp_path / "sub.py").write_text(SUBSCRIBER)
     received = tmp_path / "received.jsonl"
     subscriber = start(processes, "subscriber", [str(tmp_path / "sub.py"), "/dtpf/rb_ros", str(steps),
                                                  str(received)], env)
+    # The launcher learns the topic's type from its publisher before it starts anything; the publisher sends
+    # once the bridge has subscribed and the subscriber has the bridge's topics (the file ``go``).
+    go = tmp_path / "go"
+    publisher = start(processes, "publisher", [str(tmp_path / "pub.py"), EXAMPLE_NO_TRUTH, "/target", "50",
+                                               str(steps), "10", reliability, str(go)], env)
     log = tmp_path / "ros2.mcap"
     launcher = start(processes, "launch", ["-m", "dtpf.scripts.cli", "launch", "-q", "--model", EXAMPLE,
                                            "--observations", "ros2:/target", "--ros2-fields", "point.x,point.y",
                                            "-n", str(n), "--steps", str(steps), "--twin", "rb-ros",
                                            "--port", str(free_port()), "-o", str(log), *extra], env)
     wait_for_line(processes, subscriber, "ready", 240, watch=launcher)  # the bridge's publishers are matched
-    publisher = start(processes, "publisher", [str(tmp_path / "pub.py"), EXAMPLE_NO_TRUTH, "/target", "50",
-                                               str(steps), "10"], env)
+    go.touch()
     wait_for_line(processes, publisher, f"published {steps + 1}", 240, watch=launcher)
     assert launcher.wait(timeout=240) == 0, processes.output(launcher)
     assert subscriber.wait(timeout=120) == 0, processes.output(subscriber)
-    assert f'received {{"pose": {steps}, "particles": {steps}, "ess": {steps}}}' in processes.output(subscriber)
+    assert f'received {{"pose": {steps}, "particles": {steps}, "ess": {steps}, "odom": {steps}}}' in \
+        processes.output(subscriber)
+    said = processes.output(launcher)
+    assert ("offers best-effort QoS only: the bridge subscribes best effort" in said) == (not secure), said
+    assert "/tf not published: message type tf2_msgs/msg/TFMessage: its Python package tf2_msgs is not " \
+           "installed" in said, said
 
     # The twin's estimates equal dtpf run on the same observations from the file, number for number.
     estimates, observations, statuses = {}, [], []
@@ -196,9 +230,9 @@ def test_a_ros2_publisher_drives_the_twin_to_dtpf_run_numbers_and_a_subscriber_g
                                         twin="rb-ros"))
     means = np.array([estimates[k].mean for k in range(1, steps + 1)])
     np.testing.assert_array_equal(means, reference.means)
-    # The header stamps travelled with the observations and are in the log.
-    assert [(o.step, o.stamp.sec, o.stamp.nsec) for o in observations] == \
-        [(k, 1000 + k - 1, 5) for k in range(1, steps + 1)]
+    # The header stamps travelled with the observations and are in the log, to the nanosecond.
+    assert [(o.step, [o.stamp.sec, o.stamp.nsec]) for o in observations] == \
+        [(k, published_stamp(k)) for k in range(1, steps + 1)]
     # The NaN message was counted by the bridge, never sent.
     assert any(r.name.startswith("a ROS message with a NaN") and r.count == 1
                for s in statuses for r in s.rejections), [s.rejections for s in statuses]
@@ -206,6 +240,7 @@ def test_a_ros2_publisher_drives_the_twin_to_dtpf_run_numbers_and_a_subscriber_g
     # The subscriber decoded every estimate: the pose is the estimate's mean, its covariance the variances.
     lines = [json.loads(line) for line in received.read_text().splitlines()]
     poses = [x for x in lines if x["topic"] == "pose"]
+    odoms = [x for x in lines if x["topic"] == "odom"]
     assert [(p["x"], p["y"]) for p in poses] == [(e.mean[0], e.mean[1]) for e in (estimates[k] for k in
                                                                                   range(1, steps + 1))]
     assert [(p["cov"][0], p["cov"][7]) for p in poses] == [(estimates[k].var[0], estimates[k].var[1])
@@ -213,7 +248,19 @@ def test_a_ros2_publisher_drives_the_twin_to_dtpf_run_numbers_and_a_subscriber_g
     # The x-y covariance is the estimate's own (the pose went out with its estimate).
     assert [(p["cov"][1], p["cov"][6]) for p in poses] == [(estimates[k].covariance[0],) * 2
                                                             for k in range(1, steps + 1)]
-    assert [p["stamp"] for p in poses] == [[1000 + k - 1, 5] for k in range(1, steps + 1)]
+    # The odometry is the same pose, in the configured frames; every stamp is the observation's.
+    assert [(o["x"], o["y"], o["cov"]) for o in odoms] == [(p["x"], p["y"], p["cov"]) for p in poses]
+    assert [p["stamp"] for p in poses] == [o["stamp"] for o in odoms] == [published_stamp(k)
+                                                                          for k in range(1, steps + 1)]
+    assert {p["frame"] for p in poses} == {o["frame"] for o in odoms} == {frame}
+    assert {o["child"] for o in odoms} == {child}
+    # z, roll, pitch and yaw are not in the state: unknown (a large variance), not known perfectly (0).
+    unknown = 1e6
+    for message in poses + odoms:
+        covariance = np.array(message["cov"]).reshape(6, 6)
+        assert [covariance[i, i] for i in (2, 3, 4, 5)] == [unknown] * 4
+        assert np.count_nonzero(covariance[2:, :]) == 4
+    assert all(o["twist_cov"] == np.diag([unknown] * 6).reshape(36).tolist() for o in odoms)
     assert all(x["n"] == n for x in lines if x["topic"] == "particles")
 
 
@@ -230,6 +277,29 @@ def test_a_field_path_the_type_does_not_have_is_one_line_at_start(processes, rou
                    ros_env())
     assert bridge.wait(timeout=120) == 2
     assert "sensor_msgs.msg has no Nope" in processes.output(bridge)
+
+
+@needs_ros2
+def test_dtpf_launch_checks_every_field_path_and_parameter_before_anything_starts(processes, tmp_path):
+    """A misspelt --ros2-fields path (the type given on the command line or in --ros2-params) or an unknown
+    parameter is one line and exit 2 from the launcher, before a layer or the bridge starts (no log)."""
+    (tmp_path / "typed.yaml").write_text("/**:\n  ros__parameters:\n    type: sensor_msgs/msg/Range\n")
+    (tmp_path / "misspelt.yaml").write_text("dtpf_rb:\n  ros__parameters:\n    fields: range\n    frme: odom\n")
+    cases = [(["--ros2-type", "sensor_msgs/msg/Range", "--ros2-fields", "rnge"],
+              "--ros2-fields: sensor_msgs/msg/Range has no field 'rnge'"),
+             (["--ros2-params", str(tmp_path / "typed.yaml"), "--ros2-fields", "range,rnge"],
+              "--ros2-fields: sensor_msgs/msg/Range has no field 'rnge'"),
+             (["--ros2-params", str(tmp_path / "misspelt.yaml")],
+              f"--ros2-params {tmp_path / 'misspelt.yaml'}: unknown parameter 'frme' (known: topic, type, fields")]
+    for i, (options, expected) in enumerate(cases):
+        log = tmp_path / f"never-{i}.mcap"
+        launcher = start(processes, "launch", ["-m", "dtpf.scripts.cli", "launch", "-q", "--model", EXAMPLE,
+                                               "--observations", "ros2:/r", "--twin", "rb", "-o", str(log),
+                                               *options], ros_env())
+        assert launcher.wait(timeout=120) == 2, processes.output(launcher)
+        lines = processes.output(launcher).strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith(f"dtpf launch: error: {expected}"), lines
+        assert not log.exists()
 
 
 def test_without_rclpy_a_ros2_option_says_what_to_install():

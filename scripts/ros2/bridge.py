@@ -98,9 +98,10 @@ def _types_of(node, topic: str) -> list[str]:
     return next((types for name, types in node.get_topic_names_and_types() if name == topic), [])
 
 
-def discover_type(node, topic: str, given: str | None, wait: float, stopping) -> str:
+def discover_type(node, topic: str, given: str | None, wait: float, stopping, say=None) -> str:
     """The message type of ``topic``: ``given`` (checked against the publishers seen), or the one its
-    publishers announce, waiting up to ``wait`` seconds for one; Ros2Error otherwise."""
+    publishers announce, waiting up to ``wait`` seconds for one (``say``: told once that it waits);
+    Ros2Error otherwise."""
     import rclpy
 
     deadline = time.monotonic() + wait
@@ -119,7 +120,7 @@ def discover_type(node, topic: str, given: str | None, wait: float, stopping) ->
             raise Ros2Error(f"no publisher of {topic} seen in {wait:.0f} s: start it, or give its type with "
                             f"--ros2-type (e.g. sensor_msgs/msg/Range)")
         if not said:
-            log.info("waiting for a publisher of %s to learn its type", topic)
+            (say or log.info)(f"waiting for a publisher of {topic} to learn its type")
             said = True
         rclpy.spin_once(node, timeout_sec=0.1)
 

@@ -1,0 +1,61 @@
+"""What ``dtpf launch --observations ros2:TOPIC`` checks before it starts anything.
+
+The launcher reads ``--ros2-params``, learns the topic's message type (``--ros2-type``, the file's
+``type``, else from the topic's publishers, waiting for one as the bridge would) and checks every
+``--ros2-fields`` path and the ``--ros2-pose`` mapping against it: a misspelt path, an unknown parameter, a
+type whose package is missing is one line and exit 2 before a layer starts. The bridge it then starts is
+given the learnt type, so it does not wait for it again.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from types import SimpleNamespace
+
+from dtpf.entity import rosbag
+from dtpf.messages.config import RunConfig
+from dtpf.scripts.ros2 import params, require_rclpy
+from dtpf.scripts.ros2.bridge import _mapper, bridge_words, discover_type, message_class
+from dtpf.scripts.ros2.convert import parse_pose
+
+__all__ = ["TYPE_WAIT", "check_before_start", "learn_type"]
+
+#: How long the launcher waits for a publisher of the topic to learn its type (the bridge's --type-wait).
+TYPE_WAIT = 30.0
+
+
+def learn_type(topic: str, wait: float = TYPE_WAIT) -> str:
+    """The message type the publishers of ``topic`` announce, with an rclpy node of the launcher's that
+    lives only for this; Ros2Error when none is seen in ``wait`` seconds."""
+    import rclpy
+    from rclpy.signals import SignalHandlerOptions
+
+    rclpy.init(args=[], signal_handler_options=SignalHandlerOptions.NO)
+    try:
+        node = rclpy.create_node("dtpf_launch")
+        try:
+            return discover_type(node, topic, None, wait, lambda: False,
+                                 say=lambda text: print(f"dtpf: {text} (--ros2-type skips this)", file=sys.stderr,
+                                                        flush=True))
+        finally:
+            node.destroy_node()
+    finally:
+        rclpy.try_shutdown()
+
+
+def check_before_start(config: RunConfig, args: argparse.Namespace, model) -> list[str]:
+    """The bridge's command-line words for this launch, once its options are checked (see the module);
+    Ros2Error, FieldPathError or ValueError in one line otherwise."""
+    require_rclpy()
+    values = params.load(args.ros2_params, params.node_name(config.twin)) if args.ros2_params else {}
+    fields = config.ros2_fields or values.get("fields")
+    if fields:
+        rosbag.parse_fields(fields)  # its syntax, before any wait for a publisher
+    parse_pose(args.ros2_pose or values.get("pose"), model.dim)
+    msgtype = args.ros2_type or values.get("type")
+    words = bridge_words(args)
+    if msgtype is None:
+        msgtype = learn_type(config.ros2_topic)
+        words += ["--ros2-type", msgtype]
+    _mapper(SimpleNamespace(ros2_fields=fields), config, model, message_class(msgtype))
+    return words

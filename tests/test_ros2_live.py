@@ -262,6 +262,25 @@ def test_a_ros2_publisher_drives_the_twin_to_dtpf_run_numbers_and_a_subscriber_g
         assert np.count_nonzero(covariance[2:, :]) == 4
     assert all(o["twist_cov"] == np.diag([unknown] * 6).reshape(36).tolist() for o in odoms)
     assert all(x["n"] == n for x in lines if x["topic"] == "particles")
+    if secure:
+        return
+    # dtpf export --ros2 of the run's log stamps each pose, odometry and transform as the bridge did.
+    out = tmp_path / "exported"
+    done = subprocess.run([sys.executable, "-m", "dtpf.scripts.cli", "export", "--ros2", str(log), str(out),
+                           "--ros2-params", str(tmp_path / "bridge.yaml")], cwd=ROOT, capture_output=True, text=True,
+                          timeout=120)
+    assert done.returncode == 0, done.stderr
+    from rosbags.highlevel import AnyReader
+    from rosbags.typesys import Stores, get_typestore
+
+    with AnyReader([out], default_typestore=get_typestore(Stores.ROS2_KILTED)) as reader:
+        headers = {"/dtpf/rb_ros/pose": [], "/dtpf/rb_ros/odom": [], "/tf": []}
+        for connection, _, raw in reader.messages([c for c in reader.connections if c.topic in headers]):
+            message = reader.deserialize(raw, connection.msgtype)
+            for header in [t.header for t in message.transforms] if connection.topic == "/tf" else [message.header]:
+                headers[connection.topic].append([header.frame_id, header.stamp.sec, header.stamp.nanosec])
+    assert all(found == [[frame, *published_stamp(k)] for k in range(1, steps + 1)] for found in headers.values()), \
+        headers
 
 
 @needs_ros2

@@ -11,10 +11,13 @@ For every twin of the log, one message per step on each of (namespace ``/dtpf/<t
     degraded     std_msgs/msg/Bool
 
 and on ``/tf`` (``tf2_msgs/msg/TFMessage``) the transform from ``--ros2-frame`` (default ``map``) to
-``--ros2-child-frame`` (default ``base_link``; '{twin}' is the twin id) of each step's pose. Each at the time the recorder received the estimate (the bag's time), its header stamp the estimate's.
-Written with rosbags (pure Python, the ``[rosbag]`` or ``[ros2]`` extra), so ``ros2 bag play OUTDIR``
-replays the run into a ROS 2 system and Foxglove opens it as a ROS 2 bag. A log holds a twin's messages
-in step order; where a step has competing estimates, the one :func:`in_step_order` chooses is exported.
+``--ros2-child-frame`` (default ``base_link``; '{twin}' is the twin id) of each step's pose.
+
+Each at the time the recorder received the estimate (the bag's time), its header stamp the stamp of the
+observation the step filtered, to the nanosecond, as the live bridge publishes it. Written with rosbags
+(pure Python, the ``[rosbag]`` or ``[ros2]`` extra), so ``ros2 bag play OUTDIR`` replays the run into a
+ROS 2 system and Foxglove opens it as a ROS 2 bag. A log holds a twin's messages in step order; where a
+step has competing estimates, the one :func:`in_step_order` chooses is exported.
 """
 from __future__ import annotations
 
@@ -26,9 +29,9 @@ import numpy as np
 
 from dtpf.messages.codec import MessageError
 from dtpf.messages.foxglove import PointCloud
-from dtpf.messages.models import Estimate
+from dtpf.messages.models import Estimate, Observation
 from dtpf.recording.logfile import in_step_order, read_logs
-from dtpf.scripts.ros2 import Ros2Error
+from dtpf.scripts.ros2 import Ros2Error, params
 from dtpf.scripts.ros2.convert import (
     TF_TOPIC,
     TF_TYPE,
@@ -78,8 +81,13 @@ def frame_of(template: str, twin: str) -> str:
 
 
 def export_ros2(logs: list[Path], out: Path, *, pose: str | None = None, namespace: str | None = None,
-                frame: str = DEFAULT_FRAME, child_frame: str = DEFAULT_CHILD_FRAME) -> dict[str, int]:
-    """Write the rosbag2 folder ``out`` from the dtpf log(s); the number of steps written, by twin."""
+                frame: str | None = None, child_frame: str | None = None,
+                params_file: Path | None = None) -> dict[str, tuple[int, str]]:
+    """Write the rosbag2 folder ``out`` from the dtpf log(s); the number of steps written and their
+    namespace, by twin.
+    ``params_file``: a ROS 2 parameters file (:mod:`dtpf.scripts.ros2.params`) whose ``pose``, ``namespace``,
+    ``frame`` and ``child_frame`` of each twin's bridge node (dtpf_<twin>, or /**) serve where the arguments
+    are None; its other parameters are the live bridge's."""
     Writer, StoragePlugin, store = _rosbags()
     if out.exists():
         raise Ros2Error(f"{out} exists; rosbag2 writes a new folder (remove it or name another)")
@@ -87,7 +95,9 @@ def export_ros2(logs: list[Path], out: Path, *, pose: str | None = None, namespa
     estimates: dict[str, list] = defaultdict(list)
     clouds: dict[tuple[str, int], np.ndarray] = {}
     times: dict[int, int] = {}
-    for item, message in log.decoded(lambda topic: topic.endswith(("/entity/estimate", "/entity/cloud"))):
+    observed: dict[tuple, tuple[int, int]] = {}  # (twin, step) and (twin, values) -> the observation's stamp
+    wanted = ("/entity/estimate", "/entity/cloud", "/sensor/observation")
+    for item, message in log.decoded(lambda topic: topic.endswith(wanted)):
         if isinstance(message, MessageError):
             continue
         if isinstance(message, Estimate):
@@ -95,26 +105,33 @@ def export_ros2(logs: list[Path], out: Path, *, pose: str | None = None, namespa
             times[id(message)] = item.log_time
         elif isinstance(message, PointCloud):
             clouds.setdefault((message.twin_id, message.step), cloud_points_of(message))
+        elif isinstance(message, Observation) and message.values:
+            stamp = (message.stamp.sec, message.stamp.nsec)
+            observed[(message.twin_id, message.step, tuple(message.values))] = stamp
+            observed[(message.twin_id, tuple(message.values))] = stamp
     if not estimates:
         raise Ros2Error(f"{', '.join(str(p) for p in logs)}: no estimate in the log: nothing to export")
-    written: dict[str, int] = {}
+    written: dict[str, tuple[int, str]] = {}
     with Writer(out, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
         tf = writer.add_connection(TF_TOPIC, TF_TYPE, typestore=store)
         for twin in sorted(estimates):
+            given = params.load(params_file, params.node_name(twin)) if params_file is not None else {}
+            twin_pose, twin_namespace = pose or given.get("pose"), namespace or given.get("namespace")
+            parent = frame_of(frame or given.get("frame") or DEFAULT_FRAME, twin)
+            child = frame_of(child_frame or given.get("child_frame") or DEFAULT_CHILD_FRAME, twin)
             chosen, _ = in_step_order(estimates[twin])
             dim = len(next(iter(chosen.values())).mean)
             try:
-                mapping = parse_pose(pose, dim)
+                mapping = parse_pose(twin_pose, dim)
             except ValueError as error:
                 raise Ros2Error(str(error)) from None
-            ns = namespace_of(namespace, twin)
-            parent, child = frame_of(frame, twin), frame_of(child_frame, twin)
+            ns = namespace_of(twin_namespace, twin)
             connection = {name: writer.add_connection(f"{ns}/{name}", msgtype, typestore=store)
                           for name, msgtype in TOPICS.items()}
 
             for step, estimate in chosen.items():
                 at = times[id(estimate)]
-                sec, nsec = estimate.stamp.sec, estimate.stamp.nsec
+                sec, nsec = _stamp_of(estimate, observed)
                 poses = pose_set(estimate, clouds.get((twin, step)), mapping)
                 writer.write(connection["pose"], at, pose_cdr(sec, nsec, parent, poses))
                 writer.write(connection["odom"], at, odometry_cdr(sec, nsec, parent, child, poses))
@@ -127,8 +144,21 @@ def export_ros2(logs: list[Path], out: Path, *, pose: str | None = None, namespa
                 if estimate.ps is not None:
                     writer.write(connection["ps"], at, float64_cdr(estimate.ps))
                 writer.write(connection["degraded"], at, bool_cdr(estimate.degraded))
-            written[twin] = len(chosen)
+            written[twin] = (len(chosen), ns)
     return written
+
+
+def _stamp_of(estimate: Estimate, observed: dict) -> tuple[int, int]:
+    """The stamp of the observation ``estimate`` filtered, as the live bridge publishes it: the logged
+    observation of its step with its values (a live run), else the last one with its values (a run whose
+    numbering skipped a late or duplicate observation), else the estimate's own stamp (a file or bag run: the
+    observation's already)."""
+    if estimate.observation:
+        values = tuple(estimate.observation)
+        stamp = observed.get((estimate.twin_id, estimate.step, values)) or observed.get((estimate.twin_id, values))
+        if stamp is not None:
+            return stamp
+    return estimate.stamp.sec, estimate.stamp.nsec
 
 
 def cmd_export(args: argparse.Namespace) -> int:
@@ -138,9 +168,10 @@ def cmd_export(args: argparse.Namespace) -> int:
     if not logs:
         raise Ros2Error("--ros2 takes the log (one or more files of one run) and then the rosbag2 folder to write")
     written = export_ros2([Path(p) for p in logs], Path(out), pose=args.ros2_pose, namespace=args.ros2_namespace,
-                          frame=args.ros2_frame, child_frame=args.ros2_child_frame)
-    for twin, steps in written.items():
-        print(f"twin {twin}: {steps} steps as ROS 2 messages under {namespace_of(args.ros2_namespace, twin)}/")
+                          frame=args.ros2_frame, child_frame=args.ros2_child_frame,
+                          params_file=None if args.ros2_params is None else Path(args.ros2_params))
+    for twin, (steps, ns) in written.items():
+        print(f"twin {twin}: {steps} steps as ROS 2 messages under {ns}/")
     print(f"wrote {out} (rosbag2, MCAP storage)")
     return 0
 
@@ -162,9 +193,12 @@ def register(subparsers) -> None:
                              "default: x=0 and y=1 when the state has 2 or more)")
     parser.add_argument("--ros2-namespace", default=None, metavar="NS",
                         help="namespace of the topics; '{twin}' is the twin id (default: /dtpf/{twin})")
-    parser.add_argument("--ros2-frame", default=DEFAULT_FRAME, metavar="FRAME",
-                        help="frame_id of the headers, the parent of /tf (default: %(default)s)")
-    parser.add_argument("--ros2-child-frame", default=DEFAULT_CHILD_FRAME, metavar="FRAME",
+    parser.add_argument("--ros2-frame", default=None, metavar="FRAME",
+                        help=f"frame_id of the headers, the parent of /tf (default: {DEFAULT_FRAME})")
+    parser.add_argument("--ros2-child-frame", default=None, metavar="FRAME",
                         help="child_frame_id of the odometry and /tf, the twin's body; '{twin}' is the twin id "
-                             "(default: %(default)s)")
+                             f"(default: {DEFAULT_CHILD_FRAME})")
+    parser.add_argument("--ros2-params", default=None, metavar="FILE",
+                        help="the live bridge's ROS 2 parameters file: its pose, namespace, frame and child_frame "
+                             "serve where these options are not given")
     parser.set_defaults(handler=cmd_export)

@@ -12,6 +12,10 @@ never stops for it::
 
 Values are finite by construction of the message (the decoder rejects NaN and
 infinity); a message that fails to decode is counted with :meth:`malformed`.
+
+A driven twin (several sensors, controls, time steps) takes its observations
+and controls through :class:`DrivenIntake`: per-sensor sequence checks, then
+stamp order within the reorder window, then each step's drive.
 """
 from __future__ import annotations
 
@@ -19,7 +23,7 @@ from dataclasses import dataclass
 
 from dtpf.messages.models import ObservationCounts
 
-__all__ = ["ObservationIntake", "Rejection"]
+__all__ = ["ObservationIntake", "Rejection", "DrivenIntake", "LiveStep"]
 
 
 @dataclass(frozen=True)
@@ -103,3 +107,140 @@ class ObservationIntake:
         return ObservationCounts(accepted=self.accepted, duplicate=self.duplicate, out_of_order=self.out_of_order,
                                  wrong_length=self.wrong_length, malformed=self.malformed_count,
                                  missed=self.missed, last_sequence=self.last_sequence)
+
+
+@dataclass(frozen=True)
+class LiveStep:
+    """An observation of a driven twin, released in stamp order: one filter step (or the end of the stream)."""
+
+    values: list
+    truth: list | None
+    sensor: str | None
+    #: How the step is reached from the one before (None: the first step).
+    drive: object
+    #: The observation's time, ns.
+    stamp: int
+    end: bool = False
+
+
+class DrivenIntake:
+    """The live intake of a driven twin: observations of several sensors and controls, in stamp order.
+
+    Each sensor numbers its own observations (an :class:`ObservationIntake` per sensor checks them); the
+    control source numbers its controls. Accepted ones wait in a :class:`~dtpf.entity.timeline.Reorder` for
+    ``window`` ns of stamp time, then come out in stamp order (controls before observations of the same
+    stamp, sensors in the model's order); one older than what came out already is late, counted and
+    skipped. A released control is held (:class:`~dtpf.entity.timeline.Timeline`), a released observation
+    becomes a :class:`LiveStep` with its drive::
+
+        intake = DrivenIntake(ModelCalls(model), state_dim=3, window=100_000_000)
+        intake.observation(message)      # None: taken, else a Rejection
+        intake.control(message)
+        step = intake.take()              # the next LiveStep, or None
+    """
+
+    def __init__(self, calls, state_dim: int, window: int):
+        from collections import deque
+
+        from dtpf.entity.timeline import Reorder, Timeline
+
+        self.calls = calls
+        self.intakes = {name: ObservationIntake(m, state_dim) for name, m in calls.sensors.items()}
+        self.rank = {name: i + 1 for i, name in enumerate(calls.sensors)}
+        self.reorder = Reorder(window)
+        self.timeline = Timeline(len(calls.controls), piecewise=calls.takes_dt)
+        self.late = 0
+        self.unknown_sensor = 0
+        self.controls = 0
+        self.controls_rejected = 0
+        self.control_sequence = 0
+        self.ended = False
+        self._steps = deque()
+
+    def observation(self, message) -> Rejection | None:
+        """Take an :class:`~dtpf.messages.models.Observation` (or the end of the stream)."""
+        sensor = message.sensor
+        intake = self.intakes.get(sensor)
+        if intake is None:
+            self.unknown_sensor += 1
+            known = ", ".join(str(name) for name in self.intakes)
+            return Rejection("observation from a sensor the model does not have",
+                             f"observation {message.step} from sensor {sensor!r}; the model's sensors: {known}")
+        verdict = intake.check(message.step, message.values, message.truth, message.end)
+        if verdict is not None:
+            return verdict
+        if message.end:
+            self.ended = True
+            self._release(self.reorder.flush())
+            return None
+        stamp = message.stamp.to_ns()
+        if not self.reorder.push(stamp, self.rank[sensor], message):
+            intake.accepted -= 1
+            self.late += 1
+            return Rejection("late observation (stamped before one filtered already, beyond the reorder window)",
+                             f"observation {message.step} of {sensor or 'the sensor'} at {stamp} ns is before "
+                             f"{self.reorder.released} ns, filtered already")
+        self._release(self.reorder.ready())
+        return None
+
+    def control(self, message) -> Rejection | None:
+        """Take a :class:`~dtpf.messages.models.Control`."""
+        c = len(self.calls.controls)
+        if len(message.values) != c:
+            self.controls_rejected += 1
+            return Rejection("control with the wrong number of values",
+                             f"control {message.step} has {len(message.values)} values, the model's control has {c}")
+        if message.step <= self.control_sequence:
+            self.controls_rejected += 1
+            return Rejection("late or repeated control (sequence number not above the last)",
+                             f"control {message.step} arrived after {self.control_sequence}")
+        if not self.reorder.push(message.stamp.to_ns(), 0, message):
+            self.controls_rejected += 1
+            return Rejection("late control (stamped before a step filtered already, beyond the reorder window)",
+                             f"control {message.step} at {message.stamp.to_ns()} ns is before a filtered step")
+        self.control_sequence = message.step
+        self.controls += 1
+        self._release(self.reorder.ready())
+        return None
+
+    def _release(self, items) -> None:
+        from dtpf.entity.timeline import TimeError
+
+        for message in items:
+            stamp = message.stamp.to_ns()
+            if not hasattr(message, "sensor"):  # a control
+                try:
+                    self.timeline.control(stamp, message.values)
+                except (TimeError, ValueError):
+                    self.controls -= 1
+                    self.controls_rejected += 1
+                continue
+            drive = self.timeline.step(stamp)
+            self._steps.append(LiveStep(list(message.values), message.truth, message.sensor, drive, stamp))
+
+    def take(self) -> LiveStep | None:
+        """The next step in stamp order; at the end of the stream, a LiveStep with ``end``; else None."""
+        if self._steps:
+            return self._steps.popleft()
+        if self.ended:
+            return LiveStep([], None, None, None, 0, end=True)
+        return None
+
+    def counts(self) -> ObservationCounts:
+        """The counters of every sensor, summed, and the controls'."""
+        intakes = self.intakes.values()
+        return ObservationCounts(
+            accepted=sum(i.accepted for i in intakes), duplicate=sum(i.duplicate for i in intakes),
+            out_of_order=sum(i.out_of_order for i in intakes), wrong_length=sum(i.wrong_length for i in intakes),
+            malformed=sum(i.malformed_count for i in intakes), missed=sum(i.missed for i in intakes),
+            last_sequence=max(i.last_sequence for i in intakes), late=self.late,
+            unknown_sensor=self.unknown_sensor, controls=self.controls, controls_rejected=self.controls_rejected)
+
+    @property
+    def last_sequence(self) -> int:
+        """The highest sequence number any sensor had accepted."""
+        return max(i.last_sequence for i in self.intakes.values())
+
+    def malformed(self) -> None:
+        """Count a message that did not decode (on the first sensor's counter)."""
+        next(iter(self.intakes.values())).malformed()

@@ -28,12 +28,13 @@ import zenoh
 from dtpf.entity import sources
 from dtpf.entity.cloud import FIELDS, POINT_STRIDE, cloud_points
 from dtpf.entity.filter import ParticleFilter, PendingStep, Preprocessed
-from dtpf.entity.intake import ObservationIntake
+from dtpf.entity.calls import ModelCalls
+from dtpf.entity.intake import DrivenIntake, ObservationIntake
 from dtpf.messages.admission import RunShape
 from dtpf.messages.codec import encode_with_base64
 from dtpf.messages.config import RunConfig, add_run_arguments
 from dtpf.messages.foxglove import PackedElementField, PointCloud
-from dtpf.messages.models import ARRAYS_CHECKED, Estimate, Observation, ParticleSet, ParticleSetKind, ServiceState, Time
+from dtpf.messages.models import ARRAYS_CHECKED, Control, Estimate, Observation, ParticleSet, ParticleSetKind, ServiceState, Time
 from dtpf.shell.bus import Doorbell, add_zenoh_arguments, open_session
 from dtpf.shell.fleet import host_twins, serve_run
 from dtpf.shell.service import TAKE_BUDGET, ServiceShell, add_service_arguments, refuse_taken_twins, run_service
@@ -373,6 +374,13 @@ class StepOutputs:
             shell.publish(cloud, encode_with_base64(cloud, self.points.tobytes()))
 
 
+def window_ns(seconds: float) -> int:
+    """The reorder window of the run configuration (seconds) in integer nanoseconds, from its decimal text."""
+    from decimal import Decimal
+
+    return int(Decimal(repr(float(seconds))) * 1_000_000_000)
+
+
 def drive_fields(sensor, drive) -> dict:
     """The fields a particle set carries of a driven step: its sensor, each piece's dt and control (none for a
     step that is not driven)."""
@@ -392,8 +400,13 @@ class LiveObservations:
     def __init__(self, shell: ServiceShell, model, config: RunConfig, quiet_after: float):
         self.shell = shell
         self.key = config.observation_key()
-        self.inbox = shell.inbox_on(self.key)
-        self.intake = ObservationIntake(model.obs_dim, model.dim)
+        calls = ModelCalls(model)
+        #: A driven twin's intake (several sensors, controls, stamp order), or None.
+        self.driven = DrivenIntake(calls, model.dim, window_ns(config.reorder_window)) if calls.driven else None
+        #: The key of a driven twin's controls: one inbox with the observations keeps their arrival order.
+        self.control_key = self.key.rpartition("/")[0] + "/control" if self.driven and calls.controls else None
+        self.inbox = shell.inbox_on(self.key, *([self.control_key] if self.control_key else []))
+        self.intake = self.driven if self.driven is not None else ObservationIntake(model.obs_dim, model.dim)
         self.quiet_after = quiet_after
         self.last = time.monotonic()
         #: Whether the last :meth:`take` left samples in the inbox (a flood: look again at once).
@@ -408,6 +421,8 @@ class LiveObservations:
         After ``quiet_after`` seconds without one the status says so (state
         'waiting'), and 'running' again when one comes.
         """
+        if self.driven is not None:
+            return self._take_driven(now)
         shell = self.shell
         self.more = True
         for _ in range(TAKE_BUDGET):
@@ -434,6 +449,47 @@ class LiveObservations:
             self.inbox.ring()
             return None
         self.more = False
+        self._quiet(now)
+        return None
+
+    def _take_driven(self, now: float):
+        """:meth:`take` for a driven twin: controls and observations into its intake, the next step in stamp
+        order out (a :class:`~dtpf.entity.intake.LiveStep`)."""
+        shell, intake = self.shell, self.driven
+        self.more = False
+        for _ in range(TAKE_BUDGET):
+            item = self.inbox.get(timeout=0)
+            if item is None:
+                break
+            control = str(item.key) == self.control_key
+            rejected = shell.rejected
+            message = shell.receive(item, Control if control else Observation)
+            if message is None:
+                if shell.rejected > rejected and not control:
+                    intake.malformed()
+                continue
+            verdict = intake.control(message) if control else intake.observation(message)
+            if verdict is not None:
+                shell.reject(verdict.reason, verdict.detail)
+        else:
+            self.inbox.ring()
+            self.more = True
+        step = intake.take()
+        if step is None:
+            self._quiet(now)
+            return None
+        if shell.state == ServiceState.WAITING:
+            shell.log.info("observations again after %.1f s", now - self.last)
+            shell.state, shell.detail = ServiceState.RUNNING, None
+            shell.publish_status()
+        self.last = now
+        self.stamp = None if step.end else step.stamp
+        self.more = self.more or bool(intake._steps)
+        return step
+
+    def _quiet(self, now: float) -> None:
+        """Say in the status and the log when no observation has come for ``quiet_after`` seconds."""
+        shell = self.shell
         quiet = now - self.last
         if quiet >= self.quiet_after and shell.state != ServiceState.WAITING:
             shell.state = ServiceState.WAITING
@@ -441,7 +497,6 @@ class LiveObservations:
                             f"{self.intake.last_sequence}); waiting")
             shell.log.warning("%s", shell.detail)
             shell.publish_status()
-        return None
 
 
 def build_parser() -> argparse.ArgumentParser:

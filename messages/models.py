@@ -560,6 +560,12 @@ class ObservationCounts(BaseModel):
     malformed: Count = Field(description="Rejected: not a valid Observation message (NaN values included).")
     missed: Count = Field(description="Sequence numbers skipped between accepted observations.")
     last_sequence: Count = Field(description="Sequence number of the last accepted observation (0: none yet).")
+    late: Count = Field(default=0, description="Rejected: stamped before an observation already filtered, beyond "
+                                               "the reorder window (a driven twin).")
+    unknown_sensor: Count = Field(default=0, description="Rejected: from a sensor the model does not have.")
+    controls: Count = Field(default=0, description="Controls taken (a driven twin).")
+    controls_rejected: Count = Field(default=0, description="Controls rejected: the wrong number of values, a "
+                                                            "sequence number or a stamp older than the last.")
 
 
 #: Most kinds of rejection and keys a status lists (the rest are summed under "other").

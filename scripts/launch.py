@@ -735,6 +735,9 @@ def _wait_for_recorder(recorder: subprocess.Popen, presence: Presence, timeout: 
 def _rows(config: RunConfig) -> int:
     """The number of rows of the run's observation file (its steps when ``--steps`` is not given)."""
     from dtpf.entity.sources import read_table
+    if config.sensor_files:  # a driven twin's sensors: every row of every file
+        from dtpf.entity import stamped
+        return stamped.rows(config)
     return read_table(config).steps
 
 

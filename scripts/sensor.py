@@ -14,6 +14,18 @@ each as it arrives::
 
 A restarted sensor continues where the twin is: it reads the last sequence
 number the entity accepted from the entity's status and goes on after it.
+
+For a driven model (docs/guides/driven.md) it stands in for every sensor and
+the control source at once: it reads ``--observations NAME=FILE`` per sensor
+and ``--controls FILE`` and publishes, in stamp order, each sensor's
+observations (numbered per sensor, named in ``sensor``, stamped with the
+file's time) and each control on ``dtpf/<twin>/sensor/control``, each when
+its stamp comes (``--speed`` times real time; 0: as fast as possible, which
+only a twin whose ``--reorder-window`` spans the whole run puts in order)::
+
+    dtpf launch --model docs/examples/unicycle.py:Unicycle --observations live
+    dtpf sensor --model docs/examples/unicycle.py:Unicycle --observations gps=gps.csv \
+        --observations beacons=beacons.csv --controls odometry.csv
 """
 from __future__ import annotations
 
@@ -27,7 +39,7 @@ from dtpf.entity import sources
 from dtpf.messages import keys
 from dtpf.messages.codec import MessageError, decode_for_key
 from dtpf.messages.config import RunConfig, add_run_arguments, config_from_args
-from dtpf.messages.models import Observation, Status
+from dtpf.messages.models import Control, Observation, Status, Time
 from dtpf.scripts.console import run_command
 from dtpf.shell.bus import BusError, Inbox, add_zenoh_arguments, zenoh_config_from_args
 from dtpf.shell.service import ServiceShell
@@ -79,8 +91,10 @@ def resume_point(shell: ServiceShell, wait: float) -> int:
 
 def main(config: RunConfig, zenoh_config: zenoh.Config, args: argparse.Namespace) -> int:
     """Publish the observations of ``config`` (simulated or from its file) until done or stopped."""
-    model = sources.load_model(config, sensor=config.observation_file is None)
+    model = sources.load_model(config, sensor=config.simulated)
     data = sources.observations_of(config, model)
+    if data.drives is not None or data.sensors is not None:
+        return driven(config, model, data, zenoh_config, args)
     key = keys.key(config.twin, "sensor", "observation")
     with ServiceShell("sensor", config, zenoh_config) as shell:
         shell.running()
@@ -109,6 +123,55 @@ def main(config: RunConfig, zenoh_config: zenoh.Config, args: argparse.Namespace
         if not args.no_end:
             shell.publish(Observation(**shell.header(data.steps + 1), values=[], end=True))
         shell.log.info("published %d observations on %s%s", sent, key, "" if args.no_end else ", then the end")
+    return 0
+
+
+def driven(config: RunConfig, model, data, zenoh_config: zenoh.Config, args: argparse.Namespace) -> int:
+    """Publish a driven run's observations of every sensor and its controls, in stamp order (module
+    docstring)."""
+    from dtpf.entity import stamped
+    from dtpf.entity.calls import ModelCalls
+
+    calls = ModelCalls(model)
+    events = []  # (stamp, 0 control / 1 observation, index)
+    controls = None
+    if config.controls is not None:
+        controls = stamped.read_controls(config.controls, calls.controls)
+        events += [(int(stamp), 0, i) for i, stamp in enumerate(controls[0])]
+    events += [(int(stamp), 1, i) for i, stamp in enumerate(data.stamps)]
+    events.sort()
+    with ServiceShell("sensor", config, zenoh_config) as shell:
+        shell.running()
+        if args.wait_for_entity and shell.presence.wait_for(["entity"], args.wait_for_entity):
+            shell.log.warning("no entity of twin %s after %.1f s: publishing anyway", config.twin,
+                              args.wait_for_entity)
+        speed = args.speed
+        start = time.monotonic()
+        first = events[0][0] if events else 0
+        sequence = {name: 0 for name in calls.sensors}
+        sent = 0
+        for stamp, kind, i in events:
+            if shell.stopping:
+                shell.log.info("stopped after %d observations of %d", sent, data.steps)
+                return 130
+            if speed:
+                time.sleep(max(0.0, start + (stamp - first) / 1e9 / speed - time.monotonic()))
+            if kind == 0:
+                shell.publish(Control(**shell.header(i + 1), stamp=Time.from_ns(stamp),
+                                      values=controls[1][i].tolist()))
+                continue
+            sensor = data.sensors[i] if data.sensors is not None else None
+            sequence[sensor] += 1
+            truth = None if data.truth is None or args.no_truth else data.truth[i].tolist()
+            values = data.observations[i][:calls.sensors[sensor]].tolist()
+            shell.publish(Observation(**shell.header(sequence[sensor]), stamp=Time.from_ns(stamp), values=values,
+                                      truth=truth, sensor=sensor))
+            sent += 1
+        if not args.no_end:
+            name = next(iter(sequence))
+            shell.publish(Observation(**shell.header(sequence[name] + 1), values=[], end=True, sensor=name))
+        shell.log.info("published %d observations of %d sensors%s", sent, len(sequence),
+                       f" and {len(controls[0])} controls" if controls is not None else "")
     return 0
 
 
@@ -141,6 +204,9 @@ def register(subparsers) -> None:
     group = parser.add_argument_group("sensor")
     group.add_argument("--rate", type=float, default=10.0, metavar="PER_SECOND",
                        help="observations per second; 0: as fast as possible (default: %(default)s)")
+    group.add_argument("--speed", type=float, default=1.0, metavar="FACTOR",
+                       help="a driven model's sensors and controls: publish each when its stamp comes, at FACTOR "
+                            "times real time; 0: as fast as possible (default: %(default)s)")
     group.add_argument("--no-truth", action="store_true",
                        help="publish the observations only, as a real sensor would")
     group.add_argument("--no-end", action="store_true",

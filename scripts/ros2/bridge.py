@@ -178,14 +178,19 @@ def bridge_words(args: argparse.Namespace) -> list[str]:
     return words
 
 
+#: Why /tf is not published where tf2_msgs cannot be imported.
+NO_TF2 = ("tf2_msgs cannot be imported here: it has no wheel on PyPI; a ROS 2 installation provides it "
+          "(docs/guides/ros2.md, 'A ROS 2 installation')")
+
+
 def optional_publisher(node, msgtype: str, topic: str, profile):
     """A publisher of ``msgtype`` on ``topic``, or None (said once in the log) when its Python package is not
-    installed here: nav_msgs comes with the [ros2] extra; tf2_msgs has no wheel, a system ROS 2 installation
-    provides it (``source /opt/ros/<distro>/setup.bash`` before starting the bridge)."""
+    installed here: nav_msgs comes with the [ros2] extra; tf2_msgs has no wheel, a ROS 2 installation
+    provides it (:data:`NO_TF2`)."""
     try:
         cls = message_class(msgtype)
     except Ros2Error as error:
-        log.warning("%s not published: %s", topic, error)
+        log.warning("%s not published: %s", topic, NO_TF2 if msgtype == TF_TYPE else error)
         return None
     return node.create_publisher(cls, topic, profile)
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import re
 from pathlib import Path
 from typing import Literal
 
@@ -35,6 +36,18 @@ def _problems(error: ValidationError, flags: bool = False) -> str:
         return (f"--{name.replace('_', '-')}" if flags else name) + ": "
 
     return "; ".join(where(e["loc"]) + e["msg"].removeprefix("Value error, ") for e in error.errors())
+
+
+def twin_of_model(reference: str) -> str:
+    """The default twin id of a user's model: its file's or module's name and ``-1``
+    (``models/rover.py:Rover`` -> ``rover-1``, ``lab.models:Rover`` -> ``models-1``)."""
+    module = reference.rpartition(":")[0] or reference
+    if module.endswith(".py") or "/" in module or "\\" in module:
+        name = Path(module.replace("\\", "/")).name.removesuffix(".py")
+    else:
+        name = module.rpartition(".")[2]
+    name = re.sub(r"[^A-Za-z0-9_.-]+", "-", name).strip(".-")[:60]
+    return f"{name or 'model'}-1"
 
 
 class RunConfig(BaseModel):
@@ -269,6 +282,14 @@ class RunConfig(BaseModel):
     def _known_move_rule(cls, value: str) -> str:
         return names.MOVE_RULE_REGISTRY.check_name(value)
 
+    @model_validator(mode="before")
+    @classmethod
+    def _twin_of_the_model(cls, values):
+        """A user's model names its twin (:func:`twin_of_model`) unless a twin is given."""
+        if isinstance(values, dict) and values.get("twin") is None and isinstance(values.get("model"), str):
+            values = {**values, "twin": twin_of_model(values["model"])}
+        return values
+
     @model_validator(mode="after")
     def _policy_fits_scenario(self) -> "RunConfig":
         if self.steps is None and self.simulated:
@@ -372,7 +393,8 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--resample-below", type=float, default=None, metavar="FRACTION",
                        help="resample only when ESS < FRACTION * N (default: every step, as the paper)")
     group.add_argument("--seed", type=int, default=None, help=f"root seed (default: {defaults.seed})")
-    group.add_argument("--twin", default=None, help=f"twin id (default: {defaults.twin})")
+    group.add_argument("--twin", default=None, help=f"twin id (default: {defaults.twin}; with --model, the model's "
+                                                    f"file or module name and -1: models/rover.py:Rover -> rover-1)")
     group.add_argument("--run-id", default=None, help=f"run id (default: {defaults.run_id})")
     group = parser.add_argument_group("digital twin")
     group.add_argument("--no-preprocess", dest="preprocess", action="store_false", default=None,

@@ -139,7 +139,7 @@ def test_a_users_move_is_an_arm_of_the_choosing_policy(tmp_path):
         "    mean = weights @ particles\n    spread = np.sqrt(weights @ (particles - mean) ** 2)\n"
         "    return resampled + rng.standard_normal(resampled.shape) * (0.5 * spread)\n")
     args = ("-q", "--model", str(EXAMPLES / "range_bearing.py:RangeBearingTarget"), "-n", "100", "-T", "100",
-            "--seed", "1", "--policy", "choose", "--choose-base", "plain", "--move", "strong.py:wide")
+            "--seed", "1", "--twin", "ungm-1", "--policy", "choose", "--choose-base", "plain", "--move", "strong.py:wide")
     ran = dtpf("run", *args, cwd=tmp_path)
     assert ran.returncode == 0, ran.stderr
     launched = dtpf("launch", *args, "-o", "run.mcap", cwd=tmp_path)
@@ -147,7 +147,7 @@ def test_a_users_move_is_an_arm_of_the_choosing_policy(tmp_path):
     assert figures(launched.stdout) == figures(ran.stdout)
     from dtpf.recording.logfile import read_log
     arms = [m.arm for _, m in read_log(tmp_path / "run.mcap").decoded(lambda topic: topic.endswith("/system/ps"))]
-    assert "own" in arms and "plain" in arms  # the own move was chosen at some steps (4 of 100 with this seed)
+    assert "own" in arms and "plain" in arms  # the own move was chosen at some steps (4 of 100 with this seed and twin)
     verified = dtpf("verify", "run.mcap", cwd=tmp_path)
     assert verified.returncode == 0 and "entity: 100 propagated sets reproduced bit for bit" in verified.stdout
 

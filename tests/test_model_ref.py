@@ -607,3 +607,14 @@ def test_load_checked_raises_and_does_not_cache_a_failure(write):
     for _ in range(2):
         with pytest.raises(ModelError, match=r"propagate returned shape"):
             load_checked(ref)
+
+
+def test_a_users_model_names_its_twin_unless_a_twin_is_given():
+    from dtpf.messages.config import RunConfig, twin_of_model
+
+    assert twin_of_model("models/rover.py:Rover") == "rover-1"
+    assert twin_of_model("lab.models:Rover") == "models-1"
+    assert twin_of_model("../my model.py:M") == "my-model-1"
+    assert RunConfig(model="models/rover.py:Rover", steps=5).twin == "rover-1"
+    assert RunConfig(model="models/rover.py:Rover", steps=5, twin="arm-7").twin == "arm-7"
+    assert RunConfig(steps=5).twin == "ungm-1"  # a built-in scenario keeps its twin

@@ -104,3 +104,42 @@ class ModelCalls:
             particles = self.propagate(particles, k, rng, noise if i == 0 else None, dt=dt, control=control)
             particles = np.asarray(particles) if i + 1 < len(drive.pieces) else particles
         return particles
+
+
+class StepModel:
+    """A driven model seen through the old contract at one step: its sensor and drive held, for code that
+    calls ``propagate(x, k, rng)`` and ``log_likelihood(x, z, k)`` (the system layer's evidence and what-if
+    simulations).
+
+    :meth:`hold` sets the sensor and the drive of the step in hand; ``log_likelihood``,
+    ``sample_observation`` and ``observation_moments`` then take that sensor, and ``propagate`` that drive
+    (the last interval's dt and control: a forecast of step k + 1 assumes the next interval is like the
+    last). Every other attribute is the model's.
+    """
+
+    def __init__(self, model):
+        self._model = model
+        self._calls = ModelCalls(model)
+        self.sensor = None
+        self.drive = None
+
+    def hold(self, sensor, drive) -> None:
+        """The sensor and drive of the step in hand (a drive of None keeps the last one)."""
+        self.sensor = sensor
+        if drive is not None:
+            self.drive = drive
+
+    def __getattr__(self, name):
+        return getattr(self._model, name)
+
+    def propagate(self, particles, k, rng, noise=None):
+        return self._calls.advance(particles, k, rng, self.drive, noise)
+
+    def log_likelihood(self, particles, observation, k):
+        return self._calls.log_likelihood(particles, observation, k, sensor=self.sensor)
+
+    def sample_observation(self, states, k, rng):
+        return self._calls.sample_observation(states, k, rng, sensor=self.sensor)
+
+    def observation_moments(self, particles, k):
+        return self._calls.observation_moments(particles, k, sensor=self.sensor)

@@ -60,6 +60,16 @@ class Drive:
         return self.pieces.tolist()
 
     @classmethod
+    def from_fields(cls, dt, control) -> "Drive | None":
+        """The drive a particle set carries (its ``dt`` per piece and ``control`` row by row), or None."""
+        if dt is None:
+            return None
+        seconds = np.asarray(dt, dtype=np.float64)[:, None]
+        if control is None:
+            return cls(seconds)
+        return cls(np.hstack([seconds, np.asarray(control, dtype=np.float64).reshape(seconds.shape[0], -1)]))
+
+    @classmethod
     def of(cls, rows) -> "Drive":
         """A drive from :meth:`rows` (a decoded message's)."""
         pieces = np.asarray(rows, dtype=np.float64)

@@ -51,7 +51,10 @@ class InProcessTwin:
             out = self.information.process(step, particles, weights, observation, parents, sensor=sensor)
         result = out.preprocessed
         snapshot = Snapshot.of(result.particles, result.weights, observation) if self.system.needs_particles else None
-        decision = self.system.observe(step, out.summary, snapshot)
+        if sensor is None and drive is None:
+            decision = self.system.observe(step, out.summary, snapshot)
+        else:
+            decision = self.system.observe(step, out.summary, snapshot, sensor=sensor, drive=drive)
         self.information.set_ps(decision.ps, decision.applies_from_step, decision.preprocess, decision.arm)
         self.decisions.append(decision)
         return Preprocessed(out.preprocessed.particles, out.preprocessed.weights, out.preprocessed.report,

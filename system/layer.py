@@ -13,6 +13,12 @@ Zenoh, the message on ``dtpf/<twin>/information/preprocessed``). The
 
 The simulation draws from ``stream(seed, twin, k, "system")``, so the Zenoh
 service, the in-process pipeline and ``dtpf verify`` decide identically.
+
+A driven twin's steps come from several sensors at uneven times: ``observe``
+takes the step's ``sensor`` and ``drive``, and the evidence and the
+simulation see the model through :class:`~dtpf.entity.calls.StepModel`, so
+the step's observation is weighed by its own sensor's likelihood and the
+next step is forecast over an interval like the last.
 """
 from __future__ import annotations
 
@@ -46,8 +52,10 @@ class SystemLayer:
     """
 
     def __init__(self, policy: PSPolicy, predictor: Predictor | None = None, *, seed: int = 0, twin: str = "twin",
-                 keep: int | None = None):
+                 keep: int | None = None, view=None):
         self.policy = policy
+        #: The driven model's :class:`~dtpf.entity.calls.StepModel` the predictor uses, or None.
+        self.view = view
         self.predictor = predictor if predictor is not None else Predictor()
         self.seed = int(seed)
         self.twin = twin
@@ -76,6 +84,11 @@ class SystemLayer:
         policy = cls_(ps=config.ps, max_change=config.ps_rate, **base, **(policy_options or {}))
         if policy.simulates and model is None:
             model = model_ref.resolve(config.model_ref)
+        view = None
+        if model is not None:
+            from dtpf.entity.calls import ModelCalls, StepModel
+            if ModelCalls(model).driven:
+                model = view = StepModel(model)
         options = dict(threshold_rule=config.threshold, weight_rule=config.weight_rule, move_rule=config.move_rule)
         evidence = Evidence(model, config.ps, **options) if policy.uses_evidence else None
         if policy.chooses_arms:
@@ -85,7 +98,7 @@ class SystemLayer:
         predictor = Predictor(model, resampler=config.resampler, **options,
                               scenario_simulation=policy.samples_observations, evidence=evidence) \
             if policy.simulates else Predictor()
-        return cls(policy, predictor, seed=config.seed, twin=twin or config.twin, keep=keep)
+        return cls(policy, predictor, seed=config.seed, twin=twin or config.twin, keep=keep, view=view)
 
     @property
     def needs_particles(self) -> bool:
@@ -97,12 +110,16 @@ class SystemLayer:
         """The PS of the latest decision (the policy's initial PS before any)."""
         return self.decisions[-1].ps if self.decisions else self.policy.initial_ps
 
-    def observe(self, step: int, summary: WeightSummary, snapshot: Snapshot | None = None) -> PSDecision:
+    def observe(self, step: int, summary: WeightSummary, snapshot: Snapshot | None = None, *, sensor=None,
+                drive=None) -> PSDecision:
         """Record the state of ``step`` and decide the PS from ``step + 1`` on.
 
         ``snapshot`` is used when :attr:`needs_particles`; without it the
-        forecast holds the history figures only.
+        forecast holds the history figures only. ``sensor``, ``drive``: a
+        driven step's (module docstring).
         """
+        if self.view is not None:
+            self.view.hold(sensor, drive)
         self.history.append((step, summary))
         if self.needs_particles and snapshot is not None:
             forecast = self.predictor.forecast(step, summary, snapshot, stream(self.seed, self.twin, step, "system"))

@@ -18,6 +18,7 @@ import time
 import zenoh
 
 from dtpf.entity import sources
+from dtpf.entity.timeline import Drive
 from dtpf.information.mirror import WeightSummary
 from dtpf.messages.admission import RunShape
 from dtpf.messages.config import RunConfig, add_run_arguments
@@ -51,6 +52,7 @@ class ParticleSets:
         self.shell = shell
         self.inbox = shell.inbox("information", "preprocessed")
         self.pending: dict[int, ParticleSet] = {}
+        self.driven: dict = {}
 
     def take(self, step: int) -> None:
         """Keep what has arrived for steps ``step`` .. ``step + MAX_AHEAD``."""
@@ -66,6 +68,9 @@ class ParticleSets:
         message = self.pending.pop(step, None)
         if message is None:
             return None
+        #: A driven twin's step: its sensor and drive, as the set carries them (observe takes them).
+        self.driven = {} if message.sensor is None and message.dt is None else dict(
+            sensor=message.sensor, drive=Drive.from_fields(message.dt, message.control))
         return Snapshot.of(message.particles, message.weights, message.observation)
 
 
@@ -126,7 +131,8 @@ class TwinSystem:
     def _decide(self, state: WeightState, snapshot: Snapshot | None) -> None:
         self.decided = max(self.decided, state.step)
         try:
-            decision = self.layer.observe(state.step, summary_of(state), snapshot)
+            driven = self.sets.driven if snapshot is not None else {}
+            decision = self.layer.observe(state.step, summary_of(state), snapshot, **driven)
         except ValueError as error:  # a state the predictor cannot take: counted, the service goes on
             self.shell.reject("weight state the predictor cannot take", f"step {state.step}: {error}",
                               key=self.states.key_expr)

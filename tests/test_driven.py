@@ -142,7 +142,8 @@ def test_the_sensors_files_are_merged_in_stamp_order(robot):
 def test_a_two_sensor_driven_model_launched_equals_dtpf_run_and_verifies(robot, tmp_path):
     from dtpf.scripts.launch import launch
 
-    config = config_of(robot)
+    # the predictive policy and the likelihood weight rule: both other layers weigh each step by its own sensor
+    config = config_of(robot, policy="predictive", weight_rule="likelihood")
     reference = inprocess.run(config)
     assert reference.rmse < 1.0  # GPS of 1.5 m and beacons of 0.3 m: the pose to well under a metre
     log = tmp_path / "robot.mcap"
@@ -150,6 +151,7 @@ def test_a_two_sensor_driven_model_launched_equals_dtpf_run_and_verifies(robot, 
     assert result.exit_codes == {"recorder": 0, "system": 0, "information": 0, "entity": 0}
     estimates = sorted(result.estimates, key=lambda e: e.step)
     np.testing.assert_array_equal([e.mean for e in estimates], reference.means)  # number for number
+    np.testing.assert_array_equal([e.ps for e in estimates], reference.ps)
     assert [e.sensor for e in estimates] == [s.sensor for s in reference.steps]
     data = sources.observations_of(config, resolve(config.model_ref))
     assert [e.stamp.to_ns() for e in estimates] == data.stamps.tolist()  # each at its observation's time

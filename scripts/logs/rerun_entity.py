@@ -45,12 +45,7 @@ def first_difference(recorded: np.ndarray, rerun: np.ndarray) -> tuple[str, obje
 
 def drive_of(recorded: ParticleSet) -> Drive | None:
     """The drive a propagated set carries (its pieces' dt and control), or None."""
-    if recorded.dt is None:
-        return None
-    dt = np.asarray(recorded.dt, dtype=np.float64)[:, None]
-    if recorded.control is None:
-        return Drive(dt)
-    return Drive(np.hstack([dt, np.asarray(recorded.control, dtype=np.float64).reshape(dt.shape[0], -1)]))
+    return Drive.from_fields(recorded.dt, recorded.control)
 
 
 def rerun_entity(config: RunConfig, model, twin: str, propagated: dict[int, ParticleSet],

@@ -20,6 +20,7 @@ import math
 from dataclasses import dataclass, field
 
 
+from dtpf.entity.timeline import Drive
 from dtpf.information.layer import InformationLayer, arms_for
 from dtpf.messages.config import RunConfig
 from dtpf.messages.models import Missed, ParticleSet, Status
@@ -196,7 +197,8 @@ def verify_twin(by_topic: dict[str, list], twin: str, problem: str | None = None
                                    arms=arms_for(config.jitter))
     for step in sorted(particle_sets):
         source: ParticleSet = particle_sets[step]
-        out = information.process(step, source.particles, source.weights, source.observation, source.parents)
+        out = information.process(step, source.particles, source.weights, source.observation, source.parents,
+                                  sensor=source.sensor)  # a driven twin's step: weighed by its own sensor
         if step not in preprocessed:
             result.unanswered.append(step)
         else:
@@ -216,7 +218,8 @@ def verify_twin(by_topic: dict[str, list], twin: str, problem: str | None = None
         # The system layer simulates from the preprocessed set, as its service receives it.
         snapshot = Snapshot.of(out.preprocessed.particles, out.preprocessed.weights, source.observation) \
             if system.needs_particles else None
-        decision = system.observe(step, out.summary, snapshot)
+        decision = system.observe(step, out.summary, snapshot, sensor=source.sensor,
+                                  drive=Drive.from_fields(source.dt, source.control))
         information.set_ps(decision.ps, decision.applies_from_step, decision.preprocess, decision.arm)
         if step in commands:
             topic = f"dtpf/{twin}/system/ps"

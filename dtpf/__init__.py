@@ -34,6 +34,8 @@ The names, by what they are for:
 - a run: :class:`RunConfig` (every option of ``dtpf run`` and ``dtpf launch``),
   :func:`run` (the three layers in one process), :class:`RunResult`;
 - logs: :func:`read_log` (any dtpf MCAP file), :func:`write_log`;
+- a running twin: :func:`ask` (its state now, its recorded history, its forecast, over Zenoh queries:
+  ``dtpf.ask("ungm-1", "forecast", connect="tcp/127.0.0.1:7447", horizon=5)``);
 - errors: :class:`DtpfError`, the root of every error dtpf raises for bad
   input (a message, a file, a model, an option).
 
@@ -80,6 +82,7 @@ _HOMES = {
     "read_log": "dtpf.recording.logfile",
     "write_log": "dtpf.recording.logfile",
     "DtpfError": "dtpf.messages.errors",
+    "ask": "dtpf.scripts.ask",
 }
 _RENAMED = {"get_model": ("dtpf.entity.model_ref", "resolve")}
 

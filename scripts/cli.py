@@ -390,6 +390,9 @@ def build_parser() -> argparse.ArgumentParser:
     from dtpf.scripts.ros2 import bridge as ros2_bridge, export as ros2_export
     ros2_export.register(commands)
     ros2_bridge.register(commands)
+    from dtpf.scripts import ask, serve
+    ask.register(commands)
+    serve.register(commands)
     return parser
 
 

@@ -45,6 +45,7 @@ from dtpf.recording.admission import Admission
 from dtpf.recording.logfile import what_it_holds
 from dtpf.recording.writer import (COMPRESSION, EXIT_LOG_WRITE, LogExistsError, LogWriteError, McapRecording,
                                    auto_compression)
+from dtpf.scripts.serve import FileHistory, answer_history
 from dtpf.shell.bus import add_zenoh_arguments
 from dtpf.shell.service import ServiceShell, add_service_arguments, run_service
 
@@ -106,6 +107,8 @@ def _record(shell: ServiceShell, recording: McapRecording, pattern: str, compres
                            max_items=RECORDER_INBOX_ITEMS, recover=True)
     silences = Silences(shell.log, args.gap_after)
     admission = Admission(shell, all_twins=args.all_twins, silences=silences)
+    # dtpf ask TWIN history: answered from what the file holds (dtpf.scripts.serve).
+    answer_history(shell.session, "*" if args.all_twins else [shell.config.twin], FileHistory(args.output), shell.log)
     shell.running()
     shell.log.info("recording %s into %s (%s chunks)", pattern, args.output, compression)
     next_check = time.monotonic() + 1.0

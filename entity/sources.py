@@ -175,7 +175,7 @@ def observations_of(config, model: StateSpaceModel) -> RunData | None:
         whole = run.truth is not None and run.truth_components == tuple(range(model.dim))
         return RunData(run.observations, run.truth if whole else None, run.source, known_truth=run.truth,
                        truth_components=run.truth_components, truth_columns=run.truth_columns, stamps=run.stamps,
-                       sensors=run.sensors, drives=run.drives)
+                       sensors=run.sensors, drives=run.drives, problem=run.problem)
     if config.observation_file is not None:
         table: ObservationTable = read_table(config, model, steps=config.steps)
         whole = table.covers(model.dim)

@@ -125,6 +125,26 @@ def test_out_of_order_observations_within_the_window_are_put_in_order_and_later_
     assert order.late == 1
 
 
+def test_one_csv_of_every_sensor_is_put_in_stamp_order_within_the_window_and_later_rows_skipped(robot, tmp_path):
+    model = resolve(str(ROOT / MODEL))
+    files = sources.observations_of(config_of(robot), model)
+    lines = ["time,sensor,z0,z1,z2"]
+    for stamp, sensor, z in zip(files.stamps, files.sensors, files.observations):
+        values = [repr(float(v)) for v in z[:model.sensors[sensor]]]
+        lines.append(",".join([f"{stamp // NS}.{stamp % NS:09d}", sensor, *values, *[""] * (3 - len(values))]))
+    lines[4], lines[5] = lines[5], lines[4]   # 0.1 s apart: within the window of 0.1 s, put back in order
+    lines.insert(12, lines.pop(3))            # 0.8 s late: beyond it, skipped and named
+    shared = tmp_path / "all.csv"
+    shared.write_text("\n".join(lines) + "\n")
+    config = config_of(robot).model_copy(update={"sensor_files": None, "observations": str(shared)})
+    data = sources.observations_of(config, model)
+    kept = [i for i in range(len(files.sensors)) if i != 2]  # without the row that came late
+    assert data.sensors == tuple(files.sensors[i] for i in kept)
+    np.testing.assert_array_equal(data.stamps, files.stamps[kept])
+    np.testing.assert_array_equal(data.observations, files.observations[kept])
+    assert "1 row stamped before a row already put in order" in data.problem and "(line 13)" in data.problem
+
+
 # --- files: in process and over Zenoh, the same numbers --------------------------------------------
 
 def test_the_sensors_files_are_merged_in_stamp_order(robot):

@@ -19,7 +19,8 @@ directory: ``zenoh.open(zenoh.Config.from_file("DIR/tls/viewer.json5"))``.
 The access control (:func:`access_control`) denies by default; each role may
 put only on its own keys (``dtpf/<twin>/<role>/**``, its status and liveliness
 token included), the layers, the recorder and the viewer may read the twin's
-keys, a sensor reads only its entity's status. Certificates and keys come from
+keys and ask it (its state, forecast and history: queries, which change nothing), a sensor reads only
+its entity's status. Certificates and keys come from
 the ``cryptography`` package (ECDSA P-256, SHA-256), not from code of ours.
 """
 from __future__ import annotations
@@ -76,6 +77,20 @@ def access_control(kind: str, twins: str = "*") -> dict:
     for role in PUTTING_ROLES:
         rules.append({"id": f"{role}-puts", "permission": "allow", "flows": ["ingress"],
                       "messages": ["put", "liveliness_token"], "key_exprs": [_twin_keys(twins, f"{role}/**")]})
+    # Questions (dtpf ask): a reader may ask the entity's and the recorder's queryables and hear their answers;
+    # the entity and the recorder may declare them and answer. A query only reads: none changes the twin.
+    questions = [_twin_keys(twins, "entity/state"), _twin_keys(twins, "entity/forecast"),
+                 _twin_keys(twins, "recorder/history")]
+    rules += [
+        {"id": "ask", "permission": "allow", "flows": ["ingress"], "messages": ["query"], "key_exprs": questions},
+        {"id": "hear-answers", "permission": "allow", "flows": ["egress"], "messages": ["reply", "declare_queryable"],
+         "key_exprs": questions},
+    ]
+    for role, answered in (("entity", questions[:2]), ("recorder", questions[2:])):
+        rules += [{"id": f"{role}-answers", "permission": "allow", "flows": ["ingress"],
+                   "messages": ["declare_queryable", "reply"], "key_exprs": answered},
+                  {"id": f"{role}-asked", "permission": "allow", "flows": ["egress"], "messages": ["query"],
+                   "key_exprs": answered}]
     field = "cert_common_names" if kind == "tls" else "usernames"
     subjects = [{"id": role, field: [role]} for role in ROLES]
     policies = [{"id": "readers", "rules": ["read", "delivered"], "subjects": list(READING_ROLES)},
@@ -83,6 +98,9 @@ def access_control(kind: str, twins: str = "*") -> dict:
                  "subjects": ["sensor"]}]
     policies += [{"id": f"{role}-writes", "rules": [f"{role}-puts", "hears-subscribers"],
                   "subjects": [role]} for role in PUTTING_ROLES]
+    policies += [{"id": "askers", "rules": ["ask", "hear-answers"], "subjects": list(READING_ROLES)}]
+    policies += [{"id": f"{role}-answers", "rules": [f"{role}-answers", f"{role}-asked"], "subjects": [role]}
+                 for role in ("entity", "recorder")]
     return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects,
             "policies": policies}
 

@@ -1,0 +1,312 @@
+"""Ask the twin: its state now, its history, its forecast, over Zenoh queries (docs/guides/ask.md).
+
+Pure parts first (selectors, the forecast's numbers and statistics), then one live twin serving every
+check: an entity filtering live observations and a recorder, on a router of this test; the entity's
+state between observations, its forecast twice and against the recorded particle set, garbage and a
+storm of queries; then the finished log under ``dtpf serve``, whose history is ``dtpf cat``'s.
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+import signal
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from conftest import Processes, Router, service_args
+from dtpf.entity.forecast import forecast, forecast_stream
+from dtpf.entity.models import DriftModel, get as get_model
+from dtpf.messages import queries
+from dtpf.messages.codec import encode
+from dtpf.messages.models import Estimate, Observation, ParticleSet
+from dtpf.messages.streams import stream
+from dtpf.shell.bus import BusError, free_port, open_session, zenoh_config
+from dtpf.shell.queries import ask
+
+#: Deadlines for a loaded 2-core machine (a service's start imports numpy and numba: seconds).
+START, ANSWER = 90.0, 10.0
+TWIN, RUN_ID, SEED, N = "t-ask", "ask", 4, 200
+
+
+# --- pure parts ------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("kind, text, says", [
+    ("history", "steps=a", "steps must be A:B"),
+    ("history", "steps=5:3", "need A <= B"),
+    ("history", "limit=0", "limit=0 is out of bounds"),
+    ("history", f"limit={queries.MAX_LIMIT + 1}", f"at most {queries.MAX_LIMIT}"),
+    ("history", "time=x:1", "time must be a number"),
+    ("history", "topics=a b", "is no topic"),
+    ("history", "steps=1;steps=2", "given twice"),
+    ("forecast", "horizon=0", "at least 1"),
+    ("forecast", "horizon=" + "9" * 30, "must be an integer"),
+    ("forecast", "dt=nan", "finite"),
+    ("state", "particles=maybe", "true or false"),
+    ("state", "drop=table", "unknown state parameter 'drop'"),
+    ("state", "x" * (queries.MAX_SELECTOR_TEXT + 1), "at most"),
+    ("state", ";".join(f"p{i}=1" for i in range(queries.MAX_PARAMETERS + 1)), "more than"),
+])
+def test_a_bad_selector_is_one_line_naming_what_is_wrong(kind, text, says):
+    with pytest.raises(queries.SelectorError, match=says) as caught:
+        queries.parse(kind, text)
+    assert "\n" not in str(caught.value)
+
+
+def test_any_text_is_a_selector_or_a_selector_error():
+    rng = np.random.default_rng(1)
+    alphabet = list("=;&:,|*/.-_ab01xyz%\x00\u00e9") + ["steps", "time", "topics", "limit", "horizon", "particles"]
+    for _ in range(2000):
+        text = "".join(rng.choice(alphabet, size=rng.integers(0, 30)))
+        for kind in queries.KINDS:
+            try:
+                queries.parse(kind, text)
+            except queries.SelectorError:
+                pass
+
+
+def test_a_forecast_is_the_same_numbers_twice_and_draws_none_of_the_runs_numbers():
+    model, rng = get_model("ungm"), np.random.default_rng(3)
+    x, w = rng.normal(size=(500, 1)), rng.dirichlet(np.ones(500))
+    kept = x.copy()
+    first = forecast(model, x, w, 7, 6, seed=SEED, twin=TWIN)
+    again = forecast(model, x, w, 7, 6, seed=SEED, twin=TWIN)
+    shorter = forecast(model, x, w, 7, 3, seed=SEED, twin=TWIN)
+    np.testing.assert_array_equal(x, kept)  # the set given is not changed
+    for name in ("mean", "var", "lower", "upper"):
+        np.testing.assert_array_equal(getattr(first, name), getattr(again, name))
+        np.testing.assert_array_equal(getattr(first, name)[:3], getattr(shorter, name))
+    assert first.steps.tolist() == [8, 9, 10, 11, 12, 13]
+    # Its streams are none of the run's: the entity's of step 8 propagates the set elsewhere.
+    by_run = model.propagate(x.copy(), 8, stream(SEED, TWIN, 8, "entity"))
+    assert not np.allclose(w @ by_run, first.mean[0])
+    assert forecast_stream(SEED, TWIN, 7, 1).random() != stream(SEED, TWIN, 7, "entity").random()
+
+
+def _mixture_cdf(q: float, h: float) -> float:
+    return 0.3 * 0.5 * (1 + math.erf(q / math.sqrt(2 * h))) + 0.7 * 0.5 * (1 + math.erf((q - 10) / math.sqrt(2 * h)))
+
+
+def _mixture_quantile(p: float, h: float) -> float:
+    low, high = -50.0, 60.0
+    for _ in range(100):
+        mid = (low + high) / 2
+        low, high = (mid, high) if _mixture_cdf(mid, h) < p else (low, mid)
+    return (low + high) / 2
+
+
+def test_a_forecast_of_a_random_walk_has_the_moments_and_band_of_its_predictive_law():
+    """Particles half at 0 (weight 0.3 in all), half at 10 (0.7), a random walk of unit steps: at horizon h the
+    predictive law is 0.3 N(0, h) + 0.7 N(10, h), mean 7, variance 21 + h. Tolerances: 5 sd of each estimate
+    over the walk's noise (weighted sums of independent normals)."""
+    n = 4000
+    x = np.repeat([0.0, 10.0], n // 2)[:, None]
+    w = np.repeat([0.3, 0.7], n // 2) / (n // 2)
+    ahead = forecast(DriftModel(process_var=1.0), x, w, 1, 4, seed=11, twin=TWIN)
+    sum_w2 = float(w @ w)
+    offsets = x[:, 0] - 7.0
+    for h in (1, 4):
+        mean_sd = math.sqrt(h * sum_w2)
+        assert abs(ahead.mean[h - 1, 0] - 7.0) < 5 * mean_sd
+        var_sd = math.sqrt(float((w * w) @ (4 * offsets ** 2 * h + 2 * h * h)))
+        assert abs(ahead.var[h - 1, 0] - (21.0 + h)) < 5 * var_sd + 5 * mean_sd * 2 * 7
+        for p, got in ((0.025, ahead.lower[h - 1, 0]), (0.975, ahead.upper[h - 1, 0])):
+            q = _mixture_quantile(p, h)
+            density = (0.3 * math.exp(-q * q / (2 * h)) + 0.7 * math.exp(-(q - 10) ** 2 / (2 * h))) / math.sqrt(2 * math.pi * h)
+            assert abs(got - q) < 5 * math.sqrt(p * (1 - p) * sum_w2) / density, (h, p, got, q)
+
+
+# --- one live twin ---------------------------------------------------------------------------------------
+
+def wait_until(condition, timeout: float, what: str):
+    until = time.monotonic() + timeout
+    while True:
+        value = condition()
+        if value:
+            return value
+        assert time.monotonic() < until, f"not within {timeout:.0f} s: {what}"
+        time.sleep(0.1)
+
+
+class LiveTwin:
+    """A live entity and a recorder of TWIN on a router of this test; ``messages`` decoded from the router."""
+
+    def __init__(self, tmp):
+        self.log_path = tmp / "run.mcap"
+        self.processes = Processes(tmp)
+        self.router = Router()
+        run = ["--twin", TWIN, "--run-id", RUN_ID, "--seed", str(SEED), "--particles", str(N), "--observations", "live"]
+        self.recorder = self.processes.start("recorder", service_args("dtpf.scripts.record", self.router.endpoint,
+                                                                      *run, "-o", str(self.log_path)))
+        # Preprocessing on with no information layer: the entity publishes each step's particle set and goes on.
+        self.entity = self.processes.start("entity", service_args("dtpf.entity.service", self.router.endpoint, *run,
+                                                                  "--startup-timeout", "0", "--cloud-points", "0"))
+        self.session = self.router.session
+        self.sensor = self.session.declare_publisher(f"dtpf/{TWIN}/sensor/observation")
+
+    def ask(self, kind: str, text: str = "", timeout: float = ANSWER):
+        return ask(self.session, queries.key(TWIN, kind), text, timeout=timeout)
+
+    def observe(self, step: int, value: float | None = None, end: bool = False) -> None:
+        self.sensor.put(encode(Observation(run_id=RUN_ID, twin_id=TWIN, step=step, end=end,
+                                           values=[] if end else [value])))
+
+    def estimate(self, step: int) -> Estimate | None:
+        return next((m for m in self.router.messages if isinstance(m, Estimate) and m.step == step), None)
+
+    def close(self) -> None:
+        self.processes.stop_all()
+        self.router.close()
+
+
+@pytest.fixture(scope="module")
+def live(tmp_path_factory):
+    twin = LiveTwin(tmp_path_factory.mktemp("ask"))
+    try:
+        # Both are up once both answer (the entity: "no estimate yet"; the recorder: its first flush).
+        wait_until(lambda: twin.ask("state", timeout=2).errors, START, "the entity answers")
+        wait_until(lambda: twin.ask("history", timeout=2).answers, START, "the recorder answers")
+        for step, value in ((1, 0.5), (2, 3.0), (3, -1.0)):
+            twin.observe(step, value)
+        assert twin.router.collect(lambda messages: twin.estimate(3) is not None, START), twin.processes.output(twin.entity)
+        yield twin
+    finally:
+        twin.close()
+
+
+def test_a_live_twin_answers_its_state_between_observations(live):
+    before = live.ask("state").errors
+    answer = live.ask("state", "particles=true").first()
+    published = live.estimate(3)
+    assert answer["step"] == 3 and answer["twin"] == TWIN
+    estimate = Estimate.model_validate(answer["estimate"])
+    assert (estimate.mean, estimate.var, estimate.ess, estimate.degraded) == \
+        (published.mean, published.var, published.ess, published.degraded)
+    assert len(answer["particles"]) == N and abs(sum(answer["weights"]) - 1) < 1e-9
+    assert before == [] and live.entity.poll() is None
+
+
+def test_a_forecast_is_the_same_twice_and_propagates_the_recorded_set_of_its_step(live):
+    first = live.ask("forecast", "horizon=4").first()
+    again = live.ask("forecast", "horizon=4").first()
+    assert first == again and first["from_step"] == 3
+    recorded = wait_until(lambda: live.ask("history", "steps=3;topics=entity/particles").first()["messages"],
+                          ANSWER * 3, "the recorder holds the particle set of step 3")
+    assert len(recorded) == 1
+    particles, weights = np.array(recorded[0]["message"]["particles"]), np.array(recorded[0]["message"]["weights"])
+    ahead = forecast(get_model("ungm"), particles, weights, 3, 4, seed=SEED, twin=TWIN)
+    assert [entry["mean"] for entry in first["steps"]] == ahead.mean.tolist()
+    assert [entry["upper"] for entry in first["steps"]] == ahead.upper.tolist()
+
+
+def test_garbage_selectors_get_error_replies_and_the_twin_runs_on(live):
+    for kind, text in (("state", "particles=maybe"), ("forecast", "horizon=-1"), ("forecast", "control=1"),
+                       ("forecast", f"horizon={queries.MAX_HORIZON + 1}"), ("history", "steps=;;=;"),
+                       ("history", "\x00\xff" * 600)):
+        replies = live.ask(kind, text)
+        assert replies.answers == [] and len(replies.errors) == 1, (kind, text, replies)
+    live.observe(4, 2.0)
+    assert live.router.collect(lambda messages: live.estimate(4) is not None, START)
+    assert live.ask("state").first()["step"] == 4 and live.entity.poll() is None
+
+
+def test_a_storm_of_questions_is_bounded_by_the_rate_and_refused_with_a_reason(live):
+    from dtpf.entity.answers import STATE_BURST, STATE_RATE
+
+    asked = 3 * STATE_BURST
+    start = time.monotonic()
+    handlers = [live.session.get(queries.key(TWIN, "state"), timeout=ANSWER * 3) for _ in range(asked)]
+    answered = refused = 0
+    for handler in handlers:
+        for reply in handler:
+            if reply.ok is not None:
+                answered += 1
+                assert len(reply.ok.payload.to_bytes()) < 64 << 10
+            else:
+                text = reply.err.payload.to_bytes().decode()
+                assert "too many queries" in text or "busy" in text, text
+                refused += 1
+    elapsed = time.monotonic() - start
+    assert answered + refused == asked
+    assert answered <= STATE_BURST + STATE_RATE * elapsed + 1
+    if asked > STATE_BURST + STATE_RATE * elapsed + 1:
+        assert refused > 0
+    wait_until(lambda: live.ask("state").answers, ANSWER * 3, "the twin answers again after the storm")
+
+
+@pytest.fixture(scope="module")
+def finished(live):
+    """The live twin ended (its sensor's last word), its recorder stopped: the finished log."""
+    running = wait_until(lambda: (lambda answer: answer if answer["count"] == 4 else None)(
+        live.ask("history", "steps=1:4").first()), ANSWER * 3, "the recorder holds the estimate of step 4")
+    live.observe(5, end=True)
+    assert live.entity.wait(timeout=START) == 0, live.processes.output(live.entity)
+    os.kill(live.recorder.pid, signal.SIGINT)
+    assert live.recorder.wait(timeout=START) == 0, live.processes.output(live.recorder)
+    return live.log_path, running
+
+
+def _cat(log, *args) -> list[dict]:
+    import subprocess
+
+    done = subprocess.run([sys.executable, "-m", "dtpf.scripts.cli", "cat", str(log), *args, "--json"],
+                          capture_output=True, text=True, timeout=START)
+    assert done.returncode == 0, done.stderr
+    return [json.loads(line) for line in done.stdout.splitlines()]
+
+
+def _client(endpoint: str):
+    try:
+        return open_session(zenoh_config(mode="client", connect=[endpoint]))
+    except BusError:
+        return None
+
+
+@pytest.fixture(scope="module")
+def served(finished, live):
+    log, _ = finished
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    process = live.processes.start("serve", ["-m", "dtpf.scripts.cli", "serve", str(log), "--listen", endpoint])
+    session = wait_until(lambda: _client(endpoint) or process.poll() is not None, START, "dtpf serve listens")
+    assert process.poll() is None, live.processes.output(process)
+    try:
+        wait_until(lambda: ask(session, queries.key(TWIN, "history"), timeout=2).answers or process.poll() is not None,
+                   START, "dtpf serve answers")
+        assert process.poll() is None, live.processes.output(process)
+        yield endpoint, session, process
+    finally:
+        session.close()
+
+
+def test_history_from_the_running_recorder_and_from_dtpf_serve_equals_dtpf_cat(finished, served):
+    log, running = finished
+    endpoint, session, _ = served
+    assert running["messages"] == _cat(log, "--steps", "1:4", "--topics", "entity/estimate")
+    import subprocess
+
+    done = subprocess.run([sys.executable, "-m", "dtpf.scripts.cli", "ask", TWIN, "history", "--steps", "2:3",
+                           "--topics", "entity/estimate", "entity/particles", "--connect", endpoint, "--json"],
+                          capture_output=True, text=True, timeout=START)
+    assert done.returncode == 0, done.stderr
+    answer = json.loads(done.stdout)
+    assert answer["messages"] == _cat(log, "--steps", "2:3", "--topics", "entity/estimate", "entity/particles")
+    assert answer["count"] == 4
+
+
+def test_dtpf_serve_refuses_what_breaks_a_bound_or_is_garbage_and_serves_on(served):
+    endpoint, session, process = served
+    key = queries.key(TWIN, "history")
+    too_many = ask(session, key, "steps=1:5;limit=2").errors
+    assert too_many and "limit=2" in too_many[0]
+    too_big = ask(session, key, "particles=true;max_bytes=100").errors
+    assert too_big and "max_bytes=100" in too_big[0]
+    for text in ("steps=x", "nonsense", "time=:", "limit=-1", "topics=" + "a" * 500):
+        assert len(ask(session, key, text).errors) == 1, text
+    for text in ("&&&===", ";" * 3000, "%ff%00=1"):  # what Zenoh makes of them, answered or refused
+        replies = ask(session, key, text)
+        assert len(replies.answers) + len(replies.errors) == 1, text
+    assert ask(session, key, "steps=4").first()["count"] == 1 and process.poll() is None
+    assert ask(session, queries.key("t-other", "history"), timeout=2).answers == []

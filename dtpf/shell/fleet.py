@@ -28,6 +28,7 @@ service import code.
 """
 from __future__ import annotations
 
+import json
 import logging
 import signal
 import threading
@@ -49,6 +50,8 @@ __all__ = ["serve_layer", "serve_one", "serve_run", "serve_fleet", "host_twins",
 _IDLE = 0.2
 #: Most twins a fleet service serves at once; a status beyond them is counted, not served.
 MAX_TWINS = 10_000
+#: Most configurations (without their twin) a fleet service keeps validated.
+_MAX_SHAPES = 64
 
 
 def add_fleet_arguments(parser) -> None:
@@ -72,6 +75,7 @@ def serve_layer(layer: str, config: RunConfig, zenoh_config, args, load_model, m
     pattern. ``load_model(config)`` gives a twin's model, ``make_work(shell, config, model)`` the layer's
     work for it; a model that cannot load stops a solo service before its session opens."""
     if args.twins:
+        _warm_up(config, args.allow_model, load_model)
         serve_fleet(layer, args.twins, zenoh_config,
                     lambda shell, twin_config: make_work(shell, twin_config, load_model(twin_config)),
                     allow_models=args.allow_model)
@@ -83,6 +87,20 @@ def serve_layer(layer: str, config: RunConfig, zenoh_config, args, load_model, m
         shell.running()
         serve_one(shell, work, doorbell)
     return 0
+
+
+def _warm_up(config: RunConfig, allow_models, load_model) -> None:
+    """Load the model of the service's own run options (the fleet's, when a launcher starts it) before the
+    service asks for its twins: the first twin of a model costs its loading (numba's compiled kernels, the
+    configuration's validation), which would otherwise hold up every twin a restarted service learns at once.
+    Only a built-in or allowed model; one that cannot load is for its twin to refuse later."""
+    if config.model is not None and config.model not in allow_models:
+        return
+    try:
+        RunConfig.model_validate_json(config.model_dump_json())
+        load_model(config)
+    except Exception as error:  # noqa: BLE001 - a warm-up: the twin that needs the model says what is wrong
+        logging.getLogger("dtpf.fleet").debug("warm-up skipped: %s", error)
 
 
 def serve_run(run, doorbell: Doorbell) -> int:
@@ -133,6 +151,9 @@ class ConfigWatch:
         self.heard: dict[str, float] = {}
         #: The configuration each twin's statuses carry, validated once (a status comes every few seconds).
         self._configs: dict[str, tuple[str, RunConfig]] = {}
+        #: Configurations validated, by their JSON without the twin: a fleet's twins differ by their id only, and
+        #: a restarted service learns them all at once (a validation each cost it about 10 ms a twin).
+        self._validated: dict[str, RunConfig] = {}
 
     def poll(self, now: float, budget: int = 256) -> list[Learned]:
         """What the statuses that arrived say, at most ``budget`` of them (the rest at the next call)."""
@@ -162,7 +183,7 @@ class ConfigWatch:
                 config = known[1]
             else:
                 try:
-                    config = RunConfig.model_validate_json(status.config_json)
+                    config = self._validate(status.config_json, status.twin_id)
                 except ValueError as error:
                     self.on_reject("run configuration that does not validate", f"{item.key}: {str(error)[:300]}")
                     continue
@@ -173,6 +194,25 @@ class ConfigWatch:
                 continue
             learned.append(Learned(status.twin_id, config, status.run_id))
         return learned
+
+    def _validate(self, config_json: str, twin: str) -> RunConfig:
+        """The RunConfig of ``config_json``; one that differs from a configuration validated before only by its
+        twin (whose id the status has validated) is that one for this twin. ValueError if it does not validate."""
+        try:
+            fields = json.loads(config_json)
+        except ValueError as error:
+            raise ValueError(f"not JSON: {error}") from None
+        if not isinstance(fields, dict) or fields.get("twin") != twin:
+            return RunConfig.model_validate_json(config_json)
+        shape = json.dumps({name: value for name, value in fields.items() if name != "twin"}, sort_keys=True)
+        known = self._validated.get(shape)
+        if known is not None:
+            return known.model_copy(update={"twin": twin})
+        config = RunConfig.model_validate_json(config_json)
+        if len(self._validated) >= _MAX_SHAPES:
+            self._validated.clear()
+        self._validated[shape] = config
+        return config
 
     def forget(self, twin: str) -> None:
         self.heard.pop(twin, None)
@@ -236,6 +276,7 @@ def serve_fleet(layer: str, pattern: str, zenoh_config, make_work, *, allow_mode
 
     session = open_session(zenoh_config)
     watch = ConfigWatch(session, pattern, refuse)
+    log.info("serving the twins under %r: asked their entities for their last status", pattern)
     served: dict[str, _Served] = {}
 
     trim = {"due": False}
@@ -252,6 +293,7 @@ def serve_fleet(layer: str, pattern: str, zenoh_config, make_work, *, allow_mode
             refuse("model not allowed", f"twin {config.twin}: model {config.model!r} is not in --allow-model; "
                                         "a fleet service loads only built-in and registered models by itself")
             return
+        began = time.monotonic()
         shell = ServiceShell(layer, config, session=session, doorbell=doorbell).__enter__()
         try:
             work = make_work(shell, config)
@@ -263,7 +305,8 @@ def serve_fleet(layer: str, pattern: str, zenoh_config, make_work, *, allow_mode
             return
         shell.running()
         served[config.twin] = _Served(shell, work, config.run_id)
-        log.info("twin %s: serving run %s (%d twins served)", config.twin, config.run_id, len(served))
+        log.info("twin %s: serving run %s (%d twins served; its state built in %.2f s)", config.twin, config.run_id,
+                 len(served), time.monotonic() - began)
 
     try:
         rung: set[str] = set()

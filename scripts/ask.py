@@ -99,7 +99,10 @@ def cmd_ask(args: argparse.Namespace) -> int:
 
 
 def _numbers(values) -> str:
+    """A vector for a terminal: one value bare, a few in brackets, many summarised."""
     values = list(values or [])
+    if len(values) == 1:
+        return f"{values[0]:.4g}"
     if len(values) > 6:
         return "[" + ", ".join(f"{v:.4g}" for v in values[:3]) + f", ... {len(values)} values]"
     return "[" + ", ".join(f"{v:.4g}" for v in values) + "]"
@@ -121,11 +124,11 @@ def describe(what: str, answer: dict) -> str:
         return "\n".join(lines)
     if what == "forecast":
         lines = [f"twin {answer.get('twin')}: forecast from step {answer.get('from_step')}, "
-                 f"{answer.get('horizon')} steps (seed {answer.get('seed')}; band: 2.5% .. 97.5% quantiles)",
-                 f"  {'step':>6}  {'mean':<24}  {'sd':<24}  band"]
+                 f"{answer.get('horizon')} steps (seed {answer.get('seed')}; band: the 2.5% and 97.5% quantiles)",
+                 f"  {'step':>6}  {'mean':>10}  {'sd':>10}  95% band"]
         for entry in answer.get("steps", []):
             sd = [v ** 0.5 for v in entry.get("var", [])]
-            lines.append(f"  {entry.get('step'):>6}  {_numbers(entry.get('mean')):<24}  {_numbers(sd):<24}  "
+            lines.append(f"  {entry.get('step'):>6}  {_numbers(entry.get('mean')):>10}  {_numbers(sd):>10}  "
                          f"{_numbers(entry.get('lower'))} .. {_numbers(entry.get('upper'))}")
         return "\n".join(lines)
     lines = [f"twin {answer.get('twin')}: {answer.get('count')} messages"]

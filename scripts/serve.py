@@ -16,14 +16,15 @@ from __future__ import annotations
 
 import argparse
 import os
-import signal
 import sys
 import threading
 from pathlib import Path
 
 from dtpf.messages import keys, queries
-from dtpf.recording.logfile import Log, LogError, read_log, read_logs
+from dtpf.recording.logfile import Log, LogError, read_log
+from dtpf.scripts.console import stop_on_signals
 from dtpf.scripts.logs.history import history_answer
+from dtpf.scripts.logs.summary import read_for_command
 from dtpf.shell.bus import BusError, add_zenoh_arguments, free_port, open_session, zenoh_config_from_args
 from dtpf.shell.queries import Queryable, worker
 
@@ -93,10 +94,8 @@ def answer_history(session, twins, source: LogHistory, log=None) -> list[Queryab
 
 def cmd_serve(args: argparse.Namespace) -> int:
     """``dtpf serve LOG...``: 0 after Ctrl-C, 1 when a log cannot be read, 2 on a bad option."""
-    try:
-        log = read_logs(args.log)
-    except LogError as error:
-        print(f"dtpf serve: error: {error}", file=sys.stderr)
+    log = read_for_command(args, "serve")
+    if log is None:
         return 1
     if log.problem:
         print(f"dtpf serve: note: {log.problem}", file=sys.stderr)
@@ -114,9 +113,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     except BusError as error:
         print(f"dtpf serve: error: {error}", file=sys.stderr)
         return 2
-    stop = threading.Event()
-    for signum in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(signum, lambda *_: stop.set())
+    stop = stop_on_signals()
     served = answer_history(session, twins, LogHistory(log))
     try:
         where = ", ".join(args.listen or args.connect) or "the configured endpoints"

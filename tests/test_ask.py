@@ -22,7 +22,7 @@ from dtpf.entity.forecast import forecast, forecast_stream
 from dtpf.entity.models import DriftModel, get as get_model
 from dtpf.messages import queries
 from dtpf.messages.codec import encode
-from dtpf.messages.models import Estimate, Observation, ParticleSet
+from dtpf.messages.models import Estimate, Observation
 from dtpf.messages.streams import stream
 from dtpf.shell.bus import BusError, free_port, open_session, zenoh_config
 from dtpf.shell.queries import ask

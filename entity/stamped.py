@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from dtpf.entity import topics
 from dtpf.entity.calls import ModelCalls
 from dtpf.entity.observations import MAX_LINE_CHARS, ObservationError, ObservationTable, read_observations
 from dtpf.entity.timeline import Drive, TimeError, Timeline
@@ -97,6 +98,11 @@ def read_stamped(config, model, *, steps: int | None = None, calls: ModelCalls |
     sources = sensor_sources(config, calls)
     tables: dict = {}
     for name, path in sources.items():
+        bag = topics.bag_topic(path)  # a rosbag2 bag's topic, BAG:/TOPIC
+        if bag is not None:
+            tables[name] = topics.read_sensor(bag, name, config, obs_dim=calls.sensors[name], state_dim=model.dim,
+                                              model=model)
+            continue
         tables[name] = read_observations(path, obs_dim=calls.sensors[name], state_dim=model.dim,
                                          exact_stamps=True)
     events = sorted((int(stamp), rank, row, name)
@@ -104,7 +110,9 @@ def read_stamped(config, model, *, steps: int | None = None, calls: ModelCalls |
                     for row, stamp in enumerate(table.stamps))
     if steps is not None:
         events = events[:steps]
-    return _assemble(config, model, calls, tables, events, ", ".join(str(path) for path in sources.values()))
+    problems = [table.problem for table in tables.values() if getattr(table, "problem", None)]
+    return _assemble(config, model, calls, tables, events, ", ".join(str(path) for path in sources.values()),
+                     "; ".join(problems) or None)
 
 
 def _assemble(config, model, calls, tables, events, source, problem=None) -> StampedRun:
@@ -115,7 +123,8 @@ def _assemble(config, model, calls, tables, events, source, problem=None) -> Sta
         if not calls.controls:
             raise ObservationError(f"--controls {control_file}: the model takes no control input (its controls "
                                    f"are empty)")
-        stamps, values = read_controls(control_file, calls.controls)
+        stamps, values = read_controls(control_file, calls.controls, fields=getattr(config, "control_fields", None),
+                                       partial=bool(getattr(config, "partial", False)))
         for stamp, u in zip(stamps, values):
             timeline.control(int(stamp), u)
     elif calls.controls:
@@ -257,12 +266,22 @@ class _Rows:
 
 def rows(config) -> int:
     """The number of steps in the run's sensor files (the sum of their rows), without the model."""
-    return sum(read_observations(path).steps for path in (config.sensor_files or {}).values())
+    total = 0
+    for name, path in (config.sensor_files or {}).items():
+        bag = topics.bag_topic(path)
+        total += (topics.read_sensor(bag, name, config, obs_dim=None, state_dim=None, model=None) if bag
+                  else read_observations(path)).steps
+    return total
 
 
-def read_controls(path, controls: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
+def read_controls(path, controls: tuple[str, ...], *, fields: str | None = None,
+                  partial: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """The control file's stamps (ns) and values (C, c): the columns named as ``controls`` when its header has
-    them all, else every observation column in order (which must be c of them)."""
+    them all, else every observation column in order (which must be c of them); a bag's topic
+    (``BAG:/TOPIC``) by ``fields`` or its type (:func:`dtpf.entity.topics.read_control`)."""
+    bag = topics.bag_topic(path)
+    if bag is not None:
+        return topics.read_control(bag, controls, fields, partial)
     table: ObservationTable = read_observations(path, exact_stamps=True)
     names = list(table.columns)
     if all(name in names for name in controls):

@@ -101,8 +101,17 @@ class RunConfig(BaseModel):
                                                 "files, one per sensor: sensor name (the model's sensors) -> "
                                                 "file with a time column (--observations NAME=FILE).")
     controls: str | None = Field(None, max_length=4096, description="A file of the control input: a time column "
-                                 "and the model's control columns (zero-order hold between rows); live, the "
-                                 "controls come on dtpf/<twin>/sensor/control.")
+                                 "and the model's control columns (zero-order hold between rows); a rosbag2 "
+                                 "topic 'BAG:/TOPIC'; 'ros2:TOPIC', a live ROS 2 topic; live, the controls come "
+                                 "on dtpf/<twin>/sensor/control.")
+    sensor_fields: dict[str, str] | None = Field(None, max_length=64, description="A driven twin's sensors from "
+                                                 "ROS 2 topics (a bag's or live): sensor name -> the field paths of "
+                                                 "its messages (--ros2-fields NAME=PATHS; none: the model's "
+                                                 "observation_from_ros2).")
+    control_fields: str | None = Field(None, max_length=4096, description="The field paths of the control "
+                                       "topic's messages (--ros2-control-fields; default by its type: Twist, "
+                                       "TwistStamped, Odometry -> forward speed and yaw rate, Imu -> forward "
+                                       "acceleration and yaw rate).")
     reorder_window: float = Field(0.1, ge=0.0, le=3600.0, description="Seconds of stamp time within which "
                                   "observations (and controls) that arrive out of order are put in stamp order; "
                                   "older ones are counted and skipped.")
@@ -196,8 +205,26 @@ class RunConfig(BaseModel):
     @property
     def live(self) -> bool:
         """Whether observations arrive over Zenoh, one at a time."""
+        if self.ros2_sensors:
+            return True
         return self.observations is not None and (self.observations == "live" or self.observations.startswith("live:")
                                                   or self.ros2_topic is not None)
+
+    @property
+    def ros2_sensors(self) -> dict[str, str]:
+        """A driven twin's sensors on live ROS 2 topics (``--observations NAME=ros2:TOPIC``): name -> topic."""
+        return {name: _ros2_topic(source) for name, source in (self.sensor_files or {}).items()
+                if source.startswith("ros2:")}
+
+    @property
+    def ros2_control(self) -> str | None:
+        """The live ROS 2 topic of the controls (``--controls ros2:TOPIC``), else None."""
+        return _ros2_topic(self.controls) if self.controls and self.controls.startswith("ros2:") else None
+
+    @property
+    def ros2_inputs(self) -> bool:
+        """Whether a ROS 2 bridge feeds the twin (``ros2:TOPIC`` observations, sensors or controls)."""
+        return self.ros2_topic is not None or bool(self.ros2_sensors) or self.ros2_control is not None
 
     @property
     def ros2_topic(self) -> str | None:
@@ -233,7 +260,7 @@ class RunConfig(BaseModel):
         """The Zenoh key of live observations: ``dtpf/<twin>/sensor/observation`` or the one given."""
         if not self.live:
             return None
-        if self.observations.startswith("live:"):
+        if self.observations is not None and self.observations.startswith("live:"):
             return self.observations[len("live:"):]  # a ros2: topic comes through the twin's own key
         return f"dtpf/{self.twin}/sensor/observation"
 
@@ -296,6 +323,7 @@ class RunConfig(BaseModel):
             raise ValueError("steps: a simulated scenario needs a number of steps")
         if self.sensor_files and self.observations is not None:
             raise ValueError("observations: give every sensor as NAME=FILE, or one source without names")
+        _check_ros2_sources(self)
         if self.reader is not None and (self.observations is None or self.live):
             raise ValueError(f"reader: a reader ({self.reader}) reads the observations a run is given "
                              f"(--observations SOURCE), not a simulation or a live stream")
@@ -311,6 +339,53 @@ class RunConfig(BaseModel):
                              f"{self.scenario!r} cannot draw (the video scenario does not support the "
                              f"simulating system-layer policies rule, predictive); use policy 'fixed'")
         return self
+
+
+def _ros2_topic(source: str) -> str:
+    """The absolute topic of 'ros2:TOPIC'."""
+    topic = source[len("ros2:"):]
+    return topic if topic.startswith("/") else "/" + topic
+
+
+def _check_ros2_sources(config: RunConfig) -> None:
+    """A driven twin's ROS 2 sources fit together: live topics for every sensor or none (and the controls with
+    them), field paths only for sensors given."""
+    files = config.sensor_files or {}
+    live = [name for name, source in files.items() if source.startswith("ros2:")]
+    if any(not source[len("ros2:"):].strip("/") for source in [*files.values(), config.controls or ""]
+           if source.startswith("ros2:")):
+        raise ValueError("observations: 'ros2:TOPIC' must name a topic, e.g. gps=ros2:/gps")
+    if live and len(live) != len(files):
+        other = next(name for name in files if name not in live)
+        raise ValueError(f"observations: sensor {live[0]} is a live ROS 2 topic and {other} is not: give every "
+                         f"sensor as NAME=ros2:TOPIC, or none")
+    if config.ros2_control is not None and files and not live:
+        raise ValueError("controls: a live ROS 2 topic (ros2:TOPIC) drives a twin whose sensors are live ROS 2 "
+                         "topics too (NAME=ros2:TOPIC)")
+    if live and config.controls is not None and config.ros2_control is None:
+        raise ValueError("controls: the sensors are live ROS 2 topics: give the controls as ros2:TOPIC too")
+    unknown = [name for name in config.sensor_fields or {} if name not in files]
+    if unknown:
+        raise ValueError(f"--ros2-fields {unknown[0]}=...: no sensor {unknown[0]} is given as "
+                         f"--observations {unknown[0]}=BAG:/TOPIC or {unknown[0]}=ros2:TOPIC")
+
+
+class _FieldsAction(argparse.Action):
+    """``--ros2-fields PATHS`` once, or ``--ros2-fields NAME=PATHS`` once per sensor (into ``sensor_fields``):
+    a field path has no '='."""
+
+    def __call__(self, parser, namespace, value, option_string=None):
+        import re
+
+        match = re.fullmatch(r"([A-Za-z][A-Za-z0-9_-]{0,63})=(.+)", value)
+        if match:
+            fields = dict(getattr(namespace, "sensor_fields", None) or {})
+            if match.group(1) in fields:
+                parser.error(f"--ros2-fields {match.group(1)}= is given twice")
+            fields[match.group(1)] = match.group(2)
+            namespace.sensor_fields = fields
+            return
+        setattr(namespace, self.dest, value)
 
 
 class _ObservationsAction(argparse.Action):
@@ -359,10 +434,12 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
                             ".npy or .npz; one row per step; truth columns optional), or 'live' to take them "
                             "from a sensor on dtpf/<twin>/sensor/observation ('live:KEY' for another key), "
                             "'ros2:TOPIC' for a ROS 2 topic, or a rosbag2 log (folder or .mcap) with --topic; "
-                            "a driven model's sensors: NAME=FILE, once per sensor")
+                            "a driven model's sensors: NAME=FILE, NAME=BAG:/TOPIC (a rosbag2 log's topic) or "
+                            "NAME=ros2:TOPIC, once per sensor")
     group.add_argument("--controls", default=None, metavar="FILE",
                        help="a driven model's control input: a file with a time column and the model's control "
-                            "columns (docs/guides/driven.md)")
+                            "columns (docs/guides/driven.md), a rosbag2 log's topic BAG:/TOPIC or a live "
+                            "ros2:TOPIC (Twist, TwistStamped, Odometry or Imu; docs/guides/ros2.md)")
     group.add_argument("--reorder-window", type=float, default=None, metavar="SECONDS",
                        help="put observations that arrive out of order within this much stamp time in order; "
                             f"older ones are counted and skipped (default: {defaults.reorder_window})")
@@ -371,9 +448,15 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
                            "your own read(source) -> observations", "by the file's kind"))
     group.add_argument("--topic", default=None, metavar="TOPIC",
                        help="the topic of a rosbag2 log given to --observations (one message, one step)")
-    group.add_argument("--ros2-fields", default=None, metavar="PATHS",
+    group.add_argument("--ros2-fields", default=None, metavar="PATHS", action=_FieldsAction,
                        help="how a ROS 2 message becomes an observation: field paths, e.g. 'range', "
-                            "'point.x,point.y', 'ranges[0:8]' (default: the model's observation_from_ros2)")
+                            "'point.x,point.y', 'ranges[0:8]' (default: the model's observation_from_ros2); a "
+                            "driven model's sensor on a topic: NAME=PATHS, once per sensor")
+    group.add_argument("--ros2-control-fields", dest="control_fields", default=None, metavar="PATHS",
+                       help="the field paths of the control topic's messages (default by type: Twist "
+                            "'linear.x,angular.z', TwistStamped 'twist.linear.x,twist.angular.z', Odometry "
+                            "'twist.twist.linear.x,twist.twist.angular.z', Imu "
+                            "'linear_acceleration.x,angular_velocity.z')")
     group.add_argument("--partial", action="store_true", default=None,
                        help="read what is intact of a damaged observation file (a rosbag2 log with fewer "
                             "messages than it declares, or chunks that do not decode) and say what was skipped "
@@ -421,7 +504,7 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 #: The RunConfig fields the run flags set (argparse dest = field name).
-_FLAG_FIELDS = ("scenario", "model", "observations", "sensor_files", "controls", "reorder_window", "reader", "topic", "ros2_fields", "partial", "particles", "steps", "resampler", "resample_below",
+_FLAG_FIELDS = ("scenario", "model", "observations", "sensor_files", "controls", "reorder_window", "reader", "topic", "ros2_fields", "sensor_fields", "control_fields", "partial", "particles", "steps", "resampler", "resample_below",
                 "preprocess", "threshold", "weight_rule", "move_rule", "jitter", "policy", "choose_base", "ps", "ps_rate", "seed", "twin", "run_id")
 
 

@@ -2,12 +2,24 @@
 
 Two hosts are two network namespaces joined by a veth link (10.77.0.1 and
 10.77.0.2), each with a dtpf router; the routers join. Host A runs the shared
-information and system services, a recorder and two twins; host B runs two
-twins and a recorder of its own. The link is cut for 15 s mid-run, longer
-than a Zenoh session's 10 s lease: host B's twins run on with plain resampling
-and host A's recorder hears nothing of them. With a recorder on each host,
-``dtpf summary a.mcap b.mcap`` holds every step of every twin, and host A's
-recorder says when host B's twins went silent and when they came back.
+information and system services, a central recorder (``--all-twins``) and two
+twins; host B runs two twins, a third twin whose publishers keep a cache of 30
+messages (3 s), and a recorder of its own. The link is cut for 15 s mid-run,
+longer than a Zenoh session's 10 s lease: host B's twins run on with plain
+resampling and host A's recorder hears nothing of them. Both deployments are
+checked in the one run:
+
+- a central recorder: when the link comes back, host A's recorder recovers host
+  B's messages from their publishers' caches, so its log alone holds every step
+  of every twin whose cache outlasted the cut; of the twin with the small cache
+  it names the steps it lost (``dtpf summary``), and says when host B's twins
+  went silent and when they came back;
+- a recorder per host: ``dtpf summary a.mcap b.mcap`` holds every step of every
+  twin, the small cache's included;
+
+and host B's twins, degraded while the shared services were out of reach,
+preprocess again soon after the link is back (the services ask for their
+statuses instead of waiting for the next).
 
 Making namespaces needs root and the ``ip`` command; where either is missing
 the test is skipped and says so.
@@ -25,10 +37,16 @@ from pathlib import Path
 import pytest
 
 from dtpf.recording.logfile import LogError, read_log, read_logs
-from dtpf.scripts.logs.summary import format_ranges, summarise
+from dtpf.scripts.logs.summary import format_ranges, format_summary, summarise
 
 STEPS, RATE, CUT = 260, 10.0, 15.0
 PORT = 7447
+#: The cache of the third twin of host B, in messages a publisher: 3 s at RATE, less than the cut.
+SMALL_CACHE = 30
+#: Seconds after the link's return within which host B's twins preprocess again: a reconnection (Zenoh tries
+#: every half second, :data:`dtpf.shell.bus.RECONNECT`), the services' question and answer, and the entity's
+#: next step, with room for a loaded machine.
+BACK_WITHIN = 2.5
 
 
 def _ip(*args: str) -> subprocess.CompletedProcess:
@@ -126,11 +144,12 @@ def _estimate_steps(path: Path, twin: str) -> set[int]:
     return {m.step for _, m in log.decoded([f"dtpf/{twin}/entity/estimate"]) if hasattr(m, "step")}
 
 
-def test_a_partition_longer_than_a_lease_loses_nothing_with_a_recorder_on_each_host(two_hosts, tmp_path):
+def test_a_partition_longer_than_a_lease_loses_nothing_a_cache_holds(two_hosts, tmp_path):
     (na, address_a, link_a), (nb, address_b, _) = two_hosts["a"], two_hosts["b"]
     a, b = Host(na, tmp_path), Host(nb, tmp_path)
     router_a, router_b = f"tcp/{address_a}:{PORT}", f"tcp/{address_b}:{PORT}"
-    run = ("--steps", str(STEPS), "--rate", str(RATE), "--timeout", "0.5", "--log-level", "INFO")
+    run = ("--steps", str(STEPS), "--rate", str(RATE), "--timeout", "0.5", "--log-level", "INFO",
+           "--wait-for", "information", "--wait-for", "system")
     try:
         a.start("router", "-m", "dtpf", "router", "--listen", router_a)
         _wait_listening(na, address_a, PORT)
@@ -149,18 +168,21 @@ def test_a_partition_longer_than_a_lease_loses_nothing_with_a_recorder_on_each_h
         shared = [a.start("information", "-m", "dtpf.information.service", "--connect", router_a, "--twins", "p-*"),
                   a.start("system", "-m", "dtpf.system.service", "--connect", router_a, "--twins", "p-*")]
         entities = [a.start("entity", "-m", "dtpf.entity.service", "--connect", router_a, "--twin", "p-a",
-                            "--twins", "2", "--wait-for", "information", "--wait-for", "system", *run),
+                            "--twins", "2", *run),
                     b.start("entity", "-m", "dtpf.entity.service", "--connect", router_b, "--twin", "p-b",
-                            "--twins", "2", "--wait-for", "information", "--wait-for", "system", *run)]
+                            "--twins", "2", *run),
+                    b.start("entity-small-cache", "-m", "dtpf.entity.service", "--connect", router_b, "--twin", "p-c",
+                            "--twins", "1", "--cache-samples", str(SMALL_CACHE), *run)]
         # Cut the link once host A's recorder hears host B's twins at work.
         deadline = time.monotonic() + 120
-        while len(_estimate_steps(tmp_path / "a.mcap", "p-b-1")) < 20:
+        while min(len(_estimate_steps(tmp_path / "a.mcap", twin)) for twin in ("p-b-1", "p-c-1")) < 20:
             assert time.monotonic() < deadline, b.output(entities[1])[-3000:]
             assert all(e.poll() is None for e in entities), [a.output(entities[0])[-2000:], b.output(entities[1])]
             time.sleep(0.25)
         assert _ip("-n", na, "link", "set", link_a, "down").returncode == 0
         time.sleep(CUT)  # the partition itself: what is measured is what survives it
         assert _ip("-n", na, "link", "set", link_a, "up").returncode == 0
+        back_at = time.time()  # the estimates' stamps are this machine's wall clock too
         for entity in entities:
             entity.wait(timeout=240)
             assert entity.returncode == 0, (a if entity is entities[0] else b).output(entity)[-3000:]
@@ -170,13 +192,33 @@ def test_a_partition_longer_than_a_lease_loses_nothing_with_a_recorder_on_each_h
         a.kill_all()
         b.kill_all()
     said_a = a.output(recorders[0])
-    twins = ("p-a-1", "p-a-2", "p-b-1", "p-b-2")
-    # The cut was real: host A's recorder alone lost host B's twins' steps, and said so.
-    alone = {twin: _estimate_steps(tmp_path / "a.mcap", twin) for twin in twins}
-    assert any(len(alone[twin]) < STEPS for twin in ("p-b-1", "p-b-2")), {t: len(s) for t, s in alone.items()}
+    whole = ("p-a-1", "p-a-2", "p-b-1", "p-b-2")
+    every = set(range(1, STEPS + 1))
+    # The cut was real: host A's recorder said when host B's twins went silent and when they came back.
     assert "twin p-b-1: no message for" in said_a and "twin p-b-1: messages again after" in said_a, said_a[-3000:]
-    # The two hosts' logs together hold every step of every twin.
+    # A central recorder: its log alone holds every step of the twins whose caches outlasted the cut.
+    central = summarise(read_log(tmp_path / "a.mcap"))
+    by_twin = {t.twin: t for t in central.twins}
+    missing = {t: format_ranges(every - set(by_twin[t].steps)) for t in whole}
+    assert all(by_twin[t].steps == sorted(every) for t in whole), (missing, said_a[-3000:])
+    # ... and of the twin whose cache did not, the steps it lost, named by dtpf summary as the recorder's.
+    small = by_twin["p-c-1"]
+    assert small.missing_count > CUT * RATE - SMALL_CACHE - 40, (small.missing_count, format_ranges(small.missing_steps))
+    assert set(small.missing_steps) <= set(small.lost_steps), (small.missing_steps, small.lost)
+    text = format_summary(central)
+    assert f"lost          steps {format_ranges(small.lost_steps)}, declared lost by the recorder" in text, text
+    # A recorder per host: the two logs together hold every step of every twin.
     summary = summarise(read_logs([tmp_path / "b.mcap", tmp_path / "a.mcap"]))
-    steps = {t.twin: t.steps for t in summary.twins if t.twin in twins}
-    missing = {t: format_ranges(set(range(1, STEPS + 1)) - set(s)) for t, s in steps.items()}
-    assert steps == {twin: list(range(1, STEPS + 1)) for twin in twins}, (missing, said_a[-3000:])
+    steps = {t.twin: t.steps for t in summary.twins if t.twin in (*whole, "p-c-1")}
+    assert steps == {twin: sorted(every) for twin in (*whole, "p-c-1")}, \
+        {t: format_ranges(every - set(s)) for t, s in steps.items()}
+    # Host B's twins preprocess again soon after the link is back: their last degraded step is made (its estimate's
+    # stamp) within BACK_WITHIN seconds of the link's return.
+    stamps = {(m.twin_id, m.step): m.stamp.sec + m.stamp.nsec / 1e9
+              for _, m in read_log(tmp_path / "b.mcap").decoded(["dtpf/p-b-1/entity/estimate",
+                                                                  "dtpf/p-b-2/entity/estimate"])}
+    late = {twin: stamps[twin, by_twin[twin].degraded_steps[-1]] - back_at for twin in ("p-b-1", "p-b-2")}
+    print(f"small cache: missing {format_ranges(small.missing_steps)}, lost {format_ranges(small.lost_steps)}; "
+          f"host B degraded {[format_ranges(by_twin[t].degraded_steps) for t in ('p-b-1', 'p-b-2')]}, the last "
+          f"{late} s after the link's return")
+    assert all(seconds <= BACK_WITHIN for seconds in late.values()), late

@@ -108,10 +108,10 @@ WAIT_BEFORE_CLOSE_KEY = "transport/link/tx/queue/congestion_control/block/wait_b
 ZENOH_WAIT_BEFORE_CLOSE = 5_000_000
 #: The wait of every process that is not a router (60 s): longer than a router's, see the module docstring.
 SERVICE_WAIT_BEFORE_CLOSE = 60_000_000
-#: How a process that lost a link to an endpoint it connects to tries again: every second at most (Zenoh's
+#: How a process that lost a link to an endpoint it connects to tries again: every half second (Zenoh's
 #: default backs off to 4 s, so a router found its peer up to 4 s after a partition ended and the shared
-#: services' twins stayed degraded that long).
-RECONNECT = {"period_init_ms": 500, "period_max_ms": 1000, "period_increase_factor": 2}
+#: services' twins stayed degraded that long). An attempt is one TCP connect to one endpoint.
+RECONNECT = {"period_init_ms": 250, "period_max_ms": 500, "period_increase_factor": 2}
 
 
 def zenoh_config(*, mode: str | None = None, connect: list[str] = (), listen: list[str] = (),

@@ -186,10 +186,10 @@ class DrivenIntake:
     def control(self, message) -> Rejection | None:
         """Take a :class:`~dtpf.messages.models.Control`."""
         c = len(self.calls.controls)
-        if len(message.values) != c:
+        if len(message.control) != c:
             self.controls_rejected += 1
             return Rejection("control with the wrong number of values",
-                             f"control {message.step} has {len(message.values)} values, the model's control has {c}")
+                             f"control {message.step} has {len(message.control)} values, the model's control has {c}")
         if message.step <= self.control_sequence:
             self.controls_rejected += 1
             return Rejection("late or repeated control (sequence number not above the last)",
@@ -210,7 +210,7 @@ class DrivenIntake:
             stamp = message.stamp.to_ns()
             if not hasattr(message, "sensor"):  # a control
                 try:
-                    self.timeline.control(stamp, message.values)
+                    self.timeline.control(stamp, message.control)
                 except (TimeError, ValueError):
                     self.controls -= 1
                     self.controls_rejected += 1

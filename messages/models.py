@@ -705,14 +705,14 @@ class Observation(Message):
 class Control(Message):
     """The control input of a driven machine (wheel odometry, a commanded velocity): control source -> entity.
 
-    ``step`` is the source's sequence number, ``stamp`` the time from which ``values`` is in force (zero-order
-    hold until the next control; docs/guides/driven.md).
+    ``step`` is the source's sequence number, ``stamp`` the time from which ``control`` is in force
+    (zero-order hold until the next control; docs/guides/driven.md).
     """
 
     producer: ClassVar[Layer] = Layer.SENSOR
 
-    values: list[float] = Field(min_length=1, max_length=MAX_CONTROLS,
-                                description="u, the model's control components in the order of its controls.")
+    control: list[float] = Field(min_length=1, max_length=MAX_CONTROLS,
+                                 description="u, the model's control components in the order of its controls.")
 
 
 #: Longest part of a rejected payload the recorder keeps (as base64 in :class:`Rejected`).

@@ -158,7 +158,7 @@ def driven(config: RunConfig, model, data, zenoh_config: zenoh.Config, args: arg
                 time.sleep(max(0.0, start + (stamp - first) / 1e9 / speed - time.monotonic()))
             if kind == 0:
                 shell.publish(Control(**shell.header(i + 1), stamp=Time.from_ns(stamp),
-                                      values=controls[1][i].tolist()))
+                                      control=controls[1][i].tolist()))
                 continue
             sensor = data.sensors[i] if data.sensors is not None else None
             sequence[sensor] += 1

@@ -41,6 +41,7 @@ from dtpf.messages.codec import encode
 from dtpf.messages.foxglove import CompressedImage
 from dtpf.messages.models import (
     UINT32_MAX,
+    Control,
     Estimate,
     Layer,
     Message,
@@ -370,14 +371,21 @@ def observations(draw) -> Observation:
     return Observation(
         **draw(headers()), layer=Layer.SENSOR, values=draw(st.lists(finite_floats, min_size=0 if end else 1,
                                                                     max_size=6)),
-        truth=draw(optional(st.lists(finite_floats, max_size=6))), end=end)
+        truth=draw(optional(st.lists(finite_floats, max_size=6))), end=end,
+        sensor=draw(optional(st.sampled_from(["gps", "beacons", "lidar-2"]))))
+
+
+@st.composite
+def controls(draw) -> Control:
+    return Control(**draw(headers()), layer=Layer.SENSOR, control=draw(st.lists(finite_floats, min_size=1, max_size=6)))
 
 
 #: A valid message of each class, by class.
 MESSAGE_STRATEGIES = {
     ParticleSet: particle_sets(), WeightState: weight_states(), PSCommand: ps_commands(), Estimate: estimates(),
-    Status: statuses(), CompressedImage: compressed_images(), Observation: observations(), Rejected: rejecteds(),
-    Missed: misseds(), foxglove.PointCloud: point_clouds(), foxglove.ImageAnnotations: image_annotations(),
+    Status: statuses(), CompressedImage: compressed_images(), Observation: observations(), Control: controls(),
+    Rejected: rejecteds(), Missed: misseds(), foxglove.PointCloud: point_clouds(),
+    foxglove.ImageAnnotations: image_annotations(),
 }
 valid_messages = st.one_of(*MESSAGE_STRATEGIES.values())
 
@@ -529,14 +537,18 @@ def _seeded_compressed_image(v: Seeded) -> CompressedImage:
 def _seeded_observation(v: Seeded) -> Observation:
     end = v.rng.random() < 0.3
     return Observation(**v.header(), layer=Layer.SENSOR, values=v.floats(0 if end else 1, 6),
-                       truth=v.maybe(lambda: v.floats(0, 6)), end=end)
+                       truth=v.maybe(lambda: v.floats(0, 6)), end=end, sensor=v.maybe(lambda: "gps"))
+
+
+def _seeded_control(v: Seeded) -> Control:
+    return Control(**v.header(), layer=Layer.SENSOR, control=v.floats(1, 6))
 
 
 SEEDED_BUILDERS = {
     ParticleSet: _seeded_particle_set, WeightState: _seeded_weight_state, PSCommand: _seeded_ps_command,
     Estimate: _seeded_estimate, Status: _seeded_status, CompressedImage: _seeded_compressed_image,
     Observation: _seeded_observation, Rejected: _seeded_rejected, Missed: _seeded_missed, foxglove.PointCloud: _seeded_point_cloud,
-    foxglove.ImageAnnotations: _seeded_image_annotations,
+    foxglove.ImageAnnotations: _seeded_image_annotations, Control: _seeded_control,
 }
 
 

@@ -40,7 +40,7 @@ from dtpf.messages.arrays import check_particles, check_weights
 from dtpf.messages.codec import ENVELOPE_ENCODING, EnvelopeHeader
 from dtpf.messages.foxglove import CompressedImage, ImageAnnotations, PointCloud
 from dtpf.messages.keys import MESSAGE_CLASSES
-from dtpf.messages.models import Missed, Observation, ParticleSetHeader, Rejected
+from dtpf.messages.models import Control, Missed, Observation, ParticleSetHeader, Rejected
 from dtpf.messages.schema import foxglove_problems
 
 HEADER = dict(run_id="run-1", twin_id="ungm-1", step=7, stamp=Time(sec=1_700_000_000, nsec=123_456_789))
@@ -514,12 +514,13 @@ def test_topic_table():
         assert table[(layer, "status")] == (Status, None)
     assert table[("entity", "frame")] == (CompressedImage, None)
     assert table[("sensor", "observation")] == (Observation, None)
+    assert table[("sensor", "control")] == (Control, None)
     assert table[("sensor", "status")] == (Status, None)
     assert table[("recorder", "rejected")] == (Rejected, None)
     assert table[("recorder", "missed")] == (Missed, None)
     assert table[("entity", "cloud")] == (PointCloud, None)
     assert table[("entity", "annotations")] == (ImageAnnotations, None)
-    assert len(table) == 16
+    assert len(table) == 17
 
 
 @pytest.mark.parametrize("make, key", [

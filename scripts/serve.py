@@ -18,12 +18,13 @@ import argparse
 import os
 import sys
 import threading
+import time
 from pathlib import Path
 
 from dtpf.messages import keys, queries
 from dtpf.recording.logfile import Log, LogError, read_log
 from dtpf.scripts.console import stop_on_signals
-from dtpf.scripts.logs.history import history_answer
+from dtpf.scripts.logs.history import StepIndex, history_answer
 from dtpf.scripts.logs.summary import read_for_command
 from dtpf.shell.bus import BusError, add_zenoh_arguments, free_port, open_session, zenoh_config_from_args
 from dtpf.shell.queries import Queryable, worker
@@ -32,6 +33,9 @@ __all__ = ["LogHistory", "FileHistory", "answer_history", "register", "cmd_serve
 
 #: History questions a second one queryable answers (each reads the selection from the log).
 HISTORY_RATE, HISTORY_BURST = 10.0, 20
+#: A growing log is read again at most this often (seconds): a recorder's answers are at most this much, and its
+#: flush interval, behind.
+REREAD_INTERVAL = 1.0
 #: Most twins of one log served.
 MAX_TWINS = 10_000
 
@@ -51,6 +55,7 @@ class LogHistory:
 
     def __init__(self, log: Log):
         self.log = log
+        self.index = StepIndex()
 
     def current(self) -> Log:
         return self.log
@@ -59,17 +64,21 @@ class LogHistory:
         twin = key.split("/")[1]
         if "*" in twin or "$" in twin:
             raise queries.SelectorError("history answers one twin at a time: ask dtpf/<twin>/recorder/history")
-        return history_answer(self.current(), twin, queries.parse("history", text))
+        selector = queries.parse("history", text)
+        return history_answer(self.current(), twin, selector, self.index)
 
 
 class FileHistory(LogHistory):
-    """Answers history questions from a log being written: read again when the file has grown."""
+    """Answers history questions from a log being written: read again when the file has grown, at most every
+    :data:`REREAD_INTERVAL` seconds; the steps of the messages read before are kept."""
 
     def __init__(self, path):
         self.path = Path(path)
         self._seen: tuple[int, int] | None = None
         self._lock = threading.Lock()
         self.log = None
+        self.index = StepIndex()
+        self._read_at = 0.0
 
     def current(self) -> Log:
         with self._lock:
@@ -78,8 +87,9 @@ class FileHistory(LogHistory):
             except OSError as error:
                 raise LogError(f"the log {self.path} cannot be read: {error.strerror}") from None
             seen = (stat.st_size, stat.st_mtime_ns)
-            if self.log is None or seen != self._seen:
-                self.log, self._seen = read_log(self.path), seen
+            now = time.monotonic()
+            if self.log is None or (seen != self._seen and now - self._read_at >= REREAD_INTERVAL):
+                self.log, self._seen, self._read_at = read_log(self.path), seen, now
             return self.log
 
 

@@ -240,6 +240,9 @@ def test_a_storm_of_questions_is_bounded_by_the_rate_and_refused_with_a_reason(l
 @pytest.fixture(scope="module")
 def finished(live):
     """The live twin ended (its sensor's last word), its recorder stopped: the finished log."""
+    if live.estimate(4) is None:  # the tests before may not have run (-k)
+        live.observe(4, 2.0)
+        assert live.router.collect(lambda messages: live.estimate(4) is not None, START)
     running = wait_until(lambda: (lambda answer: answer if answer["count"] == 4 else None)(
         live.ask("history", "steps=1:4").first()), ANSWER * 3, "the recorder holds the estimate of step 4")
     live.observe(5, end=True)
@@ -294,6 +297,30 @@ def test_history_from_the_running_recorder_and_from_dtpf_serve_equals_dtpf_cat(f
     answer = json.loads(done.stdout)
     assert answer["messages"] == _cat(log, "--steps", "2:3", "--topics", "entity/estimate", "entity/particles")
     assert answer["count"] == 4
+
+
+def test_a_history_answer_chooses_what_dtpf_cat_chooses_and_its_index_follows_a_growing_log(finished):
+    from dataclasses import replace
+
+    from dtpf.recording.logfile import read_log
+    from dtpf.scripts.logs.history import StepIndex, history_entries
+    from dtpf.scripts.logs.select import StepRange, as_json, choose
+
+    log = read_log(finished[0])
+    times = sorted(item.log_time for item in log.messages)
+    middle = f"{times[len(times) // 3] / 1e9:.9f}:{times[2 * len(times) // 3] / 1e9:.9f}"
+    index = StepIndex()
+    first = replace(log, messages=log.messages[: len(log.messages) // 2])  # the log as a recorder read it earlier
+    assert history_entries(first, TWIN, queries.parse("history", "steps=1:2;particles=true"), index)
+    for text, steps, topics in (("steps=2:3", "2:3", ["entity/estimate"]), ("", None, ["entity/estimate"]),
+                                ("steps=4;topics=*/entity/*", "4", ["*/entity/*"]),
+                                (f"time={middle};topics=dtpf/*/*/*", None, ["dtpf/*/*/*"])):
+        selector = queries.parse("history", text)
+        expected = [{"topic": item.topic, "log_time": item.log_time, "message": as_json(message)}
+                    for item, message in choose(log, topics=topics, steps=steps and StepRange(steps), twin=TWIN,
+                                                keep_run_level=False) if selector.holds_time(item.log_time)]
+        assert history_entries(log, TWIN, selector, index) == expected, text
+        assert expected, text
 
 
 def test_dtpf_serve_refuses_what_breaks_a_bound_or_is_garbage_and_serves_on(served):

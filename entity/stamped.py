@@ -123,8 +123,13 @@ def _assemble(config, model, calls, tables, events, source, problem=None) -> Sta
         if not calls.controls:
             raise ObservationError(f"--controls {control_file}: the model takes no control input (its controls "
                                    f"are empty)")
-        stamps, values = read_controls(control_file, calls.controls, fields=getattr(config, "control_fields", None),
-                                       partial=bool(getattr(config, "partial", False)))
+        bag = topics.bag_topic(control_file)
+        if bag is not None:  # a rosbag2 bag's topic: what a damaged one skipped is said with the run
+            stamps, values, skipped = topics.read_control(bag, calls.controls, getattr(config, "control_fields", None),
+                                                          bool(getattr(config, "partial", False)))
+            problem = "; ".join(filter(None, [problem, skipped])) or None
+        else:
+            stamps, values = read_controls(control_file, calls.controls)
         for stamp, u in zip(stamps, values):
             timeline.control(int(stamp), u)
     elif calls.controls:
@@ -281,7 +286,7 @@ def read_controls(path, controls: tuple[str, ...], *, fields: str | None = None,
     (``BAG:/TOPIC``) by ``fields`` or its type (:func:`dtpf.entity.topics.read_control`)."""
     bag = topics.bag_topic(path)
     if bag is not None:
-        return topics.read_control(bag, controls, fields, partial)
+        return topics.read_control(bag, controls, fields, partial)[:2]
     table: ObservationTable = read_observations(path, exact_stamps=True)
     names = list(table.columns)
     if all(name in names for name in controls):

@@ -132,8 +132,9 @@ def topic_type(bag, topic: str) -> str | None:
 
 
 def read_control(source: tuple[str, str], controls: tuple[str, ...], fields: str | None = None,
-                 partial: bool = False) -> tuple[np.ndarray, np.ndarray]:
-    """The control's stamps (ns) and values (C, c) from a bag's topic (``source``: bag, topic)."""
+                 partial: bool = False) -> tuple[np.ndarray, np.ndarray, str | None]:
+    """The control's stamps (ns), values (C, c) and what was skipped of a damaged bag (None: nothing) from a
+    bag's topic (``source``: bag, topic)."""
     from dtpf.entity import rosbag
 
     bag, topic = source
@@ -145,4 +146,4 @@ def read_control(source: tuple[str, str], controls: tuple[str, ...], fields: str
     if table.observations.shape[1] != len(controls):
         raise ObservationError(f"{where}: {table.observations.shape[1]} values per message ({paths}), the model's "
                                f"control has {len(controls)} ({', '.join(controls)})", source=bag)
-    return table.stamps, np.ascontiguousarray(table.observations)
+    return table.stamps, np.ascontiguousarray(table.observations), table.problem

@@ -37,7 +37,7 @@ def resolved_config(args: argparse.Namespace):
     config = config_from_args(args)
     if config.observation_file is not None and config.steps is None:
         config = config.model_copy(update={"steps": read_table(config).steps})
-    if config.sensor_files and config.steps is None:  # a driven twin's sensors: every row of every file
+    if config.sensor_files and config.steps is None and not config.live:  # a driven twin's files: every row
         from dtpf.entity import stamped
         config = config.model_copy(update={"steps": stamped.rows(config)})
     return fit_simulation(config, args)
@@ -139,6 +139,9 @@ def cmd_launch(args: argparse.Namespace) -> int:
     from dtpf.scripts.launch import LaunchError, launch
 
     config = resolved_config(args)
+    if getattr(args, "ros2_params", None) and config.simulated:  # a driven twin's topics from the file
+        from dtpf.scripts.ros2.preflight import with_param_topics
+        config = with_param_topics(config, args.ros2_params, args.steps)
     model = sources.load_model(config)  # a wrong model or file: one line here, before any process starts
     if not _claim_log(args):
         return 2
@@ -148,7 +151,7 @@ def cmd_launch(args: argparse.Namespace) -> int:
     # shell starts such a job with SIGINT ignored, and Python then installs no handler of its own).
     signal.signal(signal.SIGINT, signal.default_int_handler)
     ros2_words = None
-    if config.ros2_topic is not None:
+    if config.ros2_inputs:
         from dtpf.scripts.ros2 import Ros2Error, require_rclpy
         if args.twins is not None:
             raise Ros2Error("--observations ros2:TOPIC feeds one twin; for a fleet, start 'dtpf ros2 --twin NAME "
@@ -182,9 +185,11 @@ def cmd_launch(args: argparse.Namespace) -> int:
                                endpoint, args.secure)
         print(f"dtpf: each twin filters what arrives on dtpf/{config.twin}-<i>/sensor/observation (start a "
               f"sensor per twin, e.g. {first}); Ctrl-C ends the run", file=sys.stderr)
-    elif config.ros2_topic is not None:
-        print(f"dtpf: the entity filters each message of the ROS 2 topic {config.ros2_topic} (a bridge process, "
-              f"dtpf ros2); its estimate goes out under /dtpf/<twin>/; Ctrl-C ends the run", file=sys.stderr)
+    elif config.ros2_inputs:
+        what = config.ros2_topic or ", ".join([*config.ros2_sensors.values(), *filter(None, [config.ros2_control])])
+        print(f"dtpf: the entity filters each message of the ROS 2 topic{'' if config.ros2_topic else 's'} {what} "
+              f"(a bridge process, dtpf ros2); its estimate goes out under /dtpf/<twin>/; Ctrl-C ends the run",
+              file=sys.stderr)
     elif config.live:
         print(f"dtpf: the entity filters what arrives on {config.observation_key()}; start a sensor, e.g. in "
               f"another terminal: {sensor_command(config, endpoint, args.secure)}", file=sys.stderr)

@@ -416,6 +416,10 @@ def service_command(layer: str, config: RunConfig, endpoint: str, *, timeout: fl
         command += ["--topic", config.topic]
     if config.ros2_fields is not None:
         command += ["--ros2-fields", config.ros2_fields]
+    for sensor, paths in (config.sensor_fields or {}).items():  # a driven twin's sensors on ROS 2 topics
+        command += ["--ros2-fields", f"{sensor}={paths}"]
+    if config.control_fields is not None:
+        command += ["--ros2-control-fields", config.control_fields]
     if config.partial:
         command += ["--partial"]
     if config.resample_below is not None:
@@ -474,9 +478,19 @@ class interrupts_held:
 
 def bridge_command(config: RunConfig, endpoint: str, options: list[str], *, log_level: str = "WARNING",
                    secure: Path | None = None) -> list[str]:
-    """The command line of the ROS 2 bridge (:mod:`dtpf.scripts.ros2.bridge`) of a ``ros2:TOPIC`` run: its
-    topic, field paths, model, twin and run id, and ``options`` (--ros2-type, --ros2-pose, ...)."""
-    command = [sys.executable, "-P", "-m", "dtpf.scripts.ros2", "--observations", config.observations,
+    """The command line of the ROS 2 bridge (:mod:`dtpf.scripts.ros2.bridge`) of a ``ros2:TOPIC`` run (or a
+    driven twin's ``NAME=ros2:TOPIC`` sensors and ``ros2:TOPIC`` controls): its topics, field paths, model,
+    twin and run id, and ``options`` (--ros2-type, --ros2-pose, ...)."""
+    inputs = ["--observations", config.observations] if config.observations is not None else []
+    for sensor, source in (config.sensor_files or {}).items():
+        inputs += ["--observations", f"{sensor}={source}"]
+    for sensor, paths in (config.sensor_fields or {}).items():
+        inputs += ["--ros2-fields", f"{sensor}={paths}"]
+    if config.controls is not None:
+        inputs += ["--controls", config.controls]
+    if config.control_fields is not None:
+        inputs += ["--ros2-control-fields", config.control_fields]
+    command = [sys.executable, "-P", "-m", "dtpf.scripts.ros2", *inputs,
                "--scenario", config.scenario, "--seed", str(config.seed), "--twin", config.twin,
                "--run-id", config.run_id, "--connect", endpoint, "--exit-with-parent",
                "--log-level", "INFO" if log_level == "WARNING" else log_level, *options]
@@ -615,7 +629,7 @@ def launch(config: RunConfig, *, log_path: Path | None = None, port: int | None 
             _wait_for_recorder(children["recorder"], presence, startup_timeout)
         for layer in LAYERS[1:]:
             start_child(layer, log_path)
-        if config.ros2_topic is not None:
+        if config.ros2_inputs:
             ros2_bridge = subprocess.Popen(
                 bridge_command(config, endpoint, ros2 or [], log_level=log_level,
                                secure=secure.path if secure is not None else None),

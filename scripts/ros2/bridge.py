@@ -38,7 +38,7 @@ from dtpf.messages import keys
 from dtpf.messages.codec import MessageError, decode
 from dtpf.messages.config import RunConfig, add_run_arguments, config_from_args
 from dtpf.messages.foxglove import PointCloud
-from dtpf.messages.models import MAX_OBSERVATION_VALUES, Estimate, Layer, Observation
+from dtpf.messages.models import MAX_OBSERVATION_VALUES, Control, Estimate, Layer, Observation
 from dtpf.scripts.console import run_command
 from dtpf.scripts.ros2 import Ros2Error, params, require_rclpy
 from dtpf.scripts.ros2.convert import (
@@ -154,6 +154,8 @@ def resolve_options(args: argparse.Namespace, config: RunConfig) -> argparse.Nam
     neither --topic nor --observations ros2:TOPIC names one), then :data:`DEFAULTS`."""
     if getattr(args, "ros2_params", None):
         for parameter, value in params.load(args.ros2_params, params.node_name(config.twin)).items():
+            if parameter not in params.PARAMETERS:  # a driven twin's topic (sensors.NAME.KEY, control.KEY): feeds
+                continue
             dest = params.PARAMETERS[parameter][0]
             if parameter == "topic":
                 if getattr(args, "topic", None) is None and config.ros2_topic is None:
@@ -175,6 +177,10 @@ def bridge_words(args: argparse.Namespace) -> list[str]:
             words += ["--" + dest.replace("_", "-"), str(value)]
     if getattr(args, "ros2_best_effort", None):
         words.append("--ros2-best-effort")
+    for sensor, msgtype in (getattr(args, "ros2_types", None) or {}).items():
+        words += ["--ros2-type", f"{sensor}={msgtype}"]
+    if getattr(args, "ros2_control_type", None):
+        words += ["--ros2-control-type", args.ros2_control_type]
     return words
 
 
@@ -409,20 +415,28 @@ class Input:
 
 
 class Inbound:
-    """ROS 2 messages to the twin's live observations: mapped, checked, numbered, stamped."""
+    """ROS 2 messages to the twin's live observations (of ``sensor``, a driven twin's), or with ``control`` to
+    its controls (dtpf/<twin>/sensor/control): mapped, checked, numbered, stamped."""
 
-    def __init__(self, shell: ServiceShell, mapper, start: int, stamps):
+    def __init__(self, shell: ServiceShell, mapper, start: int, stamps, *, sensor: str | None = None,
+                 control: bool = False):
         self.shell = shell
         self.mapper = mapper
         self.sequence = start - 1
         self.stamps = stamps
         self.sent = 0
-        head = Observation.model_construct(**shell.header(0), layer=Layer.SENSOR, values=[])
+        self.control = control
+        #: The name of the values' field: a Control carries them in 'control'.
+        self.field = b"control" if control else b"values"
+        head = (Control.model_construct(**shell.header(0), layer=Layer.SENSOR, control=[]) if control else
+                Observation.model_construct(**shell.header(0), layer=Layer.SENSOR, values=[]))
         self.key = keys.key_for(head)
         self.publisher = publisher(shell.session, self.key)
         #: The run's fields as pydantic writes them ('{"run_id":...,"twin_id":...,"layer":"sensor"'): a message
         #: is this and its step, stamp and values (json.dumps writes each float as repr: the same number).
         self.head = head.model_dump_json(include={"run_id", "twin_id", "layer"}).encode()[:-1]
+        if sensor is not None:
+            self.head += b',"sensor":' + json.dumps(sensor).encode()
 
     def __call__(self, message) -> None:
         shell = self.shell
@@ -447,10 +461,10 @@ class Inbound:
             now = time.time_ns()
             stamp = (now // 10**9, now % 10**9)
         self.sequence += 1
-        key = tuple(values)
-        self.stamps[key] = stamp
-        if len(self.stamps) > 10_000:
-            self.stamps.popitem(last=False)
+        if not self.control:
+            self.stamps[tuple(values)] = stamp
+            if len(self.stamps) > 10_000:
+                self.stamps.popitem(last=False)
         self.publisher.put(self.payload(self.sequence, stamp, values))
         self.sent += 1
 
@@ -459,8 +473,8 @@ class Inbound:
         the entity that receives it validates it. Building and serialising the message with pydantic was a
         third of the bridge's time per observation; this is a fraction of that."""
         values_json = json.dumps([float(v) for v in values], separators=(",", ":")).encode()
-        return b'%s,"step":%d,"stamp":{"sec":%d,"nsec":%d},"values":%s}' % (
-            self.head, sequence, stamp[0], stamp[1], values_json)
+        return b'%s,"step":%d,"stamp":{"sec":%d,"nsec":%d},"%s":%s}' % (
+            self.head, sequence, stamp[0], stamp[1], self.field, values_json)
 
 
 def normalized_stamp(stamp: tuple[int, int] | None) -> tuple[int, int] | None:
@@ -511,23 +525,30 @@ def _mapper(args, config: RunConfig, model, cls):
 
 
 def main(config: RunConfig, zconf, args: argparse.Namespace) -> int:
-    """Bridge ``args.topic`` (or ``ros2:TOPIC``) into the twin, and the twin out to ROS 2, until stopped."""
+    """Bridge ``args.topic`` (or ``ros2:TOPIC``; a driven twin's sensor and control topics,
+    :mod:`~dtpf.scripts.ros2.feeds`) into the twin, and the twin out to ROS 2, until stopped."""
+    from dtpf.entity.calls import ModelCalls
+    from dtpf.scripts.ros2.feeds import feeds_of
     from dtpf.scripts.sensor import resume_point
 
     require_rclpy()
+    values = params.load(args.ros2_params, params.node_name(config.twin)) if getattr(args, "ros2_params", None) else {}
     resolve_options(args, config)
-    topic = args.topic or config.ros2_topic
-    if topic is None and args.no_out:
+    feeds = feeds_of(args, config, values)
+    if not feeds and args.no_out:
         raise Ros2Error("nothing to bridge: give --topic (in) or leave the outputs on")
-    if topic is not None and not topic.startswith("/"):
-        topic = "/" + topic
     model = model_ref.resolve(config.model_ref)
-    mapper = cls = None
-    if topic is not None and args.ros2_type is not None:  # a type given: its field paths checked first
-        cls = message_class(args.ros2_type)
-        mapper = _mapper(args, config, model, cls)
-    elif args.ros2_fields or config.ros2_fields:  # a path that does not parse: one line now
-        rosbag.parse_fields(args.ros2_fields or config.ros2_fields)
+    controls = tuple(ModelCalls(model).controls)
+    if any(feed.control for feed in feeds) and not controls:
+        raise Ros2Error("--controls ros2:TOPIC: the model takes no control input (its controls are empty)")
+    mappers: dict[int, object] = {}
+    classes: dict[int, object] = {}
+    for i, feed in enumerate(feeds):
+        if feed.msgtype is not None:  # a type given: its field paths checked first
+            classes[i] = message_class(feed.msgtype)
+            mappers[i] = _feed_mapper(feed, args, config, model, classes[i], controls)
+        elif feed.fields:  # a path that does not parse: one line now
+            rosbag.parse_fields(feed.fields)
     import rclpy
     from rclpy.signals import SignalHandlerOptions
 
@@ -546,24 +567,29 @@ def main(config: RunConfig, zconf, args: argparse.Namespace) -> int:
                                                        config_file=args.zenoh_config, cfg=args.cfg,
                                                        secure=args.secure, role="viewer"))
                 outbound = Outbound(node, viewer or shell.session, config, model.dim, args, stamps)
-            if topic is not None:
-                msgtype = discover_type(node, topic, args.ros2_type, args.type_wait, lambda: shell.stopping)
-                if cls is None:
-                    cls = message_class(msgtype)
-                    mapper = _mapper(args, config, model, cls)
+            msgtypes = {}
+            for i, feed in enumerate(feeds):
+                msgtypes[i] = discover_type(node, feed.topic, feed.msgtype, args.type_wait, lambda: shell.stopping)
+                if i not in classes:
+                    classes[i] = message_class(msgtypes[i])
+                    mappers[i] = _feed_mapper(feed, args, config, model, classes[i], controls)
             shell.running()
-            if topic is not None:
+            inputs = []
+            if feeds:
                 if args.wait_for_entity:
                     missing = shell.presence.wait_for(["entity"], args.wait_for_entity)
                     if missing:
                         shell.log.warning("no entity of twin %s after %.1f s: bridging anyway", config.twin,
                                           args.wait_for_entity)
                 start = resume_point(shell, args.resume_wait) + 1
-                inbound = Inbound(shell, mapper, start, stamps)
-                subscription = Input(node, cls, topic, inbound, args, shell.log.warning)
-                shell.log.info("bridging %s (%s) to %s from sequence %d%s", topic, msgtype,
-                               config.observation_key() or keys.key(config.twin, "sensor", "observation"), start,
-                               f"; the twin out under {outbound.namespace}/" if outbound else "")
+                for i, feed in enumerate(feeds):
+                    inbound = Inbound(shell, mappers[i], start, stamps, sensor=feed.sensor, control=feed.control)
+                    inputs.append((feed, msgtypes[i], inbound,
+                                   Input(node, classes[i], feed.topic, inbound, args, shell.log.warning)))
+                    shell.log.info("bridging %s (%s) to %s%s from sequence %d%s", feed.topic, msgtypes[i],
+                                   inbound.key if feed.control else config.observation_key() or inbound.key,
+                                   f" as {feed.label}" if feed.sensor or feed.control else "", start,
+                                   f"; the twin out under {outbound.namespace}/" if outbound else "")
             elif outbound is not None:
                 shell.log.info("publishing twin %s under %s/", config.twin, outbound.namespace)
             executor = ros2_executor()
@@ -573,24 +599,36 @@ def main(config: RunConfig, zconf, args: argparse.Namespace) -> int:
                 executor.spin_once(timeout_sec=0.1)
                 if outbound is not None:
                     outbound.tick()
-                if topic is not None and time.monotonic() > next_look:  # a publisher of another type never matches
+                if inputs and time.monotonic() > next_look:  # a publisher of another type never matches
                     next_look = time.monotonic() + 1.0
-                    subscription.tick()
-                    for other in set(_types_of(node, topic)) - {msgtype} - foreign:
-                        foreign.add(other)
-                        shell.reject("a publisher of another message type on the topic",
-                                     f"{topic} has a publisher of {other}; the bridge takes {msgtype}: its messages "
-                                     f"are not received")
+                    for feed, msgtype, _, subscription in inputs:
+                        subscription.tick()
+                        for other in set(_types_of(node, feed.topic)) - {msgtype} - foreign:
+                            foreign.add(other)
+                            shell.reject("a publisher of another message type on the topic",
+                                         f"{feed.topic} has a publisher of {other}; the bridge takes {msgtype}: its "
+                                         f"messages are not received")
             if outbound is not None:
                 shell.watchdog.step = "publishing the twin's last messages on ROS 2"
                 outbound.close(shell.watchdog.progress)
-            shell.log.info("stopped: %s%s", f"{inbound.sent} observations sent" if topic is not None else "",
+            sent = sum(inbound.sent for _, _, inbound, _ in inputs if not inbound.control)
+            shell.log.info("stopped: %s%s", f"{sent} observations sent" if inputs else "",
                            f", {outbound.published} estimates published" if outbound is not None else "")
     finally:
         if viewer is not None:
             viewer.close()
         rclpy.try_shutdown()
     return 130
+
+
+def _feed_mapper(feed, args, config: RunConfig, model, cls, controls):
+    """The mapper of one input: a driven twin's through :func:`~dtpf.scripts.ros2.feeds.feed_mapper`, the one
+    topic's as before."""
+    if feed.sensor is None and not feed.control:
+        return _mapper(args, config, model, cls)
+    from dtpf.scripts.ros2.feeds import feed_mapper
+
+    return feed_mapper(feed, model, cls, controls)
 
 
 def bridge_arguments(parser: argparse.ArgumentParser, defaults: bool = True) -> None:
@@ -603,9 +641,12 @@ def bridge_arguments(parser: argparse.ArgumentParser, defaults: bool = True) -> 
                             "giving any of these options by their names without 'ros2-' (topic, type, fields, "
                             "pose, namespace, frame, child_frame, depth, covariance, best_effort); the command "
                             "line wins")
-    group.add_argument("--ros2-type", default=None, metavar="TYPE",
+    group.add_argument("--ros2-type", default=None, metavar="TYPE", action=_TypeAction,
                        help="the topic's message type, e.g. sensor_msgs/msg/Range (default: learnt from its "
-                            "publishers)")
+                            "publishers); a driven twin's sensor on a topic: NAME=TYPE, once per sensor")
+    group.add_argument("--ros2-control-type", default=None, metavar="TYPE",
+                       help="the control topic's message type (geometry_msgs/msg/Twist, TwistStamped, "
+                            "nav_msgs/msg/Odometry, sensor_msgs/msg/Imu, ...; default: learnt from its publishers)")
     group.add_argument("--ros2-pose", default=None, metavar="MAP",
                        help="which state components the published pose shows, e.g. 'x=0,y=1,yaw=3' (axes x, y, z, "
                             "yaw; default: x=0, and y=1 for a state of 2 or more)")
@@ -659,7 +700,7 @@ def cmd_ros2(args: argparse.Namespace) -> int:
                         format="%(asctime)s ros2        %(levelname)s %(message)s")
     require_rclpy()
     config = config_from_args(args)
-    if config.observation_file is not None:
+    if config.observation_file is not None or (config.sensor_files and not config.ros2_sensors):
         raise Ros2Error("the bridge takes a live topic (--topic or --observations ros2:TOPIC), not a file")
     if args.exit_with_parent:
         from dtpf.shell.service import _watch_parent

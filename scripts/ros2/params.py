@@ -11,6 +11,18 @@ top, each with ``ros__parameters``::
         child_frame: base_link
         best_effort: true
 
+A driven twin's topics (several sensors and a control; docs/guides/ros2.md) are nested parameters, as ROS 2
+writes them (``sensors.gps.topic`` is the same as the nested form)::
+
+    dtpf_unicycle_1:
+      ros__parameters:
+        sensors:
+          gps: {topic: /gps, fields: "point.x,point.y"}
+          beacons: {topic: /beacons, type: geometry_msgs/msg/Vector3Stamped}
+        control: {topic: /odom, fields: "twist.twist.linear.x,twist.twist.angular.z"}
+
+each with ``topic``, ``type`` and ``fields`` (:data:`TOPIC_PARAMETERS`; :func:`topics_of` gives them).
+
 Each parameter means what its option means on the command line (:data:`PARAMETERS`); an option given on the
 command line wins over the file. Entries of other nodes are left alone (one file may configure a whole
 stack); a parameter the bridge does not know, a value of the wrong type, or a file with no entry for the
@@ -26,7 +38,7 @@ from pathlib import Path
 
 from dtpf.scripts.ros2 import Ros2Error
 
-__all__ = ["PARAMETERS", "load", "node_name"]
+__all__ = ["PARAMETERS", "TOPIC_PARAMETERS", "load", "node_name", "topics_of"]
 
 #: Parameter -> (the option's argparse destination, its type, the option).
 PARAMETERS: dict[str, tuple[str, type, str]] = {
@@ -41,6 +53,10 @@ PARAMETERS: dict[str, tuple[str, type, str]] = {
     "covariance": ("ros2_covariance", str, "--ros2-covariance"),
     "best_effort": ("ros2_best_effort", bool, "--ros2-best-effort"),
 }
+#: A driven twin's topic parameters, ``sensors.NAME.KEY`` and ``control.KEY``: KEY -> its option.
+TOPIC_PARAMETERS = {"topic": "NAME=ros2:TOPIC (--observations) or ros2:TOPIC (--controls)",
+                    "type": "--ros2-type NAME=TYPE or --ros2-control-type", "fields": "--ros2-fields NAME=PATHS "
+                    "or --ros2-control-fields"}
 #: The closed choices of a parameter.
 CHOICES = {"covariance": ("full", "diagonal")}
 
@@ -92,8 +108,8 @@ def load(path, node: str) -> dict[str, object]:
         values = entry.get("ros__parameters") if isinstance(entry, dict) else None
         if not isinstance(values, dict):
             raise Ros2Error(f"--ros2-params {name}: '{key}' has no 'ros__parameters:' mapping")
-        for parameter, value in values.items():
-            found[str(parameter)] = _checked(name, str(parameter), value)
+        for parameter, value in _flat(values).items():
+            found[parameter] = _checked(name, parameter, value)
     if not named:
         nodes = ", ".join(str(k) for k in document) or "none"
         raise Ros2Error(f"--ros2-params {name}: no entry for the bridge's node {node} (the file has: {nodes}); "
@@ -101,7 +117,51 @@ def load(path, node: str) -> dict[str, object]:
     return found
 
 
+def _flat(values: dict, prefix: str = "") -> dict[str, object]:
+    """Nested parameters as ROS 2 names them: {'sensors': {'gps': {'topic': ...}}} -> {'sensors.gps.topic': ...}."""
+    out: dict[str, object] = {}
+    for key, value in values.items():
+        name = f"{prefix}{key}"
+        if isinstance(value, dict) and name.split(".")[0] in ("sensors", "control"):
+            out.update(_flat(value, name + "."))
+        else:
+            out[name] = value
+    return out
+
+
+def topics_of(values: dict[str, object]) -> tuple[dict[str, dict[str, str]], dict[str, str]]:
+    """The sensors' (name -> {topic, type, fields}) and the control's ({topic, type, fields}) parameters of
+    :func:`load`'s answer."""
+    sensors: dict[str, dict[str, str]] = {}
+    control: dict[str, str] = {}
+    for parameter, value in values.items():
+        parts = parameter.split(".")
+        if parts[0] == "sensors":
+            sensors.setdefault(parts[1], {})[parts[2]] = value
+        elif parts[0] == "control":
+            control[parts[1]] = value
+    return sensors, control
+
+
+def _checked_topic(name: str, parameter: str, value) -> object:
+    """A ``sensors.NAME.KEY`` or ``control.KEY`` parameter, checked."""
+    import re
+
+    parts = parameter.split(".")
+    shape = (len(parts) == 3 and parts[0] == "sensors" and re.fullmatch(r"[A-Za-z][A-Za-z0-9_-]{0,63}", parts[1])
+             or len(parts) == 2 and parts[0] == "control")
+    if not shape or parts[-1] not in TOPIC_PARAMETERS:
+        raise Ros2Error(f"--ros2-params {name}: unknown parameter {parameter!r} (a driven twin's topics are "
+                        f"sensors.NAME.KEY and control.KEY, KEY one of {', '.join(TOPIC_PARAMETERS)})")
+    if not isinstance(value, str) or not value.strip():
+        raise Ros2Error(f"--ros2-params {name}: {parameter} must be a non-empty string (as "
+                        f"{TOPIC_PARAMETERS[parts[-1]]}), not {value!r}")
+    return value
+
+
 def _checked(name: str, parameter: str, value) -> object:
+    if parameter.split(".")[0] in ("sensors", "control"):
+        return _checked_topic(name, parameter, value)
     if parameter not in PARAMETERS:
         raise Ros2Error(f"--ros2-params {name}: unknown parameter {parameter!r} (known: {', '.join(PARAMETERS)})")
     _, kind, option = PARAMETERS[parameter]

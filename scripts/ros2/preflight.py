@@ -18,7 +18,7 @@ from dtpf.scripts.ros2 import params, require_rclpy
 from dtpf.scripts.ros2.bridge import _mapper, bridge_words, discover_type, message_class
 from dtpf.scripts.ros2.convert import parse_pose
 
-__all__ = ["TYPE_WAIT", "check_before_start", "learn_type"]
+__all__ = ["TYPE_WAIT", "check_before_start", "learn_type", "with_param_topics"]
 
 #: How long the launcher waits for a publisher of the topic to learn its type (the bridge's --type-wait).
 TYPE_WAIT = 30.0
@@ -48,6 +48,8 @@ def check_before_start(config: RunConfig, args: argparse.Namespace, model) -> li
     Ros2Error, FieldPathError or ValueError in one line otherwise."""
     require_rclpy()
     values = params.load(args.ros2_params, params.node_name(config.twin)) if args.ros2_params else {}
+    if config.ros2_sensors or config.ros2_control is not None:
+        return _check_feeds(config, args, model, values)
     fields = config.ros2_fields or values.get("fields")
     if fields:
         rosbag.parse_fields(fields)  # its syntax, before any wait for a publisher
@@ -59,3 +61,45 @@ def check_before_start(config: RunConfig, args: argparse.Namespace, model) -> li
         words += ["--ros2-type", msgtype]
     _mapper(SimpleNamespace(ros2_fields=fields), config, model, message_class(msgtype))
     return words
+
+
+def _check_feeds(config: RunConfig, args: argparse.Namespace, model, values: dict) -> list[str]:
+    """:func:`check_before_start` for a driven twin's topics (:mod:`~dtpf.scripts.ros2.feeds`): each topic's
+    paths parsed, its type learnt, its paths checked; the learnt types go to the bridge."""
+    from dtpf.entity.calls import ModelCalls
+    from dtpf.scripts.ros2.feeds import feed_mapper, feeds_of
+
+    calls = ModelCalls(model)
+    feeds = feeds_of(args, config, values)
+    missing = [name for name in calls.sensors if name is not None and name not in
+               {feed.sensor for feed in feeds}]
+    if missing and calls.named_sensors:
+        raise Ros2Error(f"the model's sensor {missing[0]} has no topic: give --observations {missing[0]}=ros2:TOPIC")
+    if calls.controls and not any(feed.control for feed in feeds):
+        raise Ros2Error(f"the model is driven by controls ({', '.join(calls.controls)}): give their topic with "
+                        f"--controls ros2:TOPIC")
+    for feed in feeds:
+        if feed.fields:
+            rosbag.parse_fields(feed.fields)  # its syntax, before any wait for a publisher
+    parse_pose(args.ros2_pose or values.get("pose"), model.dim)
+    words = bridge_words(args)
+    for feed in feeds:
+        msgtype = feed.msgtype or learn_type(feed.topic)
+        feed_mapper(feed, model, message_class(msgtype), tuple(calls.controls))
+        if feed.msgtype is None:
+            words += ["--ros2-control-type", msgtype] if feed.control else ["--ros2-type", f"{feed.sensor}={msgtype}"]
+    return words
+
+
+def with_param_topics(config: RunConfig, path, steps: int | None = None) -> RunConfig:
+    """``config`` with a driven twin's sensor and control topics from the parameters file ``path``
+    (``sensors.NAME.topic``, ``control.topic``) when the command line gives no observations; else as it is.
+    ``steps``: the command line's --steps (None: until the stream ends)."""
+    sensors, control = params.topics_of(params.load(path, params.node_name(config.twin)))
+    files = {name: "ros2:" + entry["topic"] for name, entry in sensors.items() if "topic" in entry}
+    if not files:
+        return config
+    update = {"sensor_files": files, "steps": steps}
+    if "topic" in control and config.controls is None:
+        update["controls"] = "ros2:" + control["topic"]
+    return RunConfig(**{**config.model_dump(exclude_defaults=True), **update})

@@ -1,0 +1,213 @@
+"""A driven, two-sensor twin fed through ROS 2: the unicycle of docs/examples/unicycle.py from its CSV files,
+from a rosbag2 bag of the same data (docs/examples/make_unicycle_bag.py) and live from real rclpy nodes
+(a test node plays the bag's /gps, /beacons and /odom topics): the same estimates, number for number.
+
+The live test needs the ROS 2 environment of tests/test_ros2_live.py (its helpers are used here); it skips
+without one."""
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from dtpf.entity import sources
+from dtpf.entity.model_ref import resolve
+from dtpf.entity.observations import ObservationError
+from dtpf.messages.codec import MessageError, decode_for_key
+from dtpf.messages.config import RunConfig
+from dtpf.messages.models import Control, Estimate, Observation
+from dtpf.recording.logfile import read_log
+from dtpf.scripts import inprocess
+from dtpf.shell.bus import free_port
+
+from conftest import ROOT
+from test_ros2_live import needs_ros2, ros_env, start, wait_for_line
+
+MODEL = "docs/examples/unicycle.py:Unicycle"
+FIELDS = {"gps": "point.x,point.y", "beacons": "vector.x,vector.y,vector.z"}
+RUN = {"particles": 150, "seed": 3, "twin": "robot-1"}
+
+
+@pytest.fixture(scope="module")
+def robot(tmp_path_factory):
+    """2 s of the robot as CSV files and as a bag (22 steps: 20 beacon rows, 2 GPS rows; 40 odometry rows)."""
+    sys.path.insert(0, str(ROOT / "docs/examples"))
+    try:
+        import make_unicycle_bag
+        import make_unicycle_csv
+    finally:
+        sys.path.remove(str(ROOT / "docs/examples"))
+    folder = tmp_path_factory.mktemp("robot")
+    files = make_unicycle_csv.main(folder, duration=2.0, seed=5)
+    files["bag"] = make_unicycle_bag.main(folder / "bag", duration=2.0, seed=5)
+    return files
+
+
+def files_config(robot) -> RunConfig:
+    return RunConfig(model=str(ROOT / MODEL), sensor_files={"gps": str(robot["gps"]), "beacons": str(robot["beacons"])},
+                     controls=str(robot["odometry"]), **RUN)
+
+
+def bag_config(robot, **change) -> RunConfig:
+    bag = robot["bag"]
+    values = dict(model=str(ROOT / MODEL), sensor_files={name: f"{bag}:/{name}" for name in FIELDS},
+                  sensor_fields=FIELDS, controls=f"{bag}:/odom", **RUN)
+    return RunConfig(**{**values, **change})
+
+
+@pytest.fixture(scope="module")
+def reference(robot):
+    """dtpf run of the CSV files."""
+    return inprocess.run(files_config(robot))
+
+
+def test_the_bag_gives_the_files_estimates_and_stamps(robot, reference):
+    run = inprocess.run(bag_config(robot))
+    np.testing.assert_array_equal(run.means, reference.means)  # number for number
+    assert [s.sensor for s in run.steps] == [s.sensor for s in reference.steps]
+    model = resolve(str(ROOT / MODEL))
+    data = sources.observations_of(bag_config(robot), model)
+    assert data.stamps.dtype == np.int64 and data.stamps[:3].tolist() == [100_000_000, 200_000_000, 300_000_000]
+    assert data.stamps.tolist() == sources.observations_of(files_config(robot), model).stamps.tolist()
+
+
+def test_bag_mistakes_are_one_line(robot, tmp_path):
+    model = resolve(str(ROOT / MODEL))
+    bag = robot["bag"]
+    cases = {
+        "no topic '/gpx' in the bag": dict(sensor_files={"gps": f"{bag}:/gpx", "beacons": f"{bag}:/beacons"}),
+        "PointStamped has no field 'point.q'": dict(sensor_fields={**FIELDS, "gps": "point.x,point.q"}),
+        "say how a geometry_msgs/msg/PointStamped becomes the control": dict(controls=f"{bag}:/gps"),
+        "2 values, the model observes 3": dict(sensor_fields={**FIELDS, "beacons": "vector.x,vector.y"}),
+        "--ros2-fields gps=PATHS": dict(sensor_fields={"beacons": FIELDS["beacons"]}),
+    }
+    for message, change in cases.items():
+        with pytest.raises(ObservationError, match=message):
+            sources.observations_of(bag_config(robot, **change), model)
+    with pytest.raises(ValueError, match="no sensor lidar is given"):
+        bag_config(robot, sensor_fields={"lidar": "point.x"})
+    # a damaged bag: refused with its counts, read in part with --partial
+    damaged = tmp_path / "damaged"
+    damaged.mkdir()
+    for path in bag.iterdir():
+        data = bytearray(path.read_bytes())
+        if path.suffix == ".mcap":
+            middle = len(data) // 2
+            data[middle:middle + 64] = b"\xff" * 64
+        (damaged / path.name).write_bytes(bytes(data))
+    change = dict(sensor_files={name: f"{damaged}:/{name}" for name in FIELDS}, controls=f"{damaged}:/odom")
+    with pytest.raises(ObservationError, match="declares 40 messages on /odom, 39 can be read: missing") as refused:
+        sources.observations_of(bag_config(robot, **change), model)
+    assert "--partial reads the" in str(refused.value) and "\n" not in str(refused.value)
+    data = sources.observations_of(bag_config(robot, **change, partial=True), model)
+    assert len(data.sensors) == 22 and "read 39 of the 40 messages on /odom the bag declares (--partial)" in \
+        data.problem
+
+
+PLAYER = r'''
+import os, sys, time
+import rclpy
+from rclpy.qos import QoSProfile, ReliabilityPolicy, HistoryPolicy
+from rosbags.rosbag2 import Reader
+from geometry_msgs.msg import PointStamped, Vector3Stamped
+from nav_msgs.msg import Odometry
+bag, tail = sys.argv[1], int(sys.argv[2])
+classes = {"/gps": PointStamped, "/beacons": Vector3Stamped, "/odom": Odometry}
+rclpy.init()
+node = rclpy.create_node("test_player")
+qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST)
+pubs = {topic: node.create_publisher(cls, topic, qos) for topic, cls in classes.items()}
+with Reader(bag) as reader:
+    messages = [(t, c.topic, raw) for c, t, raw in reader.messages() if c.topic in pubs]
+last = messages[-1][0]
+for k in range(1, tail + 1):  # odometry after the bag: the twin's reorder window releases its last steps
+    m = Odometry()
+    m.header.stamp.sec, m.header.stamp.nanosec = divmod(last + k * 50_000_000, 1_000_000_000)
+    messages.append((last + k * 50_000_000, "/odom", m))
+deadline = time.monotonic() + 240
+while min(p.get_subscription_count() for p in pubs.values()) < 1:
+    if time.monotonic() > deadline:
+        sys.exit("no subscriber in 240 s")
+    rclpy.spin_once(node, timeout_sec=0.05)
+print("matched", flush=True)
+t0, first = time.monotonic(), messages[0][0]
+for stamp, topic, message in messages:  # in stamp order, at the bag's pace
+    time.sleep(max(0.0, t0 + (stamp - first) / 1e9 - time.monotonic()))
+    pubs[topic].publish(message)
+for p in pubs.values():
+    p.wait_for_all_acked(rclpy.duration.Duration(seconds=30))
+print("published", len(messages), flush=True)
+'''
+
+
+@needs_ros2
+def test_live_ros2_topics_drive_the_twin_to_the_files_numbers_and_the_log_verifies(processes, robot, reference,
+                                                                                   tmp_path):
+    """Two sensor topics and an Odometry control, played by an rclpy node from the bag: dtpf launch (a bridge
+    of three topics; the sensors' field paths from a ROS 2 parameters file, the control's by its type) gives
+    dtpf run's estimates on the CSV files, each step stamped with its message's header stamp."""
+    env = ros_env()
+    (tmp_path / "player.py").write_text(PLAYER)
+    (tmp_path / "robot.yaml").write_text(
+        "dtpf_robot_1:\n  ros__parameters:\n    sensors:\n"
+        f"      gps: {{fields: '{FIELDS['gps']}', type: geometry_msgs/msg/PointStamped}}\n"
+        f"      beacons: {{fields: '{FIELDS['beacons']}'}}\n")
+    player = start(processes, "player", [str(tmp_path / "player.py"), str(robot["bag"]), "30"], env)
+    log = tmp_path / "robot.mcap"
+    launcher = start(processes, "launch", [
+        "-m", "dtpf.scripts.cli", "launch", "-q", "--model", MODEL, "-n", str(RUN["particles"]), "--seed",
+        str(RUN["seed"]), "--twin", RUN["twin"], "--steps", "22", "--reorder-window", "1.0",
+        "--observations", "gps=ros2:/gps", "--observations", "beacons=ros2:/beacons", "--controls", "ros2:/odom",
+        "--ros2-params", str(tmp_path / "robot.yaml"), "--port", str(free_port()), "-o", str(log)], env)
+    wait_for_line(processes, player, "published 92", 240, watch=launcher)
+    assert launcher.wait(timeout=240) == 0, processes.output(launcher)
+
+    estimates, observations, controls = {}, [], []
+    for item in read_log(log).messages:
+        try:
+            message = decode_for_key(item.topic, item.data)
+        except MessageError:
+            continue
+        if isinstance(message, Estimate):
+            estimates[message.step] = message
+        elif isinstance(message, Observation):
+            observations.append(message)
+        elif isinstance(message, Control):
+            controls.append(message)
+    assert sorted(estimates) == list(range(1, 23))
+    np.testing.assert_array_equal([estimates[k].mean for k in range(1, 23)], reference.means)
+    assert [estimates[k].sensor for k in range(1, 23)] == [s.sensor for s in reference.steps]
+    data = sources.observations_of(bag_config(robot), resolve(str(ROOT / MODEL)))
+    assert [estimates[k].stamp.to_ns() for k in range(1, 23)] == data.stamps.tolist()  # the header stamps
+    assert {o.sensor for o in observations} == {"gps", "beacons"} and len(controls) >= 40
+    assert [c.stamp.to_ns() for c in controls[:3]] == [50_000_000, 100_000_000, 150_000_000]
+    done = subprocess.run([sys.executable, "-m", "dtpf.scripts.cli", "verify", str(log)], cwd=ROOT,
+                          capture_output=True, text=True, timeout=240)
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert "22 propagated sets reproduced bit for bit" in done.stdout
+
+
+@needs_ros2
+def test_dtpf_launch_checks_each_topic_before_anything_starts(processes, tmp_path):
+    """A misspelt field path of one sensor (its type in the parameters file) and a control type without a
+    default for a two-control model: one line, exit 2, no log."""
+    (tmp_path / "typed.yaml").write_text(
+        "/**:\n  ros__parameters:\n    sensors:\n      gps: {type: geometry_msgs/msg/PointStamped}\n"
+        "      beacons: {type: geometry_msgs/msg/Vector3Stamped}\n"
+        "    control: {type: sensor_msgs/msg/Range}\n")
+    base = ["-m", "dtpf.scripts.cli", "launch", "-q", "--model", MODEL, "--twin", "robot-1",
+            "--observations", "gps=ros2:/gps", "--observations", "beacons=ros2:/beacons", "--controls", "ros2:/odom",
+            "--ros2-params", str(tmp_path / "typed.yaml")]
+    cases = [(["--ros2-fields", "gps=point.x,point.q", "--ros2-fields", f"beacons={FIELDS['beacons']}"],
+              "--ros2-fields: geometry_msgs/msg/PointStamped has no field 'point.q'"),
+             (["--ros2-fields", f"gps={FIELDS['gps']}", "--ros2-fields", f"beacons={FIELDS['beacons']}"],
+              "--controls ros2:/odom: say how a sensor_msgs/msg/Range becomes the control (v, omega)")]
+    for i, (options, expected) in enumerate(cases):
+        log = tmp_path / f"never-{i}.mcap"
+        launcher = start(processes, "launch", [*base, *options, "-o", str(log)], ros_env())
+        assert launcher.wait(timeout=120) == 2, processes.output(launcher)
+        lines = processes.output(launcher).strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith(f"dtpf launch: error: {expected}"), lines
+        assert not log.exists()

@@ -631,6 +631,19 @@ def _feed_mapper(feed, args, config: RunConfig, model, cls, controls):
     return feed_mapper(feed, model, cls, controls)
 
 
+class _TypeAction(argparse.Action):
+    """``--ros2-type TYPE``, or ``--ros2-type NAME=TYPE`` once per sensor (into ``ros2_types``)."""
+
+    def __call__(self, parser, namespace, value, option_string=None):
+        name, sep, msgtype = value.partition("=")
+        if sep:
+            types = dict(getattr(namespace, "ros2_types", None) or {})
+            types[name.strip()] = msgtype.strip()
+            namespace.ros2_types = types
+            return
+        setattr(namespace, self.dest, value)
+
+
 def bridge_arguments(parser: argparse.ArgumentParser, defaults: bool = True) -> None:
     """The bridge's own options (also those ``dtpf launch`` passes on for ``--observations ros2:TOPIC``,
     ``defaults`` False). Every option defaults to None (not given): :func:`resolve_options` fills in what

@@ -154,7 +154,10 @@ class DrivenIntake:
         self.controls = 0
         self.controls_rejected = 0
         self.control_sequence = 0
+        #: The observation stream has ended; :attr:`controls_ended`: the control stream has (or has none).
         self.ended = False
+        self.controls_ended = not calls.controls
+        self.flushed = False
         self._steps = deque()
 
     def observation(self, message) -> Rejection | None:
@@ -171,7 +174,8 @@ class DrivenIntake:
             return verdict
         if message.end:
             self.ended = True
-            self._release(self.reorder.flush())
+            if self.controls_ended:
+                self.finish()
             return None
         stamp = message.stamp.to_ns()
         if not self.reorder.push(stamp, self.rank[sensor], message):
@@ -184,8 +188,17 @@ class DrivenIntake:
         return None
 
     def control(self, message) -> Rejection | None:
-        """Take a :class:`~dtpf.messages.models.Control`."""
+        """Take a :class:`~dtpf.messages.models.Control` (or the end of the control stream)."""
         c = len(self.calls.controls)
+        if message.end:
+            if message.step <= self.control_sequence:
+                self.controls_rejected += 1
+                return Rejection("late or repeated control (sequence number not above the last)",
+                                 f"the end of the controls, {message.step}, arrived after {self.control_sequence}")
+            self.controls_ended = True
+            if self.ended:
+                self.finish()
+            return None
         if len(message.control) != c:
             self.controls_rejected += 1
             return Rejection("control with the wrong number of values",
@@ -218,11 +231,19 @@ class DrivenIntake:
             drive = self.timeline.step(stamp)
             self._steps.append(LiveStep(list(message.values), message.truth, message.sensor, drive, stamp))
 
+    def finish(self) -> None:
+        """Release everything held, in stamp order: the observations have ended (and the controls, or the
+        caller waited long enough for their end)."""
+        if not self.flushed:
+            self.flushed = True
+            self._release(self.reorder.flush())
+
     def take(self) -> LiveStep | None:
-        """The next step in stamp order; at the end of the stream, a LiveStep with ``end``; else None."""
+        """The next step in stamp order; once everything held is out after the end, a LiveStep with ``end``;
+        else None."""
         if self._steps:
             return self._steps.popleft()
-        if self.ended:
+        if self.flushed:
             return LiveStep([], None, None, None, 0, end=True)
         return None
 

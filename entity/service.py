@@ -378,6 +378,11 @@ class StepOutputs:
             shell.publish(cloud, encode_with_base64(cloud, self.points.tobytes()))
 
 
+#: Seconds a driven twin whose observations have ended waits for the end of its controls (a control source
+#: that never says it ended: the twin goes on without what is still on the way).
+CONTROL_END_WAIT = 2.0
+
+
 def window_ns(seconds: float) -> int:
     """The reorder window of the run configuration (seconds) in integer nanoseconds, from its decimal text."""
     from decimal import Decimal
@@ -417,6 +422,8 @@ class LiveObservations:
         self.more = False
         #: The stamp (ns) of the last observation taken, for a driven twin (None: estimates carry their own time).
         self.stamp = None
+        #: When a driven twin's observations ended (its controls' end is awaited up to CONTROL_END_WAIT).
+        self.ended_at: float | None = None
         shell.observation_counts = self.intake.counts
 
     def take(self, now: float) -> Observation | None:
@@ -478,6 +485,14 @@ class LiveObservations:
         else:
             self.inbox.ring()
             self.more = True
+        if intake.ended and not intake.flushed:  # the observations ended: the controls' end, or a while
+            self.ended_at = now if self.ended_at is None else self.ended_at
+            if now - self.ended_at >= CONTROL_END_WAIT:
+                shell.log.warning("the controls did not end within %.1f s of the observations: going on without "
+                                  "the rest", CONTROL_END_WAIT)
+                intake.finish()
+            else:
+                self.more = True
         step = intake.take()
         if step is None:
             self._quiet(now)

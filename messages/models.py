@@ -706,13 +706,22 @@ class Control(Message):
     """The control input of a driven machine (wheel odometry, a commanded velocity): control source -> entity.
 
     ``step`` is the source's sequence number, ``stamp`` the time from which ``control`` is in force
-    (zero-order hold until the next control; docs/guides/driven.md).
+    (zero-order hold until the next control; docs/guides/driven.md). ``end`` closes the control stream: a
+    twin whose observations have ended takes what is held in stamp order once its controls have ended too
+    (messages on two keys can overtake each other).
     """
 
     producer: ClassVar[Layer] = Layer.SENSOR
 
-    control: list[float] = Field(min_length=1, max_length=MAX_CONTROLS,
+    control: list[float] = Field(default_factory=list, max_length=MAX_CONTROLS,
                                  description="u, the model's control components in the order of its controls.")
+    end: bool = Field(default=False, description="True on the last message of the control stream.")
+
+    @model_validator(mode="after")
+    def _check_control(self) -> "Control":
+        if not self.end and not self.control:
+            raise ValueError("a control must carry at least one value (or end=true)")
+        return self
 
 
 #: Longest part of a rejected payload the recorder keeps (as base64 in :class:`Rejected`).

@@ -168,6 +168,8 @@ def driven(config: RunConfig, model, data, zenoh_config: zenoh.Config, args: arg
                                       truth=truth, sensor=sensor))
             sent += 1
         if not args.no_end:
+            if controls is not None:  # each stream says it ended: the two keys can overtake each other
+                shell.publish(Control(**shell.header(len(controls[0]) + 1), end=True))
             name = next(iter(sequence))
             shell.publish(Observation(**shell.header(sequence[name] + 1), values=[], end=True, sensor=name))
         shell.log.info("published %d observations of %d sensors%s", sent, len(sequence),

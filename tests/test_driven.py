@@ -21,9 +21,10 @@ from dtpf.entity.models import StateSpaceModel
 from dtpf.entity.observations import ObservationError
 from dtpf.entity.timeline import NS, Reorder, TimeError, Timeline
 from dtpf.messages.config import RunConfig
+from dtpf.messages.models import Estimate, ServiceState, Status
 from dtpf.scripts import inprocess
 
-from conftest import ROOT
+from conftest import ROOT, service_args
 
 MODEL = "docs/examples/unicycle.py:Unicycle"
 
@@ -178,6 +179,70 @@ def test_a_two_sensor_driven_model_launched_equals_dtpf_run_and_verifies(robot, 
     done = dtpf("verify", str(log))
     assert done.returncode == 0, done.stdout + done.stderr
     assert "22 propagated sets reproduced bit for bit" in done.stdout
+
+
+def test_dtpf_sensor_stands_in_for_both_sensors_and_the_odometry_of_a_live_twin(robot, processes, router):
+    # A window longer than the run holds every message until the end: arrival order cannot matter.
+    run = ["--model", str(ROOT / MODEL), "--particles", "150", "--seed", "3", "--twin", "robot-live"]
+    entity = processes.start("entity", service_args("dtpf.entity.service", router.endpoint, *run, "--observations",
+                                                    "live", "--no-preprocess", "--reorder-window", "10"))
+    files = ["--observations", f"gps={robot['gps']}", "--observations", f"beacons={robot['beacons']}",
+             "--controls", str(robot["odometry"])]
+    sensor = processes.start("sensor", ["-m", "dtpf.scripts.sensor", "--connect", router.endpoint, *run, *files,
+                                        "--speed", "0"])
+    assert entity.wait(timeout=120) == 0, processes.output(entity)
+    assert sensor.wait(timeout=30) == 0, processes.output(sensor)
+
+    def finished(messages):
+        return [m for m in messages if isinstance(m, Status) and m.layer.value == "entity"
+                and m.state == ServiceState.FINISHED]
+
+    router.collect(lambda m: finished(m) and {e.step for e in m if isinstance(e, Estimate)} >= set(range(1, 23)),
+                   timeout=30)
+    estimates = sorted((m for m in router.messages if isinstance(m, Estimate)), key=lambda e: e.step)
+    reference = inprocess.run(config_of(robot, twin="robot-live", preprocess=False))
+    np.testing.assert_array_equal([e.mean for e in estimates], reference.means)
+    final = finished(router.messages)[-1]
+    assert final.observations.accepted == 22 and final.observations.controls == 40
+    assert final.observations.late == 0
+
+
+def test_the_live_intake_orders_counts_and_survives_bad_messages():
+    from dtpf.entity.intake import DrivenIntake
+    from dtpf.messages.models import Control, Observation, Time
+
+    intake = DrivenIntake(ModelCalls(resolve(str(ROOT / MODEL))), state_dim=3, window=100_000_000)
+    header = dict(run_id="r", twin_id="t")
+
+    def observation(step, ms, sensor, values):
+        return Observation(**header, step=step, stamp=Time.from_ns(ms * 1_000_000), sensor=sensor, values=values)
+
+    def control(step, ms, values):
+        return Control(**header, step=step, stamp=Time.from_ns(ms * 1_000_000), control=values)
+
+    assert intake.control(control(1, 0, [1.0, 0.0])) is None
+    assert intake.observation(observation(1, 100, "beacons", [1.0, 2.0, 3.0])) is None
+    assert intake.observation(observation(1, 150, "gps", [0.0, 0.0])) is None
+    assert intake.control(control(2, 120, [2.0, 0.5])) is None       # late, but within the window
+    assert intake.observation(observation(2, 300, "beacons", [1.0, 2.0, 3.0])) is None
+    bad = [intake.observation(observation(1, 310, "lidar", [1.0])),     # no such sensor
+           intake.observation(observation(2, 320, "gps", [1.0])),       # gps has 2 values
+           intake.control(control(3, 330, [1.0])),                      # the control has 2
+           intake.observation(observation(3, 50, "beacons", [1.0, 2.0, 3.0]))]  # before a step filtered
+    assert all(verdict is not None for verdict in bad)
+    steps = [intake.take() for _ in range(2)]
+    assert [(s.sensor, s.stamp) for s in steps] == [("beacons", 100_000_000), ("gps", 150_000_000)]
+    assert steps[0].drive is None  # the first step starts from the prior
+    np.testing.assert_allclose(steps[1].drive.pieces, [[0.02, 1.0, 0.0], [0.03, 2.0, 0.5]])  # split at 0.12 s
+    assert intake.take() is None  # 0.3 s waits for a message 0.1 s later, or the end
+    counts = intake.counts()
+    assert (counts.unknown_sensor, counts.wrong_length, counts.controls_rejected, counts.late) == (1, 1, 1, 1)
+    assert counts.accepted == 3 and counts.controls == 2
+    # The observations end; what is held waits for the controls' end (the other key may still bring some).
+    assert intake.observation(Observation(**header, step=4, sensor="beacons", values=[], end=True)) is None
+    assert intake.take() is None
+    assert intake.control(Control(**header, step=4, end=True)) is None
+    assert intake.take().stamp == 300_000_000 and intake.take().end
 
 
 # --- mistakes: one line each ------------------------------------------------------------------------

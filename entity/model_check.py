@@ -188,6 +188,19 @@ def _check_driven(model, calls, where: str, dim: int, obs_dim: int, observation,
         label = f"propagate(dt={dt}, control=zeros({c}))"
         moved = _array(where, label, _call(where, label, lambda dt=dt: calls.propagate(
             prior.copy(), 2, rng, dt=dt, control=np.zeros(c))), shape, what)
+    # The entity draws propagation noise ahead; the first piece of a step takes it.
+    plain_rng, ahead_rng = np.random.default_rng([seed, 2]), np.random.default_rng([seed, 2])
+    noise = _call(where, "propagation_noise", lambda: model.propagation_noise(n, 2, ahead_rng))
+    if noise is not None:
+        control = np.zeros(c)
+        plain = calls.propagate(prior.copy(), 2, plain_rng, dt=0.1, control=control)
+        ahead = _call(where, "propagate(noise=...)", lambda: calls.propagate(prior.copy(), 2, ahead_rng, noise,
+                                                                              dt=0.1, control=control))
+        if not np.allclose(np.asarray(ahead, dtype=np.float64), np.asarray(plain, dtype=np.float64), rtol=1e-9,
+                           atol=1e-12):
+            raise ModelError(f"{where}: propagate(noise=propagation_noise(...), dt=0.1) gives other particles than "
+                             f"propagate(dt=0.1) from the same random stream; propagation_noise must draw exactly "
+                             f"what propagate draws first")
     for name, m in calls.sensors.items():
         said = "" if name is None else f"(sensor={name!r})"
         sampled = None

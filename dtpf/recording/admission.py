@@ -54,11 +54,8 @@ class Admission:
         """Write ``item`` if a service would take it (True); else count it and maybe sample it. An item that
         says messages were missed (``item.missed``) opens a gap of its publisher."""
         shell = self.shell
-        if item.missed:
+        if item.missed:  # Zenoh's word: the steps are noted when the numbers show the gap (or at the end)
             self.gaps.missed(item.source, item.missed)
-            if self.gaps.gaps <= MAX_GAPS_LOGGED:
-                shell.log.warning("missed %d messages of publisher %s that its cache no longer held; the log "
-                                  "notes them on the twin's recorder/missed topic", item.missed, item.source)
             return False
         shell.received += 1
         try:
@@ -85,7 +82,7 @@ class Admission:
                 del self.estimate_copies[next(iter(self.estimate_copies))]
             self.estimate_copies[item.key, message.step] = copies + 1
         recording.write(item.key, item.payload)
-        for note in self.gaps.heard(item.source, item.key, message):
+        for note in self.gaps.heard(item.source, item.sn, item.key, message):
             self._note(recording, note)
         if self.silences is not None:
             self.silences.heard(message)
@@ -106,9 +103,14 @@ class Admission:
         if self.gaps.gaps > MAX_GAPS_LOGGED:
             self.shell.log.warning("missed %d messages in %d gaps in all that the publishers' caches no longer "
                                    "held", self.gaps.messages, self.gaps.gaps)
+        elif self.gaps.gaps:
+            self.shell.log.info("missed %d messages in %d gaps that the publishers' caches no longer held; the "
+                                "log notes them on the twins' recorder/missed topics", self.gaps.messages,
+                                self.gaps.gaps)
 
     def _reject(self, recording, item, reason: str, detail: str) -> bool:
         shell = self.shell
+        self.gaps.passed(item.source, item.sn)
         shell.reject(reason, detail, key=item.key)
         kind = kind_of(reason)
         if self.samples < MAX_SAMPLES and self.samples_of.get(kind, 0) < MAX_SAMPLES_PER_KIND:

@@ -2,18 +2,20 @@
 
 Every publisher of a twin keeps its last messages in a cache (Zenoh's advanced
 publisher, :func:`dtpf.shell.bus.publisher`) and numbers them; the recorder's
-advanced subscriber recovers a gap in the numbers from that cache, and is told
-of what the cache no longer held (a partition longer than the cache). That news
-names the publisher and a count only: :class:`Gaps` follows which key and step
-each publisher's last recorded message had, and turns each gap into a
-:class:`~dtpf.messages.models.Missed` message once the publisher's next message
-(or the end of the recording) closes it::
+advanced subscriber recovers a gap in the numbers from that cache and hands on
+each publisher's messages in order, with their numbers. What the cache no longer
+held shows as a jump in the numbers: :class:`Gaps` follows each publisher's last
+number, key and step, and turns a jump into a :class:`~dtpf.messages.models.Missed`
+message naming the steps on either side. Zenoh also says so itself (a sample-miss
+listener, a count per publisher, which may come after the messages that follow
+the gap); a count that no jump accounts for (the publisher's last messages, with
+none after them) is noted when the recording ends::
 
-    gaps = Gaps()
-    gaps.heard(source, key, message)          # every message written, with its publisher
-    gaps.missed(source, count)                # a gap the cache could not fill
-    for note in gaps.closed(source, message): # the gaps the next message of that publisher closes
+    gaps = Gaps(twin, run_id)
+    for note in gaps.heard(source, sn, key, message):  # every message written, with its publisher and number
         recording.write(keys.key_for(note), encode(note))
+    gaps.missed(source, count)                         # Zenoh's news of a gap
+    for note in gaps.close_all(): ...                  # the recording ends
 
 :func:`lost_steps` reads the notes of a log back as the steps of each topic that
 the recorder declared lost.
@@ -33,11 +35,14 @@ MAX_LISTED = 100_000
 
 
 @dataclass
-class _Last:
+class _Source:
     key: str
     twin: str
     run_id: str
     step: int
+    sn: int
+    said: int = 0       #: messages Zenoh said were missed
+    noted: int = 0      #: messages noted as missed from jumps in the numbers
 
 
 class Gaps:
@@ -49,48 +54,73 @@ class Gaps:
 
     def __init__(self, twin: str, run_id: str):
         self.twin, self.run_id = twin, run_id
-        self._last: dict[str, _Last] = {}
-        self._open: dict[str, int] = {}  # source -> messages missed since its last recorded one
-        #: Messages missed in all, and gaps.
-        self.messages = 0
+        self._sources: dict[str, _Source] = {}
+        self._said_unknown: dict[str, int] = {}  # misses of publishers with no message recorded yet
+        #: Gaps noted.
         self.gaps = 0
 
-    def heard(self, source: str | None, key: str, message: Message) -> list[Missed]:
-        """Note a recorded ``message`` of ``source`` on ``key``; returns the note of the gap it closes (if any),
-        to be written."""
-        if source is None:
+    @property
+    def messages(self) -> int:
+        """Messages missed in all: as Zenoh said, or as the numbers show where they show more."""
+        return sum(max(known.said, known.noted) for known in self._sources.values()) + \
+            sum(self._said_unknown.values())
+
+    def heard(self, source: str | None, sn: int | None, key: str, message: Message) -> list[Missed]:
+        """Note a recorded ``message`` of ``source`` (number ``sn``) on ``key``; returns the note of the gap
+        before it (if its number jumps), to be written."""
+        if source is None or sn is None:
             return []
-        notes = self.closed(source, message.step)
-        if source not in self._last and len(self._last) >= MAX_SOURCES:
-            del self._last[next(iter(self._last))]
-        self._last.pop(source, None)
-        self._last[source] = _Last(key, message.twin_id, message.run_id, message.step)
+        known = self._sources.pop(source, None)
+        notes = []
+        if known is not None and sn > known.sn + 1:
+            count = sn - known.sn - 1
+            known.noted += count
+            self.gaps += 1
+            notes.append(Missed(run_id=known.run_id, twin_id=known.twin, step=known.step + 1, key=known.key[:300],
+                                source=source[:300], count=count, after_step=known.step,
+                                before_step=message.step))
+        if known is None:
+            if len(self._sources) >= MAX_SOURCES:
+                del self._sources[next(iter(self._sources))]
+            known = _Source(key, message.twin_id, message.run_id, message.step, sn,
+                            said=self._said_unknown.pop(source, 0))
+        known.key, known.twin, known.run_id, known.step, known.sn = (key, message.twin_id, message.run_id,
+                                                                     message.step, sn)
+        self._sources[source] = known  # the most recent last
         return notes
 
-    def missed(self, source: str, count: int) -> None:
-        """``count`` messages of ``source`` could not be recovered (before its next one)."""
-        self.messages += count
-        if source not in self._open:
-            self.gaps += 1
-            if len(self._open) >= MAX_SOURCES:
-                del self._open[next(iter(self._open))]
-        self._open[source] = self._open.get(source, 0) + count
+    def passed(self, source: str | None, sn: int | None) -> None:
+        """A message of ``source`` numbered ``sn`` that was not recorded (rejected): its number is no gap."""
+        known = self._sources.get(source) if source is not None and sn is not None else None
+        if known is not None and sn > known.sn:
+            known.sn = sn
 
-    def closed(self, source: str, before_step: int | None) -> list[Missed]:
-        """The note of ``source``'s open gap, closed by a message of ``before_step`` (None: by the end)."""
-        count = self._open.pop(source, None)
-        if count is None:
-            return []
-        last = self._last.get(source)
-        if last is None:
-            return [Missed(run_id=self.run_id, twin_id=self.twin, step=0, key="", source=source[:300],
-                           count=count, after_step=None, before_step=before_step)]
-        return [Missed(run_id=last.run_id, twin_id=last.twin, step=last.step + 1, key=last.key[:300],
-                       source=source[:300], count=count, after_step=last.step, before_step=before_step)]
+    def missed(self, source: str, count: int) -> None:
+        """Zenoh says ``count`` messages of ``source`` could not be recovered."""
+        known = self._sources.get(source)
+        if known is None:
+            if source in self._said_unknown or len(self._said_unknown) < MAX_SOURCES:
+                self._said_unknown[source] = self._said_unknown.get(source, 0) + count
+            return
+        known.said += count
 
     def close_all(self) -> list[Missed]:
-        """The notes of every gap still open (the recording ends)."""
-        return [note for source in list(self._open) for note in self.closed(source, None)]
+        """The notes of what Zenoh said was missed and no jump has shown: the publishers' last messages (the
+        recording ends)."""
+        notes = []
+        for source, known in self._sources.items():
+            if known.said > known.noted:
+                self.gaps += 1
+                notes.append(Missed(run_id=known.run_id, twin_id=known.twin, step=known.step + 1,
+                                    key=known.key[:300], source=source[:300], count=known.said - known.noted,
+                                    after_step=known.step, before_step=None))
+                known.noted = known.said
+        for source, count in self._said_unknown.items():
+            self.gaps += 1
+            notes.append(Missed(run_id=self.run_id, twin_id=self.twin, step=0, key="", source=source[:300],
+                                count=count, after_step=None, before_step=None))
+        self._said_unknown.clear()
+        return notes
 
 
 def lost_steps(notes: list[Missed]) -> dict[str, list[int]]:

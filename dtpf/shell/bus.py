@@ -291,15 +291,16 @@ class Received:
     """One received sample: its key expression and a private copy of its payload.
 
     From an inbox with ``recover``: ``source`` names the publisher (its Zenoh entity id, None for a plain
-    publisher); an item with ``missed`` > 0 is no sample but the news that ``missed`` samples of ``source``
-    could not be recovered, queued just before the next sample of that source (``key`` and ``payload``
-    empty).
+    publisher) and ``sn`` is the sample's sequence number from it (consecutive unless samples were lost); an
+    item with ``missed`` > 0 is no sample but Zenoh's news that ``missed`` samples of ``source`` could not be
+    recovered (``key`` and ``payload`` empty), which may come after samples that followed the gap.
     """
 
     key: str
     payload: bytes
     source: str | None = None
     missed: int = 0
+    sn: int | None = None
 
 
 #: Largest payload an inbox takes by default (a particle set of 1e6 particles in 16 dimensions fits).
@@ -355,7 +356,7 @@ class Inbox:
     asks every publisher for the whole of its cache when it appears, recovers the samples missed in a
     gap of its sequence numbers (seen on its next sample or heartbeat) and queues, for what its cache no
     longer held, a :class:`Received` with ``missed`` set. Samples of one publisher are queued in the
-    order it published them, recovered or not.
+    order it published them, recovered or not, with their sequence numbers.
     """
 
     def __init__(self, session: zenoh.Session, key_expr: str, *more_key_exprs: str,
@@ -413,11 +414,12 @@ class Inbox:
             self._drop(key, "inbox full", f"inbox of {self.key_expr} full ({self.max_items} samples or "
                                           f"{self.max_bytes} bytes waiting): dropped a sample on {key[:200]}")
             return
-        source = None
+        source = sn = None
         if self.recover:
             info = sample.source_info
-            source = str(info.source_id) if info is not None else None
-        self._queue.put(Received(key, sample.payload.to_bytes(), source))
+            if info is not None:
+                source, sn = str(info.source_id), int(info.source_sn)
+        self._queue.put(Received(key, sample.payload.to_bytes(), source, 0, sn))
         if self.doorbell is not None:
             self.doorbell.ring(self.name)
 

@@ -18,7 +18,7 @@ import re
 from dataclasses import dataclass
 from typing import NamedTuple
 
-from dtpf.messages.models import Estimate, Message, Observation, ParticleSet, PSCommand, WeightState
+from dtpf.messages.models import Control, Estimate, Message, Observation, ParticleSet, PSCommand, WeightState
 from dtpf.messages.names import OWN_ARM
 
 __all__ = ["RunShape", "Misfit", "kind_of"]
@@ -83,8 +83,8 @@ class RunShape:
 
     def misfit(self, message: Message) -> Misfit | None:
         """None if ``message`` can apply to this run, else what is wrong with it."""
-        if isinstance(message, Observation):
-            return None  # a sensor's sequence numbers are the intake's business (dtpf.entity.intake)
+        if isinstance(message, (Observation, Control)):
+            return None  # a sensor's (a control source's) sequence numbers are the intake's business (dtpf.entity.intake)
         step = message.step
         run_level = step == 0
         if not run_level and step > self.last_step:

@@ -322,6 +322,9 @@ def read_observations(path, *, obs_dim: int | None = None, state_dim: int | None
         table = _read_npz(source, name, steps, obs_dim=obs_dim, state_dim=state_dim)
         if exact_stamps and table.stamps is None and table.times is not None:
             table = _with_stamps(table, _float_stamps(table.times, name, source))
+    if exact_stamps and table.stamps is None:
+        raise ObservationError(f"{name}: no times; each row needs its time (a .csv time column, a .npz array "
+                               f"'time' or 't' in seconds; a .npy array has none)", source=source)
     return table
 
 

@@ -264,6 +264,10 @@ def test_bad_driven_inputs_are_named_in_one_line(robot, tmp_path):
     no_time.write_text("x,y\n1,2\n")
     with pytest.raises(ObservationError, match="no time column"):
         stamped.read_stamped(config_of(robot).model_copy(update={"sensor_files": {"gps": str(no_time)}}), model)
+    np.save(tmp_path / "gps.npy", np.zeros((3, 2)))
+    with pytest.raises(ObservationError, match="gps.npy: no times"):
+        stamped.read_stamped(config_of(robot).model_copy(update={"sensor_files": {"gps": str(tmp_path / "gps.npy")}}),
+                             model)
     with pytest.raises(ModelError, match="is driven"):
         sources.load_model(RunConfig(model=str(ROOT / MODEL), steps=5))
     done = dtpf("run", "--model", MODEL, "--observations", f"lidar={robot['gps']}", "--controls",

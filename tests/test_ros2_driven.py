@@ -204,9 +204,18 @@ def test_dtpf_launch_checks_each_topic_before_anything_starts(processes, tmp_pat
               "--ros2-fields: geometry_msgs/msg/PointStamped has no field 'point.q'"),
              (["--ros2-fields", f"gps={FIELDS['gps']}", "--ros2-fields", f"beacons={FIELDS['beacons']}"],
               "--controls ros2:/odom: say how a sensor_msgs/msg/Range becomes the control (v, omega)")]
+    # the topics too from the file (no --observations): its misspelt path is found the same way
+    (tmp_path / "topics.yaml").write_text(
+        "dtpf_robot_1:\n  ros__parameters:\n    sensors:\n"
+        "      gps: {topic: /gps, type: geometry_msgs/msg/PointStamped, fields: 'point.x,point.q'}\n"
+        f"      beacons: {{topic: /beacons, type: geometry_msgs/msg/Vector3Stamped, fields: '{FIELDS['beacons']}'}}\n"
+        "    control: {topic: /odom, type: nav_msgs/msg/Odometry}\n")
+    cases.append((["--ros2-params", str(tmp_path / "topics.yaml")],
+                  "--ros2-fields: geometry_msgs/msg/PointStamped has no field 'point.q'"))
     for i, (options, expected) in enumerate(cases):
         log = tmp_path / f"never-{i}.mcap"
-        launcher = start(processes, "launch", [*base, *options, "-o", str(log)], ros_env())
+        command = base if i < 2 else base[:base.index("--observations")]
+        launcher = start(processes, "launch", [*command, *options, "-o", str(log)], ros_env())
         assert launcher.wait(timeout=120) == 2, processes.output(launcher)
         lines = processes.output(launcher).strip().splitlines()
         assert len(lines) == 1 and lines[0].startswith(f"dtpf launch: error: {expected}"), lines

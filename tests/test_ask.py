@@ -337,3 +337,35 @@ def test_dtpf_serve_refuses_what_breaks_a_bound_or_is_garbage_and_serves_on(serv
         assert len(replies.answers) + len(replies.errors) == 1, text
     assert ask(session, key, "steps=4").first()["count"] == 1 and process.poll() is None
     assert ask(session, queries.key("t-other", "history"), timeout=2).answers == []
+
+
+def test_under_access_control_the_readers_ask_and_only_the_entity_and_the_recorder_answer(tmp_path):
+    """The rules of dtpf secure init: a viewer's questions reach the entity's and the recorder's queryables; a
+    sensor's are dropped, and a queryable a sensor declares (forged answers) is never asked."""
+    pytest.importorskip("cryptography")
+    from dtpf.scripts import secure
+    from dtpf.shell.queries import Queryable
+    from dtpf.shell.secure import open_secure_dir
+
+    secure.init(tmp_path / "deploy")
+    folder = open_secure_dir(tmp_path / "deploy" / "tls")
+    endpoint = folder.endpoint("127.0.0.1", free_port())
+    sessions = [open_session(zenoh_config(secure=folder, role="router", listen=[endpoint]))]
+    try:
+        role = {name: open_session(zenoh_config(secure=folder, role=name, connect=[endpoint]))
+                for name in ("entity", "recorder", "viewer", "sensor")}
+        sessions += role.values()
+        answering = [Queryable(role["entity"], queries.key(TWIN, "state"), lambda key, text: b'{"by": "entity"}'),
+                     Queryable(role["recorder"], queries.key(TWIN, "history"), lambda key, text: b'{"by": "recorder"}'),
+                     Queryable(role["sensor"], queries.key(TWIN, "forecast"), lambda key, text: b'{"by": "sensor"}')]
+        state = wait_until(lambda: ask(role["viewer"], queries.key(TWIN, "state"), timeout=2).answers, START,
+                           "the viewer's question reaches the entity")
+        assert [body for _, body in state] == [{"by": "entity"}]
+        assert ask(role["viewer"], queries.key(TWIN, "history"), timeout=2).first() == {"by": "recorder"}
+        assert ask(role["viewer"], queries.key(TWIN, "forecast"), timeout=2).answers == []
+        assert ask(role["sensor"], queries.key(TWIN, "state"), timeout=2).answers == []
+        for queryable in answering:
+            queryable.close()
+    finally:
+        for session in sessions:
+            session.close()

@@ -19,8 +19,10 @@ stamp order within the reorder window, then each step's drive.
 """
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass
 
+from dtpf.entity.timeline import Reorder, TimeError, Timeline
 from dtpf.messages.models import ObservationCounts
 
 __all__ = ["ObservationIntake", "Rejection", "DrivenIntake", "LiveStep"]
@@ -140,10 +142,6 @@ class DrivenIntake:
     """
 
     def __init__(self, calls, state_dim: int, window: int):
-        from collections import deque
-
-        from dtpf.entity.timeline import Reorder, Timeline
-
         self.calls = calls
         self.intakes = {name: ObservationIntake(m, state_dim) for name, m in calls.sensors.items()}
         self.rank = {name: i + 1 for i, name in enumerate(calls.sensors)}
@@ -217,8 +215,6 @@ class DrivenIntake:
         return None
 
     def _release(self, items) -> None:
-        from dtpf.entity.timeline import TimeError
-
         for message in items:
             stamp = message.stamp.to_ns()
             if not hasattr(message, "sensor"):  # a control
@@ -230,6 +226,11 @@ class DrivenIntake:
                 continue
             drive = self.timeline.step(stamp)
             self._steps.append(LiveStep(list(message.values), message.truth, message.sensor, drive, stamp))
+
+    @property
+    def ready(self) -> int:
+        """Steps released in stamp order and not taken yet."""
+        return len(self._steps)
 
     def finish(self) -> None:
         """Release everything held, in stamp order: the observations have ended (and the controls, or the

@@ -503,7 +503,7 @@ class LiveObservations:
             shell.publish_status()
         self.last = now
         self.stamp = None if step.end else step.stamp
-        self.more = self.more or bool(intake._steps)
+        self.more = self.more or bool(intake.ready)
         return step
 
     def _quiet(self, now: float) -> None:

@@ -108,6 +108,37 @@ def test_an_interval_is_split_at_the_control_changes_inside_it():
     np.testing.assert_array_equal(held.step(100_000_000).pieces, [[0.1, 1.0]])
 
 
+class Walk(StateSpaceModel):
+    """x moves at the control's speed over dt, plus a random walk of variance q dt (Brownian: splitting an
+    interval does not change the law)."""
+
+    name, dim, obs_dim, controls, q = "walk", 1, 1, ("speed",), 0.5
+
+    def initial_particles(self, n, rng):
+        return np.zeros((n, 1))
+
+    def propagate(self, particles, k, rng, noise=None, *, dt=None, control=None):
+        return particles + control[0] * dt + np.sqrt(self.q * dt) * rng.standard_normal(particles.shape)
+
+    def log_likelihood(self, particles, observation, k):
+        return -0.5 * (particles[:, 0] - observation[0]) ** 2
+
+
+def test_a_step_over_three_control_pieces_has_the_law_of_the_held_controls():
+    timeline = Timeline(controls=1, piecewise=True)
+    for stamp, u in ((0, 1.0), (20_000_000, 2.0), (70_000_000, -1.0)):
+        timeline.control(stamp, [u])
+    timeline.step(0)
+    drive = timeline.step(100_000_000)
+    np.testing.assert_array_equal(drive.pieces, [[0.02, 1.0], [0.05, 2.0], [0.03, -1.0]])
+    n = 20_000
+    x = ModelCalls(Walk()).advance(np.zeros((n, 1)), 2, np.random.default_rng(11), drive)[:, 0]
+    # mean sum dt_i u_i = 0.09 (one piece held from the start would give 0.1), variance q * 0.1; 4 standard errors
+    variance = Walk.q * 0.1
+    assert abs(x.mean() - 0.09) < 4 * np.sqrt(variance / n)
+    assert abs(x.var(ddof=1) / variance - 1) < 4 * np.sqrt(2 / (n - 1))
+
+
 def test_dt_comes_from_integer_nanoseconds_exactly():
     timeline = Timeline()
     timeline.step(1_700_000_000 * NS + 950_000_000)

@@ -125,6 +125,8 @@ class InformationLayer:
                  weight_rule: str = "inherit", seed: int = 0, twin: str = "twin", move_rule: str = "paper",
                  preprocess: bool = True, arm: str | None = None, arms: dict[str, Arm] | None = None):
         self.model = model
+        #: The model's calls with a sensor (dtpf.entity.calls), read once when a driven step first needs them.
+        self._calls = None
         #: The arms a system layer may name.
         self.arms: dict[str, Arm] = ARMS if arms is None else arms
         self.ps = check_probability(ps, "PS")
@@ -243,7 +245,7 @@ class InformationLayer:
                 def log_likelihood(x):
                     return self.model.log_likelihood(x, z, step)
             else:
-                calls = ModelCalls(self.model)
+                calls = self._calls = self._calls if self._calls is not None else ModelCalls(self.model)
 
                 def log_likelihood(x):
                     return calls.log_likelihood(x, z, step, sensor=sensor)

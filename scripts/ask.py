@@ -48,6 +48,9 @@ def ask(twin: str, what: str = "state", *, connect=None, timeout: float = DEFAUL
     own = session is None
     if own:
         endpoints = [connect] if isinstance(connect, str) else list(connect or [])
+        if not endpoints and secure is None:
+            raise queries.SelectorError("ask needs connect= (the endpoint of a router or a dtpf serve), an open "
+                                        "session= or secure=")
         session = open_session(zenoh_config(mode="client" if endpoints else None, connect=endpoints,
                                             secure=secure, role=role if secure else None))
     try:

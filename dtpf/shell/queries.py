@@ -136,7 +136,7 @@ class Queryable:
         self._queryable = session.declare_queryable(key, self._on_query)
 
     def _on_query(self, query: zenoh.Query) -> None:
-        """Zenoh's thread: the rate bound and the queue only."""
+        """Zenoh's thread: the rate bound and the queue only (a refusal is an error reply, sent at once)."""
         if not self.bound.take():
             self._refuse(query, f"too many queries: {self.key} answers at most {self.bound.rate:g} a second")
         elif not self.worker.submit(self, query):

@@ -9,7 +9,8 @@ split at their stamps, and the model is called once per piece::
     pieces of (t_(k-1), t_k]:  [t_(k-1), s_1) with u(t_(k-1)),  [s_1, s_2) with u(s_1), ...,  [s_j, t_k] with u(s_j)
 
 for the control stamps t_(k-1) < s_1 < ... < s_j < t_k. A control stamped exactly t_k acts from t_k on, over
-the next interval. A model whose ``propagate`` takes ``control`` but not ``dt`` gets one piece: the control in
+the next interval. An interval of more than :data:`MAX_PIECES` pieces (controls far faster than the
+observations) is cut into that many runs of consecutive pieces, each with its dt-weighted mean control. A model whose ``propagate`` takes ``control`` but not ``dt`` gets one piece: the control in
 force at t_(k-1). dt is (t - s) / 10^9 seconds, computed from the integers, so every process gets the same
 float.
 
@@ -32,6 +33,8 @@ __all__ = ["Drive", "Timeline", "Reorder", "TimeError", "NS"]
 
 #: Nanoseconds in a second.
 NS = 1_000_000_000
+#: Most pieces one step's interval may be split into (what a particle set carries: MAX_DRIVE_PIECES).
+MAX_PIECES = 4096
 
 
 class TimeError(ValueError):
@@ -140,7 +143,8 @@ class Timeline:
                     t, u = s, v
         rows.append([(stamp - t) / NS, *u])
         self._prune(stamp)
-        return Drive(np.array(rows, dtype=np.float64).reshape(len(rows), 1 + self.c))
+        pieces = np.array(rows, dtype=np.float64).reshape(len(rows), 1 + self.c)
+        return Drive(pieces if len(rows) <= MAX_PIECES else _coarsened(pieces))
 
     def _prune(self, stamp: int) -> None:
         """Forget the controls before the one in force at ``stamp``."""
@@ -198,6 +202,21 @@ class Reorder:
         stamp, _, _, item = heapq.heappop(self._heap)
         self.released = stamp
         return item
+
+
+def _coarsened(pieces: np.ndarray) -> np.ndarray:
+    """At most MAX_PIECES pieces from more: runs of consecutive pieces merged, each with its total dt and its
+    dt-weighted mean control (what a particle set can carry; the controls came far faster than the
+    observations)."""
+    groups = np.array_split(np.arange(pieces.shape[0]), MAX_PIECES)
+    out = np.empty((MAX_PIECES, pieces.shape[1]))
+    for i, rows in enumerate(groups):
+        dt = pieces[rows, 0]
+        total = dt.sum()
+        out[i, 0] = total
+        weights = dt / total if total > 0 else np.full(dt.size, 1.0 / dt.size)
+        out[i, 1:] = weights @ pieces[rows, 1:]
+    return out
 
 
 def _latest(stamps: list[int], stamp: int) -> int:

@@ -19,7 +19,7 @@ from dtpf.entity.model_check import check_model
 from dtpf.entity.model_ref import ModelError, resolve
 from dtpf.entity.models import StateSpaceModel
 from dtpf.entity.observations import ObservationError
-from dtpf.entity.timeline import NS, Reorder, TimeError, Timeline
+from dtpf.entity.timeline import MAX_PIECES, NS, Reorder, TimeError, Timeline
 from dtpf.messages.config import RunConfig
 from dtpf.messages.models import Estimate, ServiceState, Status
 from dtpf.scripts import inprocess
@@ -103,6 +103,15 @@ def test_an_interval_is_split_at_the_control_changes_inside_it():
     np.testing.assert_array_equal(timeline.step(200_000_000).pieces, [[0.0, 4.0]])  # two sensors, one stamp
     with pytest.raises(TimeError, match="before the last step"):
         timeline.step(199_999_999)
+    fast = Timeline(controls=1)  # 4999 control changes in one interval: runs of them merged, u dt kept
+    fast.step(0)
+    for i in range(1, 5000):
+        fast.control(i * 20_000, [float(i % 3)])
+    pieces = fast.step(100_000_000).pieces
+    assert pieces.shape == (MAX_PIECES, 2)
+    assert abs(pieces[:, 0].sum() - 0.1) < 1e-12
+    exact = 20_000 * sum(i % 3 for i in range(1, 5000)) / NS  # u = 0 before the first control, u_i after s_i
+    assert abs(pieces[:, 0] @ pieces[:, 1] - exact) < 1e-12
     held = Timeline(controls=1, piecewise=False)  # a model that takes control but not dt: one piece
     held.control(0, [1.0]), held.control(50_000_000, [2.0]), held.step(0)
     np.testing.assert_array_equal(held.step(100_000_000).pieces, [[0.1, 1.0]])

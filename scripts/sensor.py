@@ -66,7 +66,19 @@ def sensor_command(config: RunConfig, endpoint: str, secure=None) -> str:
     words += ["--connect", endpoint]
     if secure is not None:
         words += ["--secure", str(secure), "--role", "sensor"]
-    return shlex.join(words)
+    text = shlex.join(words)
+    try:
+        from dtpf.entity import model_ref
+        from dtpf.entity.calls import ModelCalls
+
+        calls = ModelCalls(model_ref.resolve(config.model_ref))
+    except Exception:  # the hint only; the twin itself has loaded its model
+        return text
+    if calls.driven:  # a driven model is not simulated: the sensor reads its files
+        named = [name for name in calls.sensors if name is not None]
+        text += "".join(f" --observations {name}=FILE" for name in named) or " --observations FILE"
+        text += " --controls FILE" if calls.controls else ""
+    return text
 
 
 def resume_point(shell: ServiceShell, wait: float) -> int:

@@ -375,17 +375,24 @@ class _FieldsAction(argparse.Action):
     a field path has no '='."""
 
     def __call__(self, parser, namespace, value, option_string=None):
-        import re
+        if not _put_named(parser, namespace, "sensor_fields", "--ros2-fields", value):
+            setattr(namespace, self.dest, value)
 
-        match = re.fullmatch(r"([A-Za-z][A-Za-z0-9_-]{0,63})=(.+)", value)
-        if match:
-            fields = dict(getattr(namespace, "sensor_fields", None) or {})
-            if match.group(1) in fields:
-                parser.error(f"--ros2-fields {match.group(1)}= is given twice")
-            fields[match.group(1)] = match.group(2)
-            namespace.sensor_fields = fields
-            return
-        setattr(namespace, self.dest, value)
+
+def _put_named(parser, namespace, dest: str, option: str, value: str) -> bool:
+    """Put ``value`` written NAME=VALUE into the dict ``dest`` of ``namespace`` (False: not NAME=VALUE); a name
+    given twice is a parser error."""
+    import re
+
+    match = re.fullmatch(r"([A-Za-z][A-Za-z0-9_-]{0,63})=(.+)", value)
+    if not match:
+        return False
+    named = dict(getattr(namespace, dest, None) or {})
+    if match.group(1) in named:
+        parser.error(f"{option} {match.group(1)}= is given twice")
+    named[match.group(1)] = match.group(2)
+    setattr(namespace, dest, named)
+    return True
 
 
 class _ObservationsAction(argparse.Action):
@@ -393,15 +400,8 @@ class _ObservationsAction(argparse.Action):
 
     def __call__(self, parser, namespace, value, option_string=None):
         import os
-        import re
 
-        match = re.fullmatch(r"([A-Za-z][A-Za-z0-9_-]{0,63})=(.+)", value)
-        if match and not os.path.exists(value):
-            files = dict(getattr(namespace, "sensor_files", None) or {})
-            if match.group(1) in files:
-                parser.error(f"--observations {match.group(1)}= is given twice")
-            files[match.group(1)] = match.group(2)
-            namespace.sensor_files = files
+        if not os.path.exists(value) and _put_named(parser, namespace, "sensor_files", "--observations", value):
             return
         if getattr(namespace, self.dest, None) is not None:
             parser.error("--observations takes one source, or NAME=FILE once per sensor")

@@ -113,6 +113,14 @@ def test_bag_mistakes_are_one_line(robot, tmp_path):
         data.problem
 
 
+def decoded(item):
+    """The message of a log's item, or None (a payload dtpf does not decode)."""
+    try:
+        return decode_for_key(item.topic, item.data)
+    except MessageError:
+        return None
+
+
 @needs_ros2
 def test_live_ros2_topics_drive_the_twin_to_the_files_numbers_and_the_log_verifies(processes, robot, reference,
                                                                                    tmp_path):
@@ -137,18 +145,10 @@ def test_live_ros2_topics_drive_the_twin_to_the_files_numbers_and_the_log_verifi
     wait_for_line(processes, player, "played 93 messages", 240, watch=launcher)
     assert launcher.wait(timeout=240) == 0, processes.output(launcher)
 
-    estimates, observations, controls = {}, [], []
-    for item in read_log(log).messages:
-        try:
-            message = decode_for_key(item.topic, item.data)
-        except MessageError:
-            continue
-        if isinstance(message, Estimate):
-            estimates[message.step] = message
-        elif isinstance(message, Observation):
-            observations.append(message)
-        elif isinstance(message, Control):
-            controls.append(message)
+    logged = [message for message in map(decoded, read_log(log).messages) if message is not None]
+    estimates = {m.step: m for m in logged if isinstance(m, Estimate)}
+    observations = [m for m in logged if isinstance(m, Observation)]
+    controls = [m for m in logged if isinstance(m, Control)]
     assert sorted(estimates) == list(range(1, 23))
     np.testing.assert_array_equal([estimates[k].mean for k in range(1, 23)], reference.means[:22])
     assert [estimates[k].sensor for k in range(1, 23)] == [s.sensor for s in reference.steps[:22]]

@@ -85,7 +85,7 @@ class LiveAnswers:
         if selector.particles:
             head["particles"] = latest.particles.tolist()
             head["weights"] = latest.weights.tolist()
-        return _with_message(head, "estimate", encode(Estimate(**fields)))
+        return queries.check_size(_with_message(head, "estimate", encode(Estimate(**fields))), selector.max_bytes)
 
     def answer_forecast(self, key: str, text: str) -> bytes:
         selector = queries.parse("forecast", text)
@@ -98,7 +98,7 @@ class LiveAnswers:
         ahead = forecast(self.model, latest.particles, latest.weights, latest.step, selector.horizon,
                          seed=self.config.seed, twin=self.config.twin, dt=selector.dt, control=selector.control)
         body = {"twin": self.config.twin, "seed": self.config.seed, **ahead.as_json(particles=selector.particles)}
-        return json.dumps(body).encode()
+        return queries.check_size(json.dumps(body).encode(), selector.max_bytes)
 
     def close(self) -> None:
         for queryable in self.queryables:

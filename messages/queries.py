@@ -30,7 +30,7 @@ from dtpf.messages.errors import DtpfError
 from dtpf.messages.models import check_id
 
 __all__ = ["KINDS", "SelectorError", "StateSelector", "ForecastSelector", "HistorySelector", "parse", "key",
-           "parameters_text", "DEFAULT_LIMIT", "MAX_LIMIT", "DEFAULT_MAX_BYTES", "MAX_BYTES", "MAX_HORIZON",
+           "parameters_text", "check_size", "DEFAULT_LIMIT", "MAX_LIMIT", "DEFAULT_MAX_BYTES", "MAX_BYTES", "MAX_HORIZON",
            "MAX_FORECAST_WORK", "MAX_SELECTOR_TEXT"]
 
 #: The questions, and the layer whose key space answers each.
@@ -62,9 +62,11 @@ class SelectorError(DtpfError, ValueError):
 
 @dataclass(frozen=True)
 class StateSelector:
-    """``state``: the latest estimate; ``particles``: with the particle set it was made from."""
+    """``state``: the latest estimate; ``particles``: with the particle set it was made from; at most
+    ``max_bytes`` bytes of JSON."""
 
     particles: bool = False
+    max_bytes: int = DEFAULT_MAX_BYTES
 
 
 @dataclass(frozen=True)
@@ -72,13 +74,14 @@ class ForecastSelector:
     """``forecast``: the latest particle set propagated ``horizon`` steps without observations.
 
     ``dt`` (seconds a step) and ``control`` (the control held over the horizon, a what-if) are for a
-    driven model; ``particles``: the propagated set of the last step too.
+    driven model; ``particles``: the propagated set of the last step too; at most ``max_bytes`` bytes of JSON.
     """
 
     horizon: int = 10
     dt: float | None = None
     control: tuple[float, ...] | None = None
     particles: bool = False
+    max_bytes: int = DEFAULT_MAX_BYTES
 
 
 @dataclass(frozen=True)
@@ -108,8 +111,8 @@ class HistorySelector:
 
 #: The parameters each kind takes.
 _NAMES = {
-    "state": ("particles",),
-    "forecast": ("horizon", "dt", "control", "particles"),
+    "state": ("particles", "max_bytes"),
+    "forecast": ("horizon", "dt", "control", "particles", "max_bytes"),
     "history": ("steps", "time", "topics", "particles", "limit", "max_bytes"),
 }
 
@@ -171,20 +174,33 @@ def parse(kind: str, text) -> StateSelector | ForecastSelector | HistorySelector
         raise SelectorError(f"unknown {kind} parameter {_shown(unknown[0])}; expected "
                             f"{', '.join(_NAMES[kind])}")
     if kind == "state":
-        return StateSelector(particles=_flag(pairs, "particles"))
+        return StateSelector(particles=_flag(pairs, "particles"), max_bytes=_max_bytes(pairs))
     if kind == "forecast":
         horizon = _integer(pairs, "horizon", ForecastSelector.horizon, 1, MAX_HORIZON)
         dt = _number(pairs["dt"], "dt") if "dt" in pairs else None
         if dt is not None and dt < 0:
             raise SelectorError(f"dt must be seconds >= 0, got {_shown(pairs['dt'])}")
         control = _numbers(pairs["control"], "control", MAX_CONTROLS) if "control" in pairs else None
-        return ForecastSelector(horizon=horizon, dt=dt, control=control, particles=_flag(pairs, "particles"))
+        return ForecastSelector(horizon=horizon, dt=dt, control=control, particles=_flag(pairs, "particles"),
+                                max_bytes=_max_bytes(pairs))
     topics = _topics(pairs.get("topics"))
     if _flag(pairs, "particles") and "entity/particles" not in topics:
         topics = (*topics, "entity/particles")
     return HistorySelector(steps=_steps(pairs.get("steps")), time=_times(pairs.get("time")), topics=topics,
                            limit=_integer(pairs, "limit", DEFAULT_LIMIT, 1, MAX_LIMIT),
-                           max_bytes=_integer(pairs, "max_bytes", DEFAULT_MAX_BYTES, 1, MAX_BYTES))
+                           max_bytes=_max_bytes(pairs))
+
+
+def check_size(body: bytes, max_bytes: int) -> bytes:
+    """``body`` if it is at most ``max_bytes`` long; else SelectorError naming the bound."""
+    if len(body) > max_bytes:
+        raise SelectorError(f"the answer is {len(body)} bytes of JSON, more than max_bytes={max_bytes} (at most "
+                            f"{MAX_BYTES}); ask without particles=true, or raise max_bytes=")
+    return body
+
+
+def _max_bytes(pairs: dict) -> int:
+    return _integer(pairs, "max_bytes", DEFAULT_MAX_BYTES, 1, MAX_BYTES)
 
 
 def _shown(text: str, most: int = 40) -> str:

@@ -66,9 +66,10 @@ def ask(twin: str, what: str = "state", *, connect=None, timeout: float = DEFAUL
 
 def _selector(args: argparse.Namespace) -> dict:
     if args.what == "state":
-        return {"particles": args.particles}
+        return {"particles": args.particles, "max_bytes": args.max_bytes}
     if args.what == "forecast":
-        return {"horizon": args.horizon, "dt": args.dt, "control": args.control, "particles": args.particles}
+        return {"horizon": args.horizon, "dt": args.dt, "control": args.control, "particles": args.particles,
+                "max_bytes": args.max_bytes}
     return {"steps": args.steps, "time": args.time, "topics": args.topics, "particles": args.particles,
             "limit": args.limit, "max_bytes": args.max_bytes}
 
@@ -171,6 +172,9 @@ def register(subparsers) -> None:
     parser.add_argument("--particles", action="store_true",
                         help="state: with the particle set and weights; forecast: with the last propagated set; "
                              "history: the particle sets too")
+    parser.add_argument("--max-bytes", type=int, default=None, metavar="BYTES",
+                        help=f"at most this much JSON in the answer (default: {queries.DEFAULT_MAX_BYTES}; at most "
+                             f"{queries.MAX_BYTES})")
     group = parser.add_argument_group("history")
     group.add_argument("--steps", default=None, metavar="A:B", help="steps A .. B (both included; A: or :B open)")
     group.add_argument("--time", default=None, metavar="T0:T1",
@@ -179,8 +183,6 @@ def register(subparsers) -> None:
                        help="topics: globs or suffixes such as entity/estimate (default: entity/estimate)")
     group.add_argument("--limit", type=int, default=None, metavar="N",
                        help=f"at most N messages (default: {queries.DEFAULT_LIMIT}; at most {queries.MAX_LIMIT})")
-    group.add_argument("--max-bytes", type=int, default=None, metavar="BYTES",
-                       help=f"at most this much JSON (default: {queries.DEFAULT_MAX_BYTES}; at most {queries.MAX_BYTES})")
     group = parser.add_argument_group("forecast")
     group.add_argument("--horizon", type=int, default=None, metavar="H",
                        help=f"steps ahead (default: {queries.ForecastSelector.horizon}; at most {queries.MAX_HORIZON})")

@@ -186,6 +186,8 @@ def test_a_live_twin_answers_its_state_between_observations(live):
     assert (estimate.mean, estimate.var, estimate.ess, estimate.degraded) == \
         (published.mean, published.var, published.ess, published.degraded)
     assert len(answer["particles"]) == N and abs(sum(answer["weights"]) - 1) < 1e-9
+    too_big = live.ask("state", "particles=true;max_bytes=1000").errors
+    assert len(too_big) == 1 and "more than max_bytes=1000" in too_big[0]
     assert before == [] and live.entity.poll() is None
 
 

@@ -12,6 +12,11 @@ each as it arrives::
     dtpf launch --observations live          # terminal 1: the twin waits for its sensor
     dtpf sensor --rate 20                    # terminal 2: 100 observations, then the end
 
+Replaying a rosbag2 log (``--observations BAG --topic TOPIC``) stamps each
+observation with its message's ``header.stamp`` (its record time without
+one), as the twin would have heard it live; a file's rows are stamped when
+they are sent.
+
 A restarted sensor continues where the twin is: it reads the last sequence
 number the entity accepted from the entity's status and goes on after it.
 
@@ -121,13 +126,15 @@ def main(config: RunConfig, zenoh_config: zenoh.Config, args: argparse.Namespace
         period = 1.0 / args.rate if args.rate else 0.0
         next_tick = time.monotonic()
         sent = 0
+        bag = bag_stamps(config, data)
         for sequence in range(start, data.steps + 1):
             if shell.stopping:
                 shell.log.info("stopped after observation %d of %d", sequence - 1, data.steps)
                 return 130
             truth = None if data.truth is None or args.no_truth else data.truth[sequence - 1].tolist()
+            stamp = {} if bag is None else {"stamp": Time.from_ns(int(bag[sequence - 1]))}
             shell.publish(Observation(**shell.header(sequence), values=data.observations[sequence - 1].tolist(),
-                                      truth=truth))
+                                      truth=truth, **stamp))
             sent += 1
             if period:
                 next_tick += period
@@ -136,6 +143,17 @@ def main(config: RunConfig, zenoh_config: zenoh.Config, args: argparse.Namespace
             shell.publish(Observation(**shell.header(data.steps + 1), values=[], end=True))
         shell.log.info("published %d observations on %s%s", sent, key, "" if args.no_end else ", then the end")
     return 0
+
+
+def bag_stamps(config: RunConfig, data):
+    """The stamps (ns) a replayed rosbag2 log gives its observations (each message's header stamp, else its
+    record time), or None for another source: its observations are stamped when they are sent."""
+    from dtpf.entity import rosbag
+
+    path = config.observation_file
+    if path is None or data.stamps is None or not (config.topic is not None or rosbag.is_bag(path)):
+        return None
+    return data.stamps
 
 
 def driven(config: RunConfig, model, data, zenoh_config: zenoh.Config, args: argparse.Namespace) -> int:
@@ -148,7 +166,8 @@ def driven(config: RunConfig, model, data, zenoh_config: zenoh.Config, args: arg
     events = []  # (stamp, 0 control / 1 observation, index)
     controls = None
     if config.controls is not None:
-        controls = stamped.read_controls(config.controls, calls.controls)
+        controls = stamped.read_controls(config.controls, calls.controls, fields=config.control_fields,
+                                         partial=config.partial)
         events += [(int(stamp), 0, i) for i, stamp in enumerate(controls[0])]
     events += [(int(stamp), 1, i) for i, stamp in enumerate(data.stamps)]
     events.sort()

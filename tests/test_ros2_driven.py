@@ -193,3 +193,33 @@ def test_dtpf_launch_checks_each_topic_before_anything_starts(processes, tmp_pat
         lines = processes.output(launcher).strip().splitlines()
         assert len(lines) == 1 and lines[0].startswith(f"dtpf launch: error: {expected}"), lines
         assert not log.exists()
+
+
+def test_dtpf_sensor_replays_a_bag_with_its_own_stamps(robot, processes, router):
+    """A bag's topic (one sensor) and the unicycle's sensors and odometry: every observation and control
+    goes out with its message's header stamp, not the time it is sent."""
+    bag = robot["bag"]
+    common = ["-m", "dtpf.scripts.sensor", "--connect", router.endpoint, "--wait-for-entity", "0",
+              "--resume-wait", "0", "--log-level", "WARNING"]
+    one = processes.start("sensor", [*common, "--model", "docs/examples/range_bearing.py:RangeBearingTarget",
+                                     "--twin", "one", "--observations", str(bag), "--topic", "/gps",
+                                     "--ros2-fields", "point.x,point.y", "--rate", "0"])
+    driven = processes.start("sensor", [*common, "--model", MODEL, "--twin", "robot-1", "--speed", "0",
+                                        *[f"--observations={name}={bag}:/{name}" for name in FIELDS],
+                                        *[f"--ros2-fields={name}={paths}" for name, paths in FIELDS.items()],
+                                        "--controls", f"{bag}:/odom",
+                                        "--ros2-control-fields", "twist.twist.linear.x,twist.twist.angular.z"])
+    assert one.wait(timeout=120) == 0, processes.output(one)
+    assert driven.wait(timeout=120) == 0, processes.output(driven)
+
+    def sent(messages, twin, cls):
+        return [m for m in messages if isinstance(m, cls) and m.twin_id == twin and not m.end]
+
+    router.collect(lambda m: len(sent(m, "one", Observation)) >= 3 and len(sent(m, "robot-1", Observation)) >= 33
+                   and len(sent(m, "robot-1", Control)) >= 60, timeout=60)
+    assert [o.stamp.to_ns() for o in sent(router.messages, "one", Observation)] == [10**9, 2 * 10**9, 3 * 10**9]
+    data = sources.observations_of(bag_config(robot), resolve(str(ROOT / MODEL)))
+    observations = sent(router.messages, "robot-1", Observation)
+    assert [(o.sensor, o.stamp.to_ns()) for o in observations] == list(zip(data.sensors, data.stamps.tolist()))
+    assert [c.stamp.to_ns() for c in sent(router.messages, "robot-1", Control)] == \
+        [k * 50_000_000 for k in range(1, 61)]

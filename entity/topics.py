@@ -144,6 +144,7 @@ def read_control(source: tuple[str, str], controls: tuple[str, ...], fields: str
     paths = control_fields(None if fields else topic_type(bag, topic), fields, controls, where)
     table = rosbag.read_bag(bag, topic, paths, partial=partial)
     if table.observations.shape[1] != len(controls):
-        raise ObservationError(f"{where}: {table.observations.shape[1]} values per message ({paths}), the model's "
-                               f"control has {len(controls)} ({', '.join(controls)})", source=bag)
+        width = table.observations.shape[1]
+        raise ObservationError(f"{where}: {width} value{'' if width == 1 else 's'} per message ({paths}), the "
+                               f"model's control has {len(controls)} ({', '.join(controls)})", source=bag)
     return table.stamps, np.ascontiguousarray(table.observations), table.problem

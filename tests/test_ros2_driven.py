@@ -185,9 +185,11 @@ def test_dtpf_launch_checks_each_topic_before_anything_starts(processes, tmp_pat
         "    control: {topic: /odom, type: nav_msgs/msg/Odometry}\n")
     cases.append((["--ros2-params", str(tmp_path / "topics.yaml")],
                   "--ros2-fields: geometry_msgs/msg/PointStamped has no field 'point.q'"))
+    cases.append((["--observations", "lidar=ros2:/scan", "--ros2-fields", f"gps={FIELDS['gps']}"],
+                  "--observations lidar=ros2:...: the model has no sensor 'lidar'"))
     for i, (options, expected) in enumerate(cases):
         log = tmp_path / f"never-{i}.mcap"
-        command = base if i < 2 else base[:base.index("--observations")]
+        command = base[:base.index("--observations")] if i == 2 else base
         launcher = start(processes, "launch", [*command, *options, "-o", str(log)], ros_env())
         assert launcher.wait(timeout=120) == 2, processes.output(launcher)
         lines = processes.output(launcher).strip().splitlines()

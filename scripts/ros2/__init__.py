@@ -4,7 +4,8 @@
   subscribes to a ROS 2 topic and publishes each message as one observation on the twin's live key
   (``dtpf/<twin>/sensor/observation``), and publishes the twin's estimate, particles, ESS, PS and
   degraded flag as ROS 2 messages under ``/dtpf/<twin>/``. ``dtpf launch --observations ros2:TOPIC``
-  starts it as a child.
+  starts it as a child; a driven twin's sensors and control come from a topic each
+  (:mod:`dtpf.scripts.ros2.feeds`).
 - :mod:`dtpf.scripts.ros2.export`: ``dtpf export --ros2 LOG OUTDIR``, a dtpf log as a rosbag2 folder
   (MCAP storage, CDR messages), written with rosbags.
 - :mod:`dtpf.scripts.ros2.convert`: estimates and particle clouds as ROS 2 message fields, for rclpy's

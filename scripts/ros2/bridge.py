@@ -9,6 +9,11 @@ Field paths (``--ros2-fields``, :mod:`dtpf.entity.rosbag`) or the model's
 ``observation_from_ros2(message)`` make the values; a message they do not fit, or with a NaN or an
 infinity, is counted and skipped (the bridge's status, role sensor), never sent.
 
+A driven twin (docs/guides/driven.md) is fed by a topic per sensor (``--observations NAME=ros2:TOPIC``,
+each message sent named by its ``sensor`` and numbered per sensor) and a control topic
+(``--controls ros2:TOPIC``, each message a :class:`~dtpf.messages.models.Control` on
+``dtpf/<twin>/sensor/control``): :mod:`dtpf.scripts.ros2.feeds`.
+
 Out: the twin's estimate, particles, ESS, PS and degraded flag as ROS 2 messages under
 ``/dtpf/<twin>/`` (:mod:`dtpf.scripts.ros2.convert`), QoS reliable, volatile, keep last 100 by default.
 
@@ -686,7 +691,8 @@ def register(subparsers) -> None:
     parser = subparsers.add_parser(
         "ros2", help="bridge a twin and ROS 2: a topic in as observations, the estimate out (needs rclpy)",
         description="A bridge with an rclpy node: each message of --topic becomes one observation of the twin "
-                    "(dtpf/<twin>/sensor/observation) by --ros2-fields or the model's observation_from_ros2; "
+                    "(dtpf/<twin>/sensor/observation) by --ros2-fields or the model's observation_from_ros2 (a "
+                    "driven twin: --observations NAME=ros2:TOPIC per sensor, --controls ros2:TOPIC); "
                     "the twin's estimate (PoseWithCovarianceStamped), particles (PoseArray), ESS, PS and "
                     "degraded flag are published under /dtpf/<twin>/. Needs the [ros2] extra; see "
                     "docs/guides/ros2.md.")

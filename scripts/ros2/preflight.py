@@ -14,7 +14,7 @@ from types import SimpleNamespace
 
 from dtpf.entity import rosbag
 from dtpf.messages.config import RunConfig
-from dtpf.scripts.ros2 import params, require_rclpy
+from dtpf.scripts.ros2 import Ros2Error, params, require_rclpy
 from dtpf.scripts.ros2.bridge import _mapper, bridge_words, discover_type, message_class
 from dtpf.scripts.ros2.convert import parse_pose
 
@@ -71,6 +71,10 @@ def _check_feeds(config: RunConfig, args: argparse.Namespace, model, values: dic
 
     calls = ModelCalls(model)
     feeds = feeds_of(args, config, values)
+    unknown = [feed.sensor for feed in feeds if feed.sensor is not None and feed.sensor not in calls.sensors]
+    if unknown:
+        raise Ros2Error(f"--observations {unknown[0]}=ros2:...: the model has no sensor {unknown[0]!r}; its sensors "
+                        f"are {', '.join(str(name) for name in calls.sensors)}")
     missing = [name for name in calls.sensors if name is not None and name not in
                {feed.sensor for feed in feeds}]
     if missing and calls.named_sensors:

@@ -316,6 +316,9 @@ def test_every_run_option_of_a_launch_reaches_its_services(layer, tmp_path):
                   observations="docs/examples/range_bearing_no_truth.csv", twin="t-flags-5"),
         RunConfig(model="docs/examples/unicycle.py:Unicycle", sensor_files={"gps": "gps.csv", "beacons": "b.csv"},
                   controls="odometry.csv", reorder_window=0.25, steps=None, twin="t-flags-6"),
+        RunConfig(model="docs/examples/unicycle.py:Unicycle", sensor_files={"gps": "run.mcap:/fix"},
+                  sensor_fields={"gps": "latitude,longitude"}, controls="run.mcap:/cmd_vel",
+                  control_fields="linear.x,angular.z", steps=10, twin="t-flags-7"),
     ]
     changed = {name for config in configs for name in _FLAG_FIELDS if getattr(config, name) != getattr(defaults, name)}
     assert set(_FLAG_FIELDS) - changed <= {"topic", "ros2_fields"}  # a ROS 2 topic's, tests/test_ros2_live.py

@@ -36,6 +36,9 @@ HISTORY_RATE, HISTORY_BURST = 10.0, 20
 #: A growing log is read again at most this often (seconds): a recorder's answers are at most this much, and its
 #: flush interval, behind.
 REREAD_INTERVAL = 1.0
+#: The largest growing log a recorder reads to answer (it holds what it read in memory): beyond it, history is
+#: asked of ``dtpf serve`` (on a copy of the segment, or once the run is over).
+MAX_LIVE_LOG_BYTES = 512 << 20
 #: Most twins of one log served.
 MAX_TWINS = 10_000
 
@@ -70,7 +73,8 @@ class LogHistory:
 
 class FileHistory(LogHistory):
     """Answers history questions from a log being written: read again when the file has grown, at most every
-    :data:`REREAD_INTERVAL` seconds; the steps of the messages read before are kept."""
+    :data:`REREAD_INTERVAL` seconds; the steps of the messages read before are kept. A file of more than
+    :data:`MAX_LIVE_LOG_BYTES` is not read (the error reply says so)."""
 
     def __init__(self, path):
         self.path = Path(path)
@@ -86,6 +90,11 @@ class FileHistory(LogHistory):
                 stat = os.stat(self.path)
             except OSError as error:
                 raise LogError(f"the log {self.path} cannot be read: {error.strerror}") from None
+            if stat.st_size > MAX_LIVE_LOG_BYTES:
+                self.log = None  # what was read goes
+                raise queries.SelectorError(f"the log {self.path.name} is {stat.st_size >> 20} MiB, more than the "
+                                            f"{MAX_LIVE_LOG_BYTES >> 20} MiB a recorder reads to answer; ask a dtpf "
+                                            f"serve of it")
             seen = (stat.st_size, stat.st_mtime_ns)
             now = time.monotonic()
             if self.log is None or (seen != self._seen and now - self._read_at >= REREAD_INTERVAL):

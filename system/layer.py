@@ -161,12 +161,16 @@ def warm_up(config, model) -> None:
     try:
         particles = np.asarray(model.initial_particles(size, rng), dtype=np.float64).reshape(size, -1)
         particles.flags.writeable = False
-        observation = np.zeros(model.obs_dim)
+        from dtpf.entity.base import sensor_dims
+
+        sensor, m = next(iter(sensor_dims(model).items()))  # a driven model's first sensor
+        observation = np.zeros(m)
         for step in range(1, 5):
             weights = rng.random(size)
             weights /= weights.sum()
             weights.flags.writeable = False
+            driven = {} if layer.view is None else {"sensor": sensor}
             layer.observe(step, summarise(particles, weights, config.threshold, size),
-                          Snapshot.of(particles, weights, observation))
+                          Snapshot.of(particles, weights, observation), **driven)
     except Exception as error:  # the real steps report what is wrong; this was only a warm-up
         logging.getLogger("dtpf.system").debug("warm-up stopped early: %s", error)

@@ -88,8 +88,8 @@ class FileHistory(LogHistory):
         with self._lock:
             try:
                 stat = os.stat(self.path)
-            except OSError as error:
-                raise LogError(f"the log {self.path} cannot be read: {error.strerror}") from None
+            except OSError as error:  # the reply names the file, not where it is on this machine
+                raise LogError(f"the log {self.path.name} cannot be read: {error.strerror}") from None
             if stat.st_size > MAX_LIVE_LOG_BYTES:
                 self.log = None  # what was read goes
                 raise queries.SelectorError(f"the log {self.path.name} is {stat.st_size >> 20} MiB, more than the "
@@ -98,7 +98,11 @@ class FileHistory(LogHistory):
             seen = (stat.st_size, stat.st_mtime_ns)
             now = time.monotonic()
             if self.log is None or (seen != self._seen and now - self._read_at >= REREAD_INTERVAL):
-                self.log, self._seen, self._read_at = read_log(self.path), seen, now
+                try:
+                    self.log = read_log(self.path)
+                except LogError:
+                    raise LogError(f"the log {self.path.name} cannot be read yet") from None
+                self._seen, self._read_at = seen, now
             return self.log
 
 

@@ -205,7 +205,7 @@ class TwinRun:
         self.twin = ZenohTwin(shell, args.timeout) if config.preprocess else None
         self.live = LiveObservations(shell, model, config, args.observation_timeout) if data is None else None
         #: What the twin answers over Zenoh queries (its state, its forecast): dtpf.entity.answers.
-        self.answers = live_answers(shell, config, model)
+        self.queries = live_answers(shell, config, model)
         self.period = 1.0 / args.rate if args.rate and data is not None else 0.0
         if self.wait_for:  # the run configuration, at once: a fleet's shared layers learn the twin from it
             shell.publish_status()
@@ -319,7 +319,7 @@ class TwinRun:
             stamp = self.live.stamp  # a driven twin's step is at its observation's time
         self.done.append(StepOutputs.of(self.shell, step, self.truth, pending.observation, self.model, self.config,
                                         self.cloud, stamp))
-        self.answers.keep(step, self.done[-1].estimate)
+        self.queries.keep(step, self.done[-1].estimate)
         if self.period:
             self.next_tick += self.period
 

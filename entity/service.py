@@ -35,7 +35,8 @@ from dtpf.messages.admission import RunShape
 from dtpf.messages.codec import encode_with_base64
 from dtpf.messages.config import RunConfig, add_run_arguments
 from dtpf.messages.foxglove import PackedElementField, PointCloud
-from dtpf.messages.models import ARRAYS_CHECKED, Control, Estimate, Observation, ParticleSet, ParticleSetKind, ServiceState, Time
+from dtpf.messages.models import (ARRAYS_CHECKED, Control, Estimate, Observation, ParticleSet, ParticleSetKind,
+                                  ServiceState, Time)
 from dtpf.shell.bus import Doorbell, add_zenoh_arguments, open_session
 from dtpf.shell.fleet import host_twins, serve_run
 from dtpf.shell.service import TAKE_BUDGET, ServiceShell, add_service_arguments, refuse_taken_twins, run_service

@@ -254,8 +254,9 @@ def _read_sensor_column(config, model, calls, steps) -> StampedRun:
     problem = None
     if late:
         shown = ", ".join(map(str, late[:5])) + (", ..." if len(late) > 5 else "")
-        problem = (f"{name}: {len(late)} row{'s' if len(late) > 1 else ''} stamped before a row already put in "
-                   f"order, beyond the reorder window of {config.reorder_window:g} s, skipped (line{'s' if len(late) > 1 else ''} {shown})")
+        plural = "s" if len(late) > 1 else ""
+        problem = (f"{name}: {len(late)} row{plural} stamped before a row already put in order, beyond the "
+                   f"reorder window of {config.reorder_window:g} s, skipped (line{plural} {shown})")
     return _assemble(config, model, calls, tables, events, path, problem)
 
 

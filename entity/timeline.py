@@ -10,9 +10,9 @@ split at their stamps, and the model is called once per piece::
 
 for the control stamps t_(k-1) < s_1 < ... < s_j < t_k. A control stamped exactly t_k acts from t_k on, over
 the next interval. An interval of more than :data:`MAX_PIECES` pieces (controls far faster than the
-observations) is cut into that many runs of consecutive pieces, each with its dt-weighted mean control. A model whose ``propagate`` takes ``control`` but not ``dt`` gets one piece: the control in
-force at t_(k-1). dt is (t - s) / 10^9 seconds, computed from the integers, so every process gets the same
-float.
+observations) is cut into that many runs of consecutive pieces, each with its dt-weighted mean control. A
+model whose ``propagate`` takes ``control`` but not ``dt`` gets one piece: the control in force at t_(k-1). dt
+is (t - s) / 10^9 seconds, computed from the integers, so every process gets the same float.
 
 :class:`Reorder` puts observations (and controls) that arrive out of order in stamp order, within a window
 of stamp time; :class:`Timeline` turns the ordered stamps into :class:`Drive` s::

@@ -168,7 +168,7 @@ def _interrupt(signum, frame):
 def register(subparsers) -> None:
     """``dtpf compare``."""
     parser = subparsers.add_parser(
-        "compare", help="run variants of a run over many seeds and say which differ from a baseline (95% intervals)",
+        "compare", help="run variants of a run over many seeds and say which differ from a baseline (95%% intervals)",
         description="Run each variant (LABEL:FIELD=VALUE,... over the run options) on every seed, in worker "
                     "processes, and print a Markdown table: each variant's mean metric, its difference to the "
                     "baseline paired by seed, the change in %, with 95% intervals, and a verdict.",

@@ -155,3 +155,19 @@ def test_layout_names_the_twins_topics_in_its_panels(tmp_path):
     for topic in ('"dtpf/t-lay/entity/estimate".mean[0]', "dtpf/t-lay/entity/cloud", "dtpf/t-lay/entity/frame",
                   "dtpf/t-lay/entity/annotations"):
         assert topic in strings, topic
+
+
+def test_the_help_of_dtpf_and_of_every_command_formats():
+    """``dtpf --help`` lists every command and each command's help formats (a bare '%' in a help text
+    made argparse raise a TypeError instead of printing the help)."""
+    import argparse
+
+    from dtpf.scripts.cli import build_parser
+
+    parser = build_parser()
+    top = parser.format_help()
+    (commands,) = [action for action in parser._actions if isinstance(action, argparse._SubParsersAction)]
+    assert len(commands.choices) >= 10
+    for name, command in commands.choices.items():
+        assert name in top
+        assert command.format_help().startswith("usage: "), name

@@ -28,7 +28,6 @@ from pathlib import Path
 
 from dtpf.messages.codec import decode_for_key
 from dtpf.recording.logfile import read_logs
-from dtpf.scripts.logs.summary import summarise
 from dtpf.shell.bus import Inbox, free_port, open_session, zenoh_config
 
 _ASKED = re.compile(r"^(\S+ \S+) \S+\s+INFO serving the twins under")
@@ -97,18 +96,20 @@ def run(twins: int, entities: int, rate: float, steps: int, kill_at: int, layer:
                 os.killpg(process.pid, signal.SIGKILL)
                 process.wait()
     log = read_logs([folder / "fleet.mcap"])
-    stamps = {}
+    stamps, steps, degraded = {}, {}, {}
     for _, message in log.decoded(lambda topic: topic.endswith("/entity/estimate")):
+        steps.setdefault(message.twin_id, set()).add(message.step)
         if getattr(message, "degraded", False):
             stamps[message.twin_id, message.step] = message.stamp.sec + message.stamp.nsec / 1e9
+            degraded.setdefault(message.twin_id, set()).add(message.step)
     asked = _asked_at(shared[layer].log_path)
     per_twin = {}
-    for t in summarise(log).twins:
-        if t.twin not in names:
+    for twin in sorted(steps):
+        if twin not in names:
             continue
-        after = [s for s in t.degraded_steps if s >= killed_at]
-        end = stamps.get((t.twin, after[-1])) if after else None
-        per_twin[t.twin] = dict(degraded=len(after), last=after[-1] if after else None, steps=len(t.steps),
+        after = sorted(s for s in degraded.get(twin, ()) if s >= killed_at)
+        end = stamps.get((twin, after[-1])) if after else None
+        per_twin[twin] = dict(degraded=len(after), last=after[-1] if after else None, steps=len(steps[twin]),
                                 after_start=None if end is None else end - started,
                                 after_asked=None if end is None or asked is None else end - asked)
     return {"killed_at": killed_at, "up": None if asked is None else asked - started, "twins": per_twin}

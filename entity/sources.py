@@ -108,6 +108,14 @@ def read_table(config, model: StateSpaceModel | None = None, *, steps: int | Non
     from dtpf.entity import rosbag
 
     path = config.observation_file
+    from dtpf.entity import stamped
+    if config.reader is None and stamped.has_sensor_column(path) and _named_sensors(config, model):
+        model = model if model is not None else _resolved(config)  # a driven twin's sensors in one CSV
+        run = stamped.read_stamped(config, model, steps=steps)
+        return ObservationTable(observations=run.observations, truth=run.truth, times=None,
+                                columns=tuple(f"z{j}" for j in range(run.observations.shape[1])),
+                                truth_columns=run.truth_columns, source=str(path),
+                                truth_components=run.truth_components, stamps=run.stamps, problem=run.problem)
     if config.reader is not None:
         if model is None:
             from dtpf.entity import model_ref
@@ -125,6 +133,18 @@ def read_table(config, model: StateSpaceModel | None = None, *, steps: int | Non
     if model is None:
         return read_observations(path, steps=steps)
     return read_observations(path, obs_dim=model.obs_dim, state_dim=model.dim, steps=steps)
+
+
+def _resolved(config) -> StateSpaceModel:
+    from dtpf.entity import model_ref
+    return model_ref.resolve(config.model_ref)
+
+
+def _named_sensors(config, model) -> bool:
+    """Whether the run's model declares named sensors (only such a model reads a CSV's ``sensor`` column as
+    the sensors' names; any other reads it as it always has)."""
+    from dtpf.entity.calls import ModelCalls
+    return ModelCalls(model if model is not None else _resolved(config)).named_sensors
 
 
 def _probe_observation(config, model: StateSpaceModel) -> np.ndarray | None:

@@ -38,7 +38,7 @@ from dtpf.entity.calls import ModelCalls
 from dtpf.entity.observations import MAX_LINE_CHARS, ObservationError, ObservationTable, read_observations
 from dtpf.entity.timeline import Drive, TimeError, Timeline
 
-__all__ = ["StampedRun", "read_stamped", "sensor_sources", "rows"]
+__all__ = ["StampedRun", "read_stamped", "sensor_sources", "rows", "has_sensor_column"]
 
 
 class StampedRun:
@@ -92,7 +92,7 @@ def read_stamped(config, model, *, steps: int | None = None, calls: ModelCalls |
     """Read the run's sensor files and control file into :class:`StampedRun` (module docstring); at most
     ``steps`` steps."""
     calls = calls if calls is not None else ModelCalls(model)
-    if not getattr(config, "sensor_files", None) and calls.named_sensors and _has_sensor_column(
+    if not getattr(config, "sensor_files", None) and calls.named_sensors and has_sensor_column(
             config.observation_file):
         return _read_sensor_column(config, model, calls, steps)
     sources = sensor_sources(config, calls)
@@ -154,7 +154,7 @@ def _assemble(config, model, calls, tables, events, source, problem=None) -> Sta
     return run
 
 
-def _has_sensor_column(path) -> bool:
+def has_sensor_column(path) -> bool:
     """Whether ``path`` is a CSV file whose header (its first line that is not a comment) has a column
     ``sensor``."""
     import csv

@@ -21,7 +21,8 @@ the recorder: every service's publisher keeps its last messages (the services'
 ``--cache-samples``, 600 by default: 30 s of a twin at 20 steps/s) and the
 recorder's subscriber (Zenoh's advanced subscriber) asks for what it missed
 when the publisher appears again or its sequence shows a gap, and, when it
-starts, for what the caches hold of the run so far. Recovered messages arrive
+starts, for what the caches hold of the run so far (a publisher whose live
+messages come before its cache's answer gives only what follows). Recovered messages arrive
 late, each publisher's in its order; the log tools order by step. What a cache
 no longer held is noted in the log (``dtpf/<twin>/recorder/missed``: key, count
 and the steps around the gap) and named by ``dtpf summary`` and ``dtpf verify``.

@@ -48,14 +48,16 @@ class Admission:
         self.samples_of: dict[str, int] = {}
         self.estimate_copies: dict[tuple[str, int], int] = {}  # by (key, step), oldest first
         #: The gaps in each publisher's messages that could not be recovered.
-        self.gaps = Gaps(shell.config.twin, shell.config.run_id)
+        config = getattr(shell, "config", None)  # notes of an unknown publisher go to the recorder's twin
+        self.gaps = Gaps(getattr(config, "twin", "recorder"), getattr(config, "run_id", "recorder"))
 
     def record(self, recording, item) -> bool:
         """Write ``item`` if a service would take it (True); else count it and maybe sample it. An item that
         says messages were missed (``item.missed``) opens a gap of its publisher."""
         shell = self.shell
-        if item.missed:  # Zenoh's word: the steps are noted when the numbers show the gap (or at the end)
-            self.gaps.missed(item.source, item.missed)
+        missed = getattr(item, "missed", 0)  # items of a plain inbox, or a replay, have none of these
+        if missed:  # Zenoh's word: the steps are noted when the numbers show the gap (or at the end)
+            self.gaps.missed(item.source, missed)
             return False
         shell.received += 1
         try:
@@ -82,7 +84,7 @@ class Admission:
                 del self.estimate_copies[next(iter(self.estimate_copies))]
             self.estimate_copies[item.key, message.step] = copies + 1
         recording.write(item.key, item.payload)
-        for note in self.gaps.heard(item.source, item.sn, item.key, message):
+        for note in self.gaps.heard(getattr(item, "source", None), getattr(item, "sn", None), item.key, message):
             self._note(recording, note)
         if self.silences is not None:
             self.silences.heard(message)
@@ -110,7 +112,7 @@ class Admission:
 
     def _reject(self, recording, item, reason: str, detail: str) -> bool:
         shell = self.shell
-        self.gaps.passed(item.source, item.sn)
+        self.gaps.passed(getattr(item, "source", None), getattr(item, "sn", None))
         shell.reject(reason, detail, key=item.key)
         kind = kind_of(reason)
         if self.samples < MAX_SAMPLES and self.samples_of.get(kind, 0) < MAX_SAMPLES_PER_KIND:

@@ -29,6 +29,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from dtpf.messages.errors import DtpfError
+
 __all__ = ["Drive", "Timeline", "Reorder", "TimeError", "NS"]
 
 #: Nanoseconds in a second.
@@ -37,7 +39,7 @@ NS = 1_000_000_000
 MAX_PIECES = 4096
 
 
-class TimeError(ValueError):
+class TimeError(DtpfError, ValueError):
     """Stamps that cannot make a timeline (one going backwards); the message is one line."""
 
 

@@ -492,35 +492,11 @@ def normalized_stamp(stamp: tuple[int, int] | None) -> tuple[int, int] | None:
     return sec + nanosec // 10**9, nanosec % 10**9
 
 
-def checked_values(paths: list[rosbag.FieldPath]):
-    """:func:`~dtpf.entity.rosbag.values_of` for messages of the type ``paths`` were checked against
-    (:func:`~dtpf.entity.rosbag.check_fields`): the names are looked up without being checked again; a
-    path that ends on anything but one float (an array, an integer), or that a message does not fit (an
-    index past the end of its array), goes through values_of, which says why."""
-    steps = [path.steps for path in paths]
-
-    def values(message) -> list[float]:
-        out = []
-        try:
-            for path in steps:
-                value = message
-                for name, selector in path:
-                    value = getattr(value, name)
-                    if selector is not None:
-                        value = value[selector]
-                if type(value) is not float:
-                    return rosbag.values_of(message, paths)
-                out.append(value)
-        except (AttributeError, IndexError, TypeError):
-            return rosbag.values_of(message, paths)
-        return out
-    return values
-
-
 def _mapper(args, config: RunConfig, model, cls):
     if args.ros2_fields or config.ros2_fields:
         paths = rosbag.parse_fields(args.ros2_fields or config.ros2_fields)
         rosbag.check_fields(cls(), paths)
+        from dtpf.scripts.ros2.feeds import checked_values
         return checked_values(paths)
     hook = getattr(model, rosbag.MODEL_HOOK, None)
     if hook is None:

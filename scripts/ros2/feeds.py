@@ -22,7 +22,7 @@ from dtpf.entity import rosbag, topics
 from dtpf.entity.observations import ObservationError
 from dtpf.scripts.ros2 import Ros2Error, params
 
-__all__ = ["Feed", "feeds_of", "feed_mapper"]
+__all__ = ["Feed", "feeds_of", "feed_mapper", "checked_values"]
 
 
 @dataclass
@@ -43,6 +43,31 @@ class Feed:
     def label(self) -> str:
         """How messages name it: 'control', 'sensor gps' or the topic."""
         return "control" if self.control else f"sensor {self.sensor}" if self.sensor else self.topic
+
+
+def checked_values(paths: list[rosbag.FieldPath]):
+    """:func:`~dtpf.entity.rosbag.values_of` for messages of the type ``paths`` were checked against
+    (:func:`~dtpf.entity.rosbag.check_fields`): the names are looked up without being checked again; a
+    path that ends on anything but one float (an array, an integer), or that a message does not fit (an
+    index past the end of its array), goes through values_of, which says why."""
+    steps = [path.steps for path in paths]
+
+    def values(message) -> list[float]:
+        out = []
+        try:
+            for path in steps:
+                value = message
+                for name, selector in path:
+                    value = getattr(value, name)
+                    if selector is not None:
+                        value = value[selector]
+                if type(value) is not float:
+                    return rosbag.values_of(message, paths)
+                out.append(value)
+        except (AttributeError, IndexError, TypeError):
+            return rosbag.values_of(message, paths)
+        return out
+    return values
 
 
 def _absolute(topic: str) -> str:
@@ -80,7 +105,6 @@ def feeds_of(args, config, values: dict | None = None) -> list[Feed]:
 def feed_mapper(feed: Feed, model, cls, controls: tuple[str, ...] = ()):
     """message -> values of ``feed``, checked against its type's class ``cls``; Ros2Error or FieldPathError in
     one line when its paths do not fit the type."""
-    from dtpf.scripts.ros2.bridge import checked_values
 
     msgtype = rosbag.type_name(cls())
     spec = feed.fields

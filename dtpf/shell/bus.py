@@ -57,6 +57,7 @@ __all__ = [
     "claims_alive",
     "publisher",
     "PublisherCache",
+    "PUBLISHER_MAX_BYTES",
     "publisher_cache",
     "set_publisher_cache",
     "free_port",
@@ -232,26 +233,35 @@ def open_session(config: zenoh.Config, in_use_hint: str | None = None) -> zenoh.
 class PublisherCache:
     """How much a publisher keeps for subscribers that missed it (Zenoh's ``CacheConfig``).
 
-    A publisher keeps its last ``samples`` samples, fewer when they would weigh more than ``bytes``
-    (:meth:`samples_for`): the default, 600, is 30 s of a twin at 20 steps/s (60 s at 10) for the JSON
-    topics, whose messages weigh a few kB (600 statuses of 3 kB: 1.8 MB); a particle set of N = 1000 in
-    one dimension (16 kB) keeps 512, one of N = 1e5 (1.6 MB) keeps 5. So a process holds at most
-    ``bytes`` per publisher of a large topic, 8 MiB by default: an entity hosting 20 twins of large sets
-    keeps 160 MiB of its particle sets. What a partition outlasts is lost to a recorder on the other side
-    of it; the recorder says so (:class:`Inbox` ``on_miss``). ``heartbeat``: seconds between two
-    announcements of the last sequence number (sent only when it changed), by which a subscriber notices
-    missed samples even when no new one comes. ``samples = 0``: a plain publisher, no cache.
+    A publisher keeps its last ``samples`` samples (default 600: 30 s of a twin at 20 steps/s, 60 s at 10),
+    fewer when they would weigh more than its share of the process's ``bytes`` (:meth:`samples_for`): the
+    process's budget (default 256 MiB) split evenly between the twins it serves, a quarter of a twin's for
+    each of its publishers (a twin has two to five), at most :data:`PUBLISHER_MAX_BYTES` (8 MiB) for one.
+    One or a few twins: a particle set of N = 1000 in one dimension (16 kB) keeps about 500, one of N = 1e5
+    (1.6 MB) keeps 5, the JSON topics (estimates of under a kB, statuses of 3 kB) their 600. An entity
+    hosting 100 twins: 655 kB a publisher, about 40 such sets, the estimates still 600. So a process never holds
+    much more than its budget, whatever the fleet; the twins it serves when a publisher is declared set that
+    publisher's share. What a partition outlasts is lost to a recorder on the other side of it; the recorder
+    says so. ``heartbeat``: seconds between two announcements of a publisher's last sequence number (sent only
+    when it changed), by which a subscriber notices missed samples even when no new one comes. ``samples = 0``:
+    plain publishers, no cache.
     """
 
     samples: int = 600
-    bytes: int = 8 << 20
+    bytes: int = 256 << 20
     heartbeat: float = 1.0
 
-    def samples_for(self, payload_size: int) -> int:
-        """How many samples of ``payload_size`` bytes the cache keeps (at least 1 when it keeps any)."""
+    def samples_for(self, payload_size: int, twins: int = 1) -> int:
+        """How many samples of ``payload_size`` bytes a publisher of a process serving ``twins`` twins keeps
+        (at least 1 when it keeps any)."""
         if self.samples <= 0:
             return 0
-        return max(1, min(self.samples, self.bytes // max(1, payload_size)))
+        share = min(PUBLISHER_MAX_BYTES, self.bytes // max(1, twins) // 4)
+        return max(1, min(self.samples, share // max(1, payload_size)))
+
+
+#: Most bytes one publisher's cache holds, however large the process's budget.
+PUBLISHER_MAX_BYTES = 8 << 20
 
 
 #: The cache of this process's publishers (:func:`set_publisher_cache`; the services' --cache-* options).

@@ -91,8 +91,9 @@ def add_service_arguments(parser: argparse.ArgumentParser) -> None:
                             "cut off by a partition or a restart recovers what it missed (30 s of a twin at "
                             "20 steps/s by default; 0: no cache, nothing recovered) (default: %(default)s)")
     group.add_argument("--cache-mb", type=float, default=default.bytes / 2**20, metavar="MB",
-                       help="... and fewer when N of its messages would weigh more than this (large particle "
-                            "sets) (default: %(default)s)")
+                       help="... and fewer when N of its messages would weigh more than its share of this budget "
+                            "of the whole process (an equal share for each twin the process serves; at most 8 MB "
+                            "for one publisher): large particle sets, large fleets (default: %(default)s)")
 
 
 class TwinTaken(DtpfError, RuntimeError):
@@ -242,6 +243,9 @@ class ServiceShell:
     the twin's name.
     """
 
+    #: Shells of this process that have not ended: the twins it serves, which share its publishers' caches.
+    live = 0
+
     def __init__(self, layer: str, config: RunConfig, zenoh_config: zenoh.Config | None = None, *,
                  session: zenoh.Session | None = None, doorbell=None, claim: bool = False):
         self.layer = keys.check_layer(layer)
@@ -288,6 +292,8 @@ class ServiceShell:
             self.presence.claim(config.run_id)
         self._status_thread = threading.Thread(target=self._report, name="status", daemon=True)
         self._next_status = time.monotonic() + STATUS_INTERVAL
+        self._counted = True
+        ServiceShell.live += 1
 
     # --- lifecycle ---------------------------------------------------------------
 
@@ -300,6 +306,9 @@ class ServiceShell:
         return self
 
     def __exit__(self, exc_type, exc, tb) -> None:
+        if getattr(self, "_counted", False):
+            self._counted = False
+            ServiceShell.live -= 1
         if exc is not None and not isinstance(exc, KeyboardInterrupt):
             self.state = ServiceState.FAILED
             self.last_error = f"{type(exc).__name__}: {exc}"
@@ -452,8 +461,9 @@ class ServiceShell:
         key = keys.key_for(message)
         data = encode(message) if payload is None else payload
         pub = self._publishers.get(key)
-        if pub is None:  # its cache holds what the publisher's first message says its size is
-            pub = self._publishers[key] = publisher(self.session, key, publisher_cache().samples_for(len(data)))
+        if pub is None:  # its cache: what its share of the process's budget holds of messages of this size
+            pub = self._publishers[key] = publisher(self.session, key,
+                                                    publisher_cache().samples_for(len(data), ServiceShell.live))
         pub.put(data)
 
     def header(self, step: int) -> dict:

@@ -230,7 +230,8 @@ def build_parser() -> argparse.ArgumentParser:
         description="dtpf recorder: writes every message of a twin into an MCAP file, one channel per key "
                     "expression, schemas embedded.",
         epilog="Recovery: every dtpf service's publishers keep their last messages (--cache-samples N, 600 by "
-               "default: 30 s of a twin at 20 steps/s; --cache-mb bounds a cache of large particle sets), and the "
+               "default: 30 s of a twin at 20 steps/s; --cache-mb, a budget per process shared by its twins, bounds "
+               "caches of large particle sets and large fleets), and the "
                "recorder recovers from them what a partition, a cut link or its own late start made it miss. A "
                "partition longer than the cache loses the rest: the log notes it on dtpf/<twin>/recorder/missed "
                "(key, count, the steps around the gap), and dtpf summary and dtpf verify name those steps. The "

@@ -43,6 +43,43 @@ FILE_SECONDS = {
 }
 
 
+#: The long tier (``python3 -m pytest -m long``; the default run leaves it out, CI runs both): end-to-end runs
+#: that inject faults for tens of seconds (kills, partitions, floods, restarts), the fuzzers at full volume and
+#: the research evaluations' quick forms. A file name marks its every test; ``file::name`` marks one test (and
+#: its parametrized cases).
+LONG = {
+    "test_partition.py", "test_serve_again.py", "test_experiments.py",
+    "test_choose.py::test_the_quick_evaluation_prints_every_variant_and_a_verdict_per_cell",
+    "test_guard.py::test_the_evaluation_quick_form_prints_every_variant_of_every_scenario",
+    "test_fuzz.py::test_decoders_are_total_on_mutated_json",
+    "test_fuzz.py::test_decoders_are_total_on_mutated_envelopes",
+    "test_fuzz.py::test_decoders_are_total_on_byte_level_mutations",
+    "test_resilience.py::test_ten_thousand_fuzzed_payloads_on_a_live_run_leave_its_estimates_as_a_clean_run_has_them",
+    "test_resilience.py::test_sigkill_of_each_layer_at_a_random_step_and_the_launch_finishes",
+    "test_resilience.py::test_what_used_to_stop_or_corrupt_a_run_is_counted_and_the_run_completes",
+    "test_one_twin.py::test_an_entity_behind_a_healed_partition_fails_the_launch_and_is_named",
+    "test_one_twin.py::test_a_second_entity_of_a_running_twin_is_refused_and_the_run_goes_on",
+    "test_one_log.py::test_a_runs_own_segments_read_as_one_and_another_runs_file_beside_them_is_refused",
+    "test_fleet.py::test_one_information_and_one_system_service_serve_twenty_twins_as_their_solo_runs",
+    "test_fleet.py::test_a_fleet_launch_restarts_a_killed_shared_service_and_every_twin_finishes",
+    "test_fleet.py::test_a_fleet_launch_restarts_a_killed_recorder_and_the_segments_hold_every_twin",
+    "test_nothing_lost.py::test_a_status_flood_does_not_hold_the_end_of_a_launch",
+}
+
+
+def pytest_configure(config):
+    config.addinivalue_line("markers", "long: a long end-to-end run (conftest.LONG); python3 -m pytest -m long")
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_collection_modifyitems(config, items):
+    """Mark the tests of :data:`LONG` (before ``-m`` chooses)."""
+    for item in items:
+        name = Path(str(item.fspath)).name
+        if name in LONG or f"{name}::{item.originalname}" in LONG:
+            item.add_marker(pytest.mark.long)
+
+
 @pytest.hookimpl(optionalhook=True)
 def pytest_xdist_make_scheduler(config, log):
     """``--dist loadfile`` with the files longest first (``FILE_SECONDS``) instead of most tests first (a

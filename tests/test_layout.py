@@ -173,3 +173,14 @@ def test_the_contract_names_what_the_layers_implement():
     # The arms of the choosing policy name rules the registries hold.
     assert all(arm.weight_rule in names.WEIGHT_RULE_REGISTRY.names() and arm.move_rule in
                names.MOVE_RULE_REGISTRY.names() for arm in layer.ARMS.values())
+
+
+def test_every_test_the_long_tier_names_exists():
+    """conftest.LONG names files and tests; a renamed one would fall back into the default run unnoticed."""
+    from conftest import LONG
+
+    tests = Path(__file__).resolve().parent
+    for entry in sorted(LONG):
+        name, _, test = entry.partition("::")
+        assert (tests / name).exists(), entry
+        assert not test or f"def {test}(" in (tests / name).read_text(), entry

@@ -20,6 +20,7 @@ from dtpf.messages.foxglove import CompressedImage, ImageAnnotations, PointCloud
 from dtpf.messages.models import (
     Control,
     Estimate,
+    ForecastBand,
     Layer,
     Message,
     Observation,
@@ -61,6 +62,7 @@ TOPICS: dict[tuple[Layer, str], Topic] = {
         Topic(Layer.INFORMATION, "weight_state", WeightState),
         Topic(Layer.SYSTEM, "ps", PSCommand),
         Topic(Layer.ENTITY, "estimate", Estimate),
+        Topic(Layer.ENTITY, "forecast_band", ForecastBand),  # the forecast of each step (--forecast H)
         Topic(Layer.ENTITY, "frame", CompressedImage),  # the video scenario's frames
         Topic(Layer.ENTITY, "cloud", PointCloud),  # the particle set as Foxglove draws it
         Topic(Layer.ENTITY, "annotations", ImageAnnotations),  # the video scenario's particles over its frame
@@ -75,7 +77,8 @@ TOPICS: dict[tuple[Layer, str], Topic] = {
 #: Every message class, by name.
 MESSAGE_CLASSES: dict[str, type[Message]] = {
     cls.__name__: cls for cls in (ParticleSet, WeightState, PSCommand, Estimate, Status, CompressedImage,
-                                  Observation, Control, Rejected, Missed, PointCloud, ImageAnnotations)
+                                  Observation, Control, Rejected, Missed, PointCloud, ImageAnnotations,
+                                  ForecastBand)
 }
 
 

@@ -547,6 +547,53 @@ class Estimate(Message):
         return self
 
 
+#: Most steps ahead one published forecast carries.
+MAX_FORECAST_HORIZON = 1000
+
+
+class ForecastPoint(BaseModel):
+    """One step of a forecast: the weighted moments and 95% band of the propagated set."""
+
+    model_config = STRICT_CONFIG
+
+    step: Count = Field(description="The step k + h this point forecasts.")
+    mean: list[float] = Field(min_length=1, description="(d,) weighted mean of the propagated particles.")
+    var: list[Annotated[float, Field(ge=0.0)]] = Field(min_length=1, description="(d,) weighted variance.")
+    lower: list[float] = Field(min_length=1, description="(d,) 2.5% weighted quantile of each component.")
+    upper: list[float] = Field(min_length=1, description="(d,) 97.5% weighted quantile of each component.")
+
+    @model_validator(mode="after")
+    def _check_shapes(self) -> "ForecastPoint":
+        d = len(self.mean)
+        for name in ("var", "lower", "upper"):
+            if len(getattr(self, name)) != d:
+                raise ValueError(f"{name} must have length d={d} like mean, got {len(getattr(self, name))}")
+        for i, (low, high) in enumerate(zip(self.lower, self.upper)):
+            if low > high:
+                raise ValueError(f"lower must not exceed upper, got lower[{i}]={low!r} > upper[{i}]={high!r}")
+        return self
+
+
+class ForecastBand(Message):
+    """The twin's forecast from the weighted set of ``step``, published each step (the entity's
+    ``--forecast H``): entity -> everyone. The same numbers as a ``forecast`` question at that step
+    (:mod:`dtpf.entity.forecast`)."""
+
+    producer: ClassVar[Layer] = Layer.ENTITY
+
+    ahead: list[ForecastPoint] = Field(min_length=1, max_length=MAX_FORECAST_HORIZON,
+                                       description="Steps k + 1 .. k + H, in order, each of the same d.")
+
+    @model_validator(mode="after")
+    def _check_ahead(self) -> "ForecastBand":
+        d = len(self.ahead[0].mean)
+        for point in self.ahead:
+            if len(point.mean) != d:
+                raise ValueError(f"every point ahead must have d={d} components, got {len(point.mean)} at step "
+                                 f"{point.step}")
+        return self
+
+
 class ObservationCounts(BaseModel):
     """What a live entity did with the observations that arrived (:class:`Status`)."""
 

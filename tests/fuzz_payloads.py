@@ -43,6 +43,7 @@ from dtpf.messages.models import (
     UINT32_MAX,
     Control,
     Estimate,
+    ForecastBand,
     Layer,
     Message,
     Observation,
@@ -380,12 +381,25 @@ def controls(draw) -> Control:
     return Control(**draw(headers()), layer=Layer.SENSOR, control=draw(st.lists(finite_floats, min_size=1, max_size=6)))
 
 
+@st.composite
+def forecast_bands(draw) -> ForecastBand:
+    d = draw(st.integers(1, MAX_DIM))
+    vectors = st.lists(finite_floats, min_size=d, max_size=d)
+    ahead = []
+    for _ in range(draw(st.integers(1, 4))):
+        bounds = [sorted(pair) for pair in zip(draw(vectors), draw(vectors))]
+        ahead.append(dict(step=draw(counts), mean=draw(vectors),
+                          var=draw(st.lists(non_negative_floats, min_size=d, max_size=d)),
+                          lower=[low for low, _ in bounds], upper=[high for _, high in bounds]))
+    return ForecastBand(**draw(headers()), layer=Layer.ENTITY, ahead=ahead)
+
+
 #: A valid message of each class, by class.
 MESSAGE_STRATEGIES = {
     ParticleSet: particle_sets(), WeightState: weight_states(), PSCommand: ps_commands(), Estimate: estimates(),
     Status: statuses(), CompressedImage: compressed_images(), Observation: observations(), Control: controls(),
     Rejected: rejecteds(), Missed: misseds(), foxglove.PointCloud: point_clouds(),
-    foxglove.ImageAnnotations: image_annotations(),
+    foxglove.ImageAnnotations: image_annotations(), ForecastBand: forecast_bands(),
 }
 valid_messages = st.one_of(*MESSAGE_STRATEGIES.values())
 
@@ -494,6 +508,16 @@ def _seeded_estimate(v: Seeded) -> Estimate:
                     ps=v.maybe(v.unit), log_predictive=v.maybe(v.float), innovation=v.maybe(v.non_negative))
 
 
+def _seeded_forecast_band(v: Seeded) -> ForecastBand:
+    d = v.rng.randint(1, MAX_DIM)
+    ahead = []
+    for _ in range(v.rng.randint(1, 4)):
+        bounds = [sorted((v.float(), v.float())) for _ in range(d)]
+        ahead.append(dict(step=v.count(), mean=v.floats(d, d), var=v.floats(d, d, v.non_negative),
+                          lower=[low for low, _ in bounds], upper=[high for _, high in bounds]))
+    return ForecastBand(**v.header(), layer=Layer.ENTITY, ahead=ahead)
+
+
 def _seeded_status(v: Seeded) -> Status:
     observed = v.maybe(lambda: {name: v.count() for name in (
         "accepted", "duplicate", "out_of_order", "wrong_length", "malformed", "missed", "last_sequence")})
@@ -549,6 +573,7 @@ SEEDED_BUILDERS = {
     Estimate: _seeded_estimate, Status: _seeded_status, CompressedImage: _seeded_compressed_image,
     Observation: _seeded_observation, Rejected: _seeded_rejected, Missed: _seeded_missed, foxglove.PointCloud: _seeded_point_cloud,
     foxglove.ImageAnnotations: _seeded_image_annotations, Control: _seeded_control,
+    ForecastBand: _seeded_forecast_band,
 }
 
 
@@ -857,7 +882,8 @@ def byte_mutation(draw, payload: bytes, log: list[str]) -> bytes:
 @st.composite
 def valid_cases(draw) -> Case:
     """The untouched encoding of a valid message, from the strategies or from a seed."""
-    message = draw(st.one_of(valid_messages, seeded_messages))
+    cls = draw(st.sampled_from(list(MESSAGE_STRATEGIES)))  # a class first: every class is as likely
+    message = draw(st.one_of(MESSAGE_STRATEGIES[cls], st.builds(seeded_message, st.just(cls), seeds)))
     return Case(encode(message), message)
 
 

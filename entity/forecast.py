@@ -19,8 +19,13 @@ words than any stream of the run, so a forecast draws none of the numbers a
 run draws and every run keeps its numbers; the same set, seed, twin and step
 give the same forecast, and a longer horizon begins with the shorter one.
 
-A driven model (:mod:`dtpf.entity.base`) gets ``dt`` seconds a step and the
-``control`` held over the horizon (zeros when none is given): a what-if.
+A driven model (:mod:`dtpf.entity.base`) gets ``dt`` seconds a step (one value, or
+one a step) and the ``control`` held over the horizon (zeros when none is given):
+a what-if. A horizon in seconds is steps of ``dt`` (:func:`seconds_steps`: the
+last one shorter, so that they add up to it)::
+
+    ahead = forecast(model, particles, weights, 12, *seconds_steps(2.0, 0.3), seed=7, twin="robot-1")
+    ahead.seconds[-1]     # 2.0: the horizon reached
 """
 from __future__ import annotations
 
@@ -34,12 +39,15 @@ from dtpf.messages.arrays import check_particles, check_set
 from dtpf.messages.errors import DtpfError
 from dtpf.messages.streams import seed_sequence
 
-__all__ = ["Forecast", "ForecastError", "forecast", "forecast_stream", "FORECAST_KEY", "BAND"]
+__all__ = ["Forecast", "ForecastError", "forecast", "forecast_stream", "seconds_steps", "FORECAST_KEY", "BAND",
+           "MAX_SECONDS_STEPS"]
 
 #: The first word of every forecast stream's spawn key: 32 bits of the label "forecast".
 FORECAST_KEY = int.from_bytes(hashlib.blake2b(b"forecast", digest_size=4).digest(), "little")
 #: The probabilities of the band's ends.
 BAND = (0.025, 0.975)
+#: Most steps a horizon in seconds may take.
+MAX_SECONDS_STEPS = 1000
 
 
 class ForecastError(DtpfError, ValueError):
@@ -51,6 +59,23 @@ def forecast_stream(seed: int, twin: str, step: int, h: int) -> np.random.Genera
     entity = seed_sequence(seed, twin, step, "entity")
     return np.random.Generator(np.random.PCG64(np.random.SeedSequence(entity.entropy,
                                                                       spawn_key=(FORECAST_KEY, int(h)))))
+
+
+def seconds_steps(seconds: float, dt: float) -> tuple[int, list[float]]:
+    """(H, the dt of each step) of a horizon of ``seconds`` in steps of ``dt``: ceil(seconds / dt) steps, the
+    last one shorter when ``dt`` does not divide ``seconds``; ForecastError for values out of bounds."""
+    seconds, dt = float(seconds), float(dt)
+    if not (np.isfinite(seconds) and seconds > 0):
+        raise ForecastError(f"a horizon in seconds must be > 0, got {seconds!r}")
+    if not (np.isfinite(dt) and dt > 0):
+        raise ForecastError(f"a horizon in seconds needs dt > 0 (seconds a step), got {dt!r}")
+    steps = int(np.ceil(seconds / dt - 1e-9))
+    if steps > MAX_SECONDS_STEPS:
+        raise ForecastError(f"a horizon of {seconds:g} s in steps of {dt:g} s is {steps} steps; at most "
+                            f"{MAX_SECONDS_STEPS}: raise dt or shorten the horizon")
+    dts = [dt] * steps
+    dts[-1] = seconds - dt * (steps - 1)
+    return steps, dts
 
 
 @dataclass(frozen=True)
@@ -66,13 +91,25 @@ class Forecast:
     upper: np.ndarray
     particles: np.ndarray
     weights: np.ndarray
+    #: (H,) seconds from step k to each step (a driven model's dt summed), None for a model without dt.
+    seconds: np.ndarray | None = None
+
+    def points(self) -> list[dict]:
+        """One dict a step: step, mean, var, lower, upper (and seconds, when the steps have a length)."""
+        out = [{"step": int(k), "mean": m.tolist(), "var": v.tolist(), "lower": lo.tolist(), "upper": up.tolist()}
+               for k, m, v, lo, up in zip(self.steps, self.mean, self.var, self.lower, self.upper)]
+        if self.seconds is not None:
+            for point, t in zip(out, self.seconds.tolist()):
+                point["seconds"] = t
+        return out
+
+    def points_of_message(self) -> list[dict]:
+        """The points a :class:`~dtpf.messages.models.ForecastBand` carries (step, mean, var, lower, upper)."""
+        return [{name: point[name] for name in ("step", "mean", "var", "lower", "upper")} for point in self.points()]
 
     def as_json(self, particles: bool = False) -> dict:
         """Plain JSON values: one entry a step (step, mean, var, lower, upper); the last set on request."""
-        out = {"from_step": self.step, "horizon": len(self.steps), "band": list(BAND),
-               "steps": [{"step": int(k), "mean": m.tolist(), "var": v.tolist(), "lower": lo.tolist(),
-                          "upper": up.tolist()}
-                         for k, m, v, lo, up in zip(self.steps, self.mean, self.var, self.lower, self.upper)]}
+        out = {"from_step": self.step, "horizon": len(self.steps), "band": list(BAND), "steps": self.points()}
         if particles:
             out["particles"] = self.particles.tolist()
             out["weights"] = self.weights.tolist()
@@ -92,9 +129,12 @@ def weighted_quantiles(values: np.ndarray, weights: np.ndarray, probabilities) -
     return out
 
 
-def forecast(model, particles, weights, step: int, horizon: int, *, seed: int, twin: str,
+def forecast(model, particles, weights, step: int, horizon: int, dts=None, *, seed: int, twin: str,
              dt: float | None = None, control=None) -> Forecast:
     """Propagate the set (``particles`` (N, d), ``weights`` (N,) of step ``step``) ``horizon`` steps ahead.
+
+    A driven model's steps last ``dt`` seconds each, or ``dts[h - 1]`` for step k + h (``horizon`` values,
+    as :func:`seconds_steps` gives them).
 
     The set given is not changed (the model gets a copy). ForecastError names what is wrong: a horizon
     below 1, a driven model without ``dt`` or with a control of the wrong length, a model that fails or
@@ -107,7 +147,13 @@ def forecast(model, particles, weights, step: int, horizon: int, *, seed: int, t
     except ValueError as error:
         raise ForecastError(f"the particle set of step {step}: {error}") from None
     calls = ModelCalls(model)
-    if calls.takes_dt and dt is None:
+    if dts is not None:
+        dts = [float(value) for value in dts]
+        if len(dts) != int(horizon):
+            raise ForecastError(f"{len(dts)} step lengths for a horizon of {horizon} steps")
+    elif dt is not None:
+        dts = [float(dt)] * int(horizon)
+    if calls.takes_dt and dts is None:
         raise ForecastError("the twin's model is driven: the forecast needs dt (seconds a step)")
     u = None
     if calls.controls or calls.takes_control:
@@ -125,7 +171,8 @@ def forecast(model, particles, weights, step: int, horizon: int, *, seed: int, t
     for h in range(1, horizon + 1):
         k = step + h
         try:
-            x = check_particles(calls.propagate(x, k, forecast_stream(seed, twin, step, h), dt=dt, control=u), n=n)
+            x = check_particles(calls.propagate(x, k, forecast_stream(seed, twin, step, h),
+                                                dt=None if dts is None else dts[h - 1], control=u), n=n)
         except Exception as error:
             raise ForecastError(f"the model's propagate failed at forecast step {k}: "
                                 f"{type(error).__name__}: {error}") from None
@@ -133,4 +180,6 @@ def forecast(model, particles, weights, step: int, horizon: int, *, seed: int, t
         centred = x - mean
         means[h - 1], variances[h - 1] = mean, w @ (centred * centred)
         lower[h - 1], upper[h - 1] = weighted_quantiles(x, w, BAND)
-    return Forecast(int(step), np.arange(step + 1, step + horizon + 1), means, variances, lower, upper, x, w)
+    seconds = np.cumsum(dts) if dts is not None and calls.takes_dt else None
+    return Forecast(int(step), np.arange(step + 1, step + horizon + 1), means, variances, lower, upper, x, w,
+                    seconds)

@@ -206,7 +206,7 @@ class TwinRun:
         self.twin = ZenohTwin(shell, args.timeout) if config.preprocess else None
         self.live = LiveObservations(shell, model, config, args.observation_timeout) if data is None else None
         #: What the twin answers over Zenoh queries (its state, its forecast): dtpf.entity.answers.
-        self.queries = live_answers(shell, config, model)
+        self.queries = live_answers(shell, config, model, getattr(args, "forecast", 0) or 0)
         self.period = 1.0 / args.rate if args.rate and data is not None else 0.0
         if self.wait_for:  # the run configuration, at once: a fleet's shared layers learn the twin from it
             shell.publish_status()
@@ -533,6 +533,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--cloud-points", type=int, default=1000, metavar="K",
                         help="publish each step's particle set as a foxglove.PointCloud on dtpf/<twin>/entity/cloud, "
                              "at most K particles (every ceil(N/K)-th; 0: none) (default: %(default)s)")
+    parser.add_argument("--forecast", type=int, default=0, metavar="H",
+                        help="also publish each step's forecast H steps ahead (mean, variance, 95%% band) on "
+                             "dtpf/<twin>/entity/forecast_band, off the filter's path: a step that finds the "
+                             "last one's forecast still being made is skipped (default: 0, none)")
     parser.add_argument("--observation-timeout", type=float, default=5.0, metavar="SECONDS",
                         help="live observations: after this long without one, say so in the status and "
                              "the log and keep waiting; the filter never invents a step (default: %(default)s)")

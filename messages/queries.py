@@ -4,6 +4,7 @@ Three questions, each a Zenoh queryable on the twin's key space::
 
     dtpf/<twin>/entity/state?particles=true            the latest estimate (and its particle set)
     dtpf/<twin>/entity/forecast?horizon=20             the particle set propagated 20 steps ahead
+    dtpf/<twin>/entity/forecast?horizon_s=2;dt=0.1     a driven twin's, 2 seconds ahead in steps of 0.1 s
     dtpf/<twin>/recorder/history?steps=10:20;topics=entity/estimate   the record of steps 10 .. 20
 
 A selector's parameters are ``name=value`` pairs separated by ``;`` (Zenoh's
@@ -74,11 +75,14 @@ class ForecastSelector:
     """``forecast``: the latest particle set propagated ``horizon`` steps without observations.
 
     ``dt`` (seconds a step) and ``control`` (the control held over the horizon, a what-if) are for a
-    driven model; ``particles``: the propagated set of the last step too; at most ``max_bytes`` bytes of JSON.
+    driven model; ``horizon_s``: a horizon in seconds instead of steps (steps of ``dt``, which it needs, the
+    last one shorter); ``particles``: the propagated set of the last step too; at most ``max_bytes`` bytes
+    of JSON.
     """
 
     horizon: int = 10
     dt: float | None = None
+    horizon_s: float | None = None
     control: tuple[float, ...] | None = None
     particles: bool = False
     max_bytes: int = DEFAULT_MAX_BYTES
@@ -112,7 +116,7 @@ class HistorySelector:
 #: The parameters each kind takes.
 _NAMES = {
     "state": ("particles", "max_bytes"),
-    "forecast": ("horizon", "dt", "control", "particles", "max_bytes"),
+    "forecast": ("horizon", "horizon_s", "dt", "control", "particles", "max_bytes"),
     "history": ("steps", "time", "topics", "particles", "limit", "max_bytes"),
 }
 
@@ -181,8 +185,21 @@ def parse(kind: str, text) -> StateSelector | ForecastSelector | HistorySelector
         if dt is not None and dt < 0:
             raise SelectorError(f"dt must be seconds >= 0, got {_shown(pairs['dt'])}")
         control = _numbers(pairs["control"], "control", MAX_CONTROLS) if "control" in pairs else None
-        return ForecastSelector(horizon=horizon, dt=dt, control=control, particles=_flag(pairs, "particles"),
-                                max_bytes=_max_bytes(pairs))
+        horizon_s = None
+        if "horizon_s" in pairs:
+            if "horizon" in pairs:
+                raise SelectorError("give horizon= (steps) or horizon_s= (seconds), not both")
+            horizon_s = _number(pairs["horizon_s"], "horizon_s")
+            if horizon_s <= 0:
+                raise SelectorError(f"horizon_s must be seconds > 0, got {_shown(pairs['horizon_s'])}")
+            if not dt:
+                raise SelectorError("horizon_s= needs dt= (seconds a forecast step, > 0)")
+            horizon = math.ceil(horizon_s / dt - 1e-9)
+            if horizon > MAX_HORIZON:
+                raise SelectorError(f"horizon_s={horizon_s:g} in steps of dt={dt:g} is {horizon} steps; at most "
+                                    f"{MAX_HORIZON}: raise dt= or shorten horizon_s=")
+        return ForecastSelector(horizon=horizon, dt=dt, horizon_s=horizon_s, control=control,
+                                particles=_flag(pairs, "particles"), max_bytes=_max_bytes(pairs))
     topics = _topics(pairs.get("topics"))
     if _flag(pairs, "particles") and "entity/particles" not in topics:
         topics = (*topics, "entity/particles")

@@ -119,6 +119,78 @@ def test_a_forecast_of_a_random_walk_has_the_moments_and_band_of_its_predictive_
             assert abs(got - q) < 5 * math.sqrt(p * (1 - p) * sum_w2) / density, (h, p, got, q)
 
 
+class _Walk(DriftModel):
+    """A driven random walk: x_k = x_(k-1) + dt + sqrt(dt) u (a unit velocity, Brownian noise)."""
+
+    def propagate(self, particles, k, rng, noise=None, *, dt):
+        return particles + dt + math.sqrt(dt) * rng.standard_normal(particles.shape)
+
+
+def test_a_horizon_in_seconds_is_steps_of_dt_the_last_one_shorter():
+    from dtpf.entity.forecast import ForecastError, seconds_steps
+
+    selector = queries.parse("forecast", "horizon_s=2;dt=0.3")
+    assert selector.horizon == 7 and selector.horizon_s == 2.0
+    steps, dts = seconds_steps(2.0, 0.3)
+    assert steps == 7 and math.isclose(sum(dts), 2.0) and math.isclose(dts[-1], 0.2)
+    x, w = np.zeros((2000, 1)), np.full(2000, 1 / 2000)
+    ahead = forecast(_Walk(), x, w, 5, steps, dts, seed=SEED, twin=TWIN)
+    assert np.allclose(ahead.seconds, np.cumsum(dts)) and ahead.steps.tolist() == list(range(6, 13))
+    # At 2 s the walk's law is N(2, 2): the mean within 5 sd of its estimate over N particles.
+    assert abs(ahead.mean[-1, 0] - 2.0) < 5 * math.sqrt(2.0 / 2000)
+    assert ahead.points()[-1]["seconds"] == pytest.approx(2.0)
+    for text, says in (("horizon_s=2", "needs dt="), ("horizon_s=2;horizon=3;dt=1", "not both"),
+                       ("horizon_s=0;dt=1", "> 0"), ("horizon_s=1e6;dt=0.001", "at most")):
+        with pytest.raises(queries.SelectorError, match=says):
+            queries.parse("forecast", text)
+    with pytest.raises(ForecastError, match="at most"):
+        seconds_steps(1e6, 1e-3)
+
+
+class _BlockingShell:
+    """A shell whose first publish waits for ``release``: the publisher's thread is busy meanwhile."""
+
+    def __init__(self):
+        import threading
+
+        self.entered, self.release, self.published = threading.Event(), threading.Event(), []
+        self.log, self.stopping = None, False
+
+    def header(self, step):
+        return {"run_id": RUN_ID, "twin_id": TWIN, "step": step}
+
+    def publish(self, message):
+        self.entered.set()
+        self.release.wait(ANSWER)
+        self.published.append(message)
+
+
+def test_each_steps_forecast_is_published_off_the_filters_path_skipping_a_step_rather_than_waiting():
+    from types import SimpleNamespace
+
+    from dtpf.entity.answers import ForecastPublisher, _Latest
+    from dtpf.messages.models import ForecastBand
+
+    shell, model = _BlockingShell(), get_model("ungm")
+    rng = np.random.default_rng(2)
+    sets = {k: (rng.normal(size=(100, 1)), rng.dirichlet(np.ones(100))) for k in range(1, 5)}
+    publisher = ForecastPublisher(shell, SimpleNamespace(twin=TWIN, seed=SEED), model, 3)
+    try:
+        publisher.offer(_Latest(1, {}, 0, *sets[1]))
+        assert shell.entered.wait(ANSWER)
+        for k in (2, 3, 4):  # the thread is busy with step 1: each offer returns at once, 2 and 3 are skipped
+            publisher.offer(_Latest(k, {}, 0, *sets[k]))
+        assert publisher.skipped == 2
+        shell.release.set()
+        wait_until(lambda: len(shell.published) == 2, ANSWER, "the forecasts of steps 1 and 4")
+    finally:
+        publisher.close()
+    assert [m.step for m in shell.published] == [1, 4] and all(isinstance(m, ForecastBand) for m in shell.published)
+    ahead = forecast(model, *sets[4], 4, 3, seed=SEED, twin=TWIN)
+    assert [p.upper for p in shell.published[1].ahead] == ahead.upper.tolist()
+    assert [p.step for p in shell.published[1].ahead] == [5, 6, 7]
+
+
 # --- one live twin ---------------------------------------------------------------------------------------
 
 def wait_until(condition, timeout: float, what: str):
@@ -143,7 +215,8 @@ class LiveTwin:
                                                                       *run, "-o", str(self.log_path)))
         # Preprocessing on with no information layer: the entity publishes each step's particle set and goes on.
         self.entity = self.processes.start("entity", service_args("dtpf.entity.service", self.router.endpoint, *run,
-                                                                  "--startup-timeout", "0", "--cloud-points", "0"))
+                                                                  "--startup-timeout", "0", "--cloud-points", "0",
+                                                                  "--forecast", "3"))
         self.session = self.router.session
         self.sensor = self.session.declare_publisher(f"dtpf/{TWIN}/sensor/observation")
 
@@ -202,6 +275,26 @@ def test_a_forecast_is_the_same_twice_and_propagates_the_recorded_set_of_its_ste
     ahead = forecast(get_model("ungm"), particles, weights, 3, 4, seed=SEED, twin=TWIN)
     assert [entry["mean"] for entry in first["steps"]] == ahead.mean.tolist()
     assert [entry["upper"] for entry in first["steps"]] == ahead.upper.tolist()
+
+
+def test_each_steps_forecast_band_is_published_recorded_and_the_forecast_of_its_set(live):
+    from dtpf.messages.models import ForecastBand
+
+    recorded = wait_until(lambda: live.ask("history", "steps=3;topics=entity/forecast_band,entity/particles")
+                          .first()["messages"], ANSWER * 3, "the recorder holds the forecast band of step 3")
+    by_topic = {entry["topic"].rpartition("/")[2]: entry["message"] for entry in recorded}
+    band = ForecastBand.model_validate(by_topic["forecast_band"])
+    def heard_band(messages):
+        return next((m for m in messages if isinstance(m, ForecastBand) and m.step == 3), None)
+
+    assert live.router.collect(heard_band, ANSWER * 3), "the router heard the forecast band of step 3"
+    heard = heard_band(live.router.messages)
+    assert heard == band and [p.step for p in band.ahead] == [4, 5, 6]
+    particles = np.array(by_topic["particles"]["particles"])
+    ahead = forecast(get_model("ungm"), particles, np.array(by_topic["particles"]["weights"]), 3, 3, seed=SEED,
+                     twin=TWIN)
+    assert [p.mean for p in band.ahead] == ahead.mean.tolist()
+    assert [p.lower for p in band.ahead] == ahead.lower.tolist()
 
 
 def test_garbage_selectors_get_error_replies_and_the_twin_runs_on(live):

@@ -519,6 +519,19 @@ class LiveObservations:
             shell.publish_status()
 
 
+def forecast_horizon(text: str) -> int:
+    """``--forecast H``: 0 (none) .. the most steps a published forecast carries."""
+    from dtpf.messages.models import MAX_FORECAST_HORIZON
+
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if not 0 <= value <= MAX_FORECAST_HORIZON:
+        raise argparse.ArgumentTypeError(f"--forecast takes 0 .. {MAX_FORECAST_HORIZON} steps, got {text!r}")
+    return value
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="python -m dtpf.entity.service",
@@ -533,7 +546,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--cloud-points", type=int, default=1000, metavar="K",
                         help="publish each step's particle set as a foxglove.PointCloud on dtpf/<twin>/entity/cloud, "
                              "at most K particles (every ceil(N/K)-th; 0: none) (default: %(default)s)")
-    parser.add_argument("--forecast", type=int, default=0, metavar="H",
+    parser.add_argument("--forecast", type=forecast_horizon, default=0, metavar="H",
                         help="also publish each step's forecast H steps ahead (mean, variance, 95%% band) on "
                              "dtpf/<twin>/entity/forecast_band, off the filter's path: a step that finds the "
                              "last one's forecast still being made is skipped (default: 0, none)")

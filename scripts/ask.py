@@ -5,6 +5,7 @@
     dtpf ask ungm-1 state --connect tcp/127.0.0.1:7447
     dtpf ask ungm-1 history --steps 10:20 --connect tcp/127.0.0.1:7447 --json
     dtpf ask ungm-1 forecast --horizon 5 --connect tcp/127.0.0.1:7447
+    dtpf ask robot-1 forecast --seconds 2 --dt 0.1 --connect tcp/127.0.0.1:7447   # a driven twin, 2 s ahead
 
     import dtpf
     dtpf.ask("ungm-1", "forecast", connect="tcp/127.0.0.1:7447", horizon=5)["steps"]
@@ -68,8 +69,8 @@ def _selector(args: argparse.Namespace) -> dict:
     if args.what == "state":
         return {"particles": args.particles, "max_bytes": args.max_bytes}
     if args.what == "forecast":
-        return {"horizon": args.horizon, "dt": args.dt, "control": args.control, "particles": args.particles,
-                "max_bytes": args.max_bytes}
+        return {"horizon": args.horizon, "horizon_s": args.seconds, "dt": args.dt, "control": args.control,
+                "particles": args.particles, "max_bytes": args.max_bytes}
     return {"steps": args.steps, "time": args.time, "topics": args.topics, "particles": args.particles,
             "limit": args.limit, "max_bytes": args.max_bytes}
 
@@ -79,6 +80,11 @@ def cmd_ask(args: argparse.Namespace) -> int:
     if not (args.connect or args.secure or args.zenoh_config):
         print("dtpf ask: error: give --connect ENDPOINT: the router of a dtpf launch, or the --listen of a "
               "dtpf serve", file=sys.stderr)
+        return 2
+    try:
+        queries.parse(args.what, queries.parameters_text(**_selector(args)))  # a mistake said before connecting
+    except queries.SelectorError as error:
+        print(f"dtpf ask: error: {error}", file=sys.stderr)
         return 2
     try:
         session = open_session(zenoh_config_from_args(args, role="viewer"))
@@ -132,8 +138,9 @@ def describe(what: str, answer: dict) -> str:
                  f"  {'step':>6}  {'mean':>10}  {'sd':>10}  95% band"]
         for entry in answer.get("steps", []):
             sd = [v ** 0.5 for v in entry.get("var", [])]
+            ahead = f" (+{entry['seconds']:.3g} s)" if "seconds" in entry else ""
             lines.append(f"  {entry.get('step'):>6}  {_numbers(entry.get('mean')):>10}  {_numbers(sd):>10}  "
-                         f"{_numbers(entry.get('lower'))} .. {_numbers(entry.get('upper'))}")
+                         f"{_numbers(entry.get('lower'))} .. {_numbers(entry.get('upper'))}{ahead}")
         return "\n".join(lines)
     lines = [f"twin {answer.get('twin')}: {answer.get('count')} messages"]
     for entry in answer.get("messages", []):
@@ -186,6 +193,9 @@ def register(subparsers) -> None:
     group = parser.add_argument_group("forecast")
     group.add_argument("--horizon", type=int, default=None, metavar="H",
                        help=f"steps ahead (default: {queries.ForecastSelector.horizon}; at most {queries.MAX_HORIZON})")
+    group.add_argument("--seconds", type=float, default=None, metavar="S",
+                       help="a driven twin: a horizon of S seconds instead of --horizon steps, in steps of --dt "
+                            "(the last one shorter)")
     group.add_argument("--dt", type=float, default=None, metavar="SECONDS",
                        help="a driven twin: seconds a forecast step")
     group.add_argument("--control", type=_control, default=None,

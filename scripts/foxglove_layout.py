@@ -1,9 +1,11 @@
 """``dtpf layout``: a Foxglove layout for a twin, built with foxglove-sdk's layout API.
 
-Four panels: the estimate against the truth with its 95% band (Plot), ESS/N
-and PS with the degraded steps (Plot), the particle cloud coloured by weight
-(3D), and the video frame with the particles drawn over it (Image; the video
-scenario only). In Foxglove: Layouts, Import from file::
+Five panels: the estimate against the truth with its 95% band (Plot), the
+latest forecast's mean and 95% band over the steps ahead (Plot; an entity run
+with ``--forecast H``), ESS/N and PS with the degraded steps (Plot), the
+particle cloud coloured by weight (3D), and the video frame with the particles
+drawn over it (Image; the video scenario only). In Foxglove: Layouts, Import
+from file::
 
     dtpf layout --twin ungm-1 -o docs/foxglove-layout.json
 """
@@ -32,6 +34,13 @@ def layout_json(twin: str) -> str:
         series(f"{estimate_topic}.lower[0]", "lower 95%", color="#ff9896", line_style="dashed"),
         series(f"{estimate_topic}.upper[0]", "upper 95%", color="#ff9896", line_style="dashed"),
     ], show_legend=True))
+    band_topic = f'"dtpf/{twin}/entity/forecast_band"'
+    ahead = fl.PlotPanel(title="forecast ahead of the latest step, 95% band", config=fl.PlotConfig(
+        paths=[series(f"{band_topic}.ahead[:].mean[0]", "forecast", color="#d62728"),
+               series(f"{band_topic}.ahead[:].lower[0]", "lower 95%", color="#ff9896", line_style="dashed"),
+               series(f"{band_topic}.ahead[:].upper[0]", "upper 95%", color="#ff9896", line_style="dashed")],
+        x_axis_val="currentCustom", x_axis_path=fl.PlotXAxisPath(value=f"{band_topic}.ahead[:].step", enabled=True),
+        x_axis_label="step", show_legend=True))
     health = fl.PlotPanel(title="ESS/N, PS, degraded", config=fl.PlotConfig(paths=[
         series(f"{estimate_topic}.ess_ratio", "ESS/N", color="#2ca02c"),
         series(f"{estimate_topic}.ps", "PS applied", color="#9467bd"),
@@ -45,7 +54,8 @@ def layout_json(twin: str) -> str:
                                       annotations={f"dtpf/{twin}/entity/annotations": fl.ImageAnnotationSettings(visible=True)})))
     content = fl.SplitContainer(direction="column", items=[
         fl.SplitItem(proportion=1, content=fl.SplitContainer(direction="row", items=[
-            fl.SplitItem(proportion=2, content=estimate), fl.SplitItem(proportion=1, content=health)])),
+            fl.SplitItem(proportion=2, content=estimate), fl.SplitItem(proportion=1, content=ahead),
+            fl.SplitItem(proportion=1, content=health)])),
         fl.SplitItem(proportion=1, content=fl.SplitContainer(direction="row", items=[
             fl.SplitItem(proportion=1, content=cloud), fl.SplitItem(proportion=1, content=frame)])),
     ])
@@ -69,7 +79,7 @@ def cmd_layout(args: argparse.Namespace) -> int:
 def register(subparsers) -> None:
     """Add the ``layout`` command to an argparse subparsers object."""
     parser = subparsers.add_parser(
-        "layout", help="write a Foxglove layout for a twin: estimate and band, ESS/N and PS, cloud, frame",
+        "layout", help="write a Foxglove layout for a twin: estimate and band, forecast, ESS/N and PS, cloud, frame",
         description=__doc__.split("\n\n")[1].replace("\n", " "))
     parser.add_argument("--twin", default="ungm-1", help="twin the layout shows (default: %(default)s)")
     parser.add_argument("--output", "-o", type=Path, default=None, metavar="FILE",

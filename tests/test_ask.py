@@ -191,6 +191,16 @@ def test_each_steps_forecast_is_published_off_the_filters_path_skipping_a_step_r
     assert [p.step for p in shell.published[1].ahead] == [5, 6, 7]
 
 
+def test_the_foxglove_layout_draws_the_forecast_band_and_docs_holds_the_one_dtpf_layout_writes():
+    pytest.importorskip("foxglove")
+    from conftest import ROOT
+    from dtpf.scripts.foxglove_layout import layout_json
+
+    written = json.loads(layout_json("ungm-1"))
+    assert json.loads((ROOT / "docs" / "foxglove-layout.json").read_text()) == written
+    assert '"dtpf/ungm-1/entity/forecast_band".ahead[:].step' in json.dumps(written).replace('\\"', '"')
+
+
 # --- one live twin ---------------------------------------------------------------------------------------
 
 def wait_until(condition, timeout: float, what: str):

@@ -137,7 +137,7 @@ def test_layout_names_the_twins_topics_in_its_panels(tmp_path):
             walk(item["content"])
 
     walk(layout["content"])
-    assert sorted(panels) == ["Image", "Plot", "Plot", "ThreeDee"]
+    assert sorted(panels) == ["Image", "Plot", "Plot", "Plot", "ThreeDee"]
     strings = set()
 
     def strings_of(node):
@@ -153,7 +153,7 @@ def test_layout_names_the_twins_topics_in_its_panels(tmp_path):
 
     strings_of(layout)
     for topic in ('"dtpf/t-lay/entity/estimate".mean[0]', "dtpf/t-lay/entity/cloud", "dtpf/t-lay/entity/frame",
-                  "dtpf/t-lay/entity/annotations"):
+                  "dtpf/t-lay/entity/annotations", '"dtpf/t-lay/entity/forecast_band".ahead[:].upper[0]'):
         assert topic in strings, topic
 
 

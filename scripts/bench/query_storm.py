@@ -7,12 +7,12 @@ time is its estimate's ``stamp`` minus its observation's ``stamp`` (wall clocks 
 just before each is published): the lockstep step as the sensor sees it. In a *queried* run a child
 process of this script (its own interpreter, so that asking takes nothing from the sensor's) asks the
 entity ``dtpf/<twin>/entity/state`` ``--qps`` times a second from the first observation to the last, and
-counts the answers, the refusals (with their reasons) and the largest answer. Runs of the two modes
+counts the answers, the error replies (by their first words) and the largest answer. Runs of the two modes
 alternate (unqueried, queried, unqueried, ...); the first ``--warm-up`` steps of each are left out.
 
 The table: per mode, the median over runs of each run's median step time, its p90, the runs' range; the
 ratio queried / unqueried of the medians (and of each pair of runs, their range); the questions asked,
-answered and refused::
+answered and replied with an error::
 
     python -m dtpf.scripts.bench.query_storm                 # N = 1000, 20 steps/s, 200 steps, 3 runs a mode
     python -m dtpf.scripts.bench.query_storm --steps 100 --repeats 2

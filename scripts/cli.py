@@ -195,6 +195,10 @@ def cmd_launch(args: argparse.Namespace) -> int:
               f"another terminal: {sensor_command(config, endpoint, args.secure)}", file=sys.stderr)
         print("dtpf: Ctrl-C ends the run", file=sys.stderr)
     if args.twins is not None:
+        if args.forecast:
+            print("dtpf launch: error: --forecast publishes one twin's forecasts; it does not go with --twins",
+                  file=sys.stderr)
+            return 2
         return _launch_fleet(config, args, port)
     try:
         result = launch(config, log_path=args.log, port=port, timeout=args.timeout,
@@ -204,7 +208,7 @@ def cmd_launch(args: argparse.Namespace) -> int:
                         restarts=0 if args.no_restart else args.restarts, keep_estimates=False,
                         notify=lambda text: print(f"\ndtpf launch: {text}", file=sys.stderr, flush=True),
                         cloud_points=args.cloud_points, foxglove=args.foxglove, secure=args.secure,
-                        ros2=ros2_words)
+                        ros2=ros2_words, forecast=args.forecast)
     except LaunchError as error:
         print(f"dtpf launch: error: {error}", file=sys.stderr)
         return 1
@@ -256,6 +260,16 @@ def _finish(summary: str, failure: str | None, interrupted: bool) -> int:
         print(f"dtpf launch: error: {failure}", file=sys.stderr)
         return 1
     return 130 if interrupted else 0
+
+
+def _forecast_horizon(text: str) -> int:
+    """``--forecast H``: 0 (none) .. the most steps a published forecast carries."""
+    from dtpf.messages.models import MAX_FORECAST_HORIZON
+
+    value = int(text) if text.strip().isdigit() else -1
+    if not 0 <= value <= MAX_FORECAST_HORIZON:
+        raise argparse.ArgumentTypeError(f"--forecast takes 0 .. {MAX_FORECAST_HORIZON} steps, got {text!r}")
+    return value
 
 
 def _launch_fleet(config, args: argparse.Namespace, port: int) -> int:
@@ -356,6 +370,10 @@ def build_parser() -> argparse.ArgumentParser:
                             "on dtpf/<twin>/entity/cloud, at most K particles: every ceil(N/K)-th (0: none) "
                             "(default: 1000; with --twins, 0: a hundred twins' clouds are more than one recorder "
                             "can check and write)")
+    group.add_argument("--forecast", type=_forecast_horizon, default=0, metavar="H",
+                       help="the entity also publishes each step's forecast H steps ahead (mean, variance, 95%% "
+                            "band) on dtpf/<twin>/entity/forecast_band, recorded, drawn by the Foxglove layout "
+                            "(default: 0, none; docs/guides/ask.md)")
     group.add_argument("--secure", metavar="DIR", default=None,
                        help="a folder made by 'dtpf secure init' (DIR, DIR/tls or DIR/usrpwd): the router "
                             "listens on tls/ (or tcp/ with passwords) and enforces its access control, each "

@@ -382,7 +382,7 @@ def default_log_path(config: RunConfig) -> Path:
 def service_command(layer: str, config: RunConfig, endpoint: str, *, timeout: float, log_path: Path,
                     log_level: str, rate: float | None = None,
                     observation_timeout: float | None = None, cloud_points: int | None = None,
-                    secure: Path | None = None, wait_for_recorder: bool = True) -> list[str]:
+                    secure: Path | None = None, wait_for_recorder: bool = True, forecast: int = 0) -> list[str]:
     """The command line of one child service (``secure``: the secure folder; its role is the layer;
     ``wait_for_recorder``: the entity waits for its twin's recorder too)."""
     # -P: the child never imports from the working directory, where a user's own messages.py or
@@ -438,6 +438,8 @@ def service_command(layer: str, config: RunConfig, endpoint: str, *, timeout: fl
             command += ["--observation-timeout", repr(observation_timeout)]
         if cloud_points is not None:
             command += ["--cloud-points", str(cloud_points)]
+        if forecast:
+            command += ["--forecast", str(forecast)]
     if layer == "recorder":
         command += ["--output", str(log_path)]
     return command
@@ -509,7 +511,7 @@ def launch(config: RunConfig, *, log_path: Path | None = None, port: int | None 
            observation_timeout: float | None = None, restarts: int = DEFAULT_RESTARTS,
            keep_estimates: bool = True, notify=None, cloud_points: int | None = None,
            foxglove: tuple[str, int] | None = None, secure=None, record: bool = True,
-           ros2: list[str] | None = None, overwrite: bool = False) -> LaunchResult:
+           ros2: list[str] | None = None, overwrite: bool = False, forecast: int = 0) -> LaunchResult:
     """Run ``config`` as four processes around an embedded Zenoh router.
 
     ``rate`` caps the entity's steps per second (None: as fast as it can).
@@ -524,7 +526,7 @@ def launch(config: RunConfig, *, log_path: Path | None = None, port: int | None 
     summary's figures, constant memory on long runs).
     ``notify(text)`` is told at once when a layer dies or is started again
     (default: a line on stderr). ``cloud_points``: the entity's ``--cloud-points``
-    (None: its default). ``foxglove``: (host, port) to serve the run live to
+    (None: its default); ``forecast``: its ``--forecast`` (0: none). ``foxglove``: (host, port) to serve the run live to
     Foxglove from the launcher (:mod:`dtpf.scripts.foxglove_bridge`). ``secure``: a
     folder of ``dtpf secure init`` (:mod:`dtpf.shell.secure`); the router then
     listens on its protocol (``tls/`` or ``tcp/`` with passwords) and enforces
@@ -563,7 +565,8 @@ def launch(config: RunConfig, *, log_path: Path | None = None, port: int | None 
         children[layer] = subprocess.Popen(
             service_command(layer, config, endpoint, timeout=timeout, log_path=output, log_level=log_level,
                             rate=rate, observation_timeout=observation_timeout, cloud_points=cloud_points,
-                            secure=secure.path if secure is not None else None, wait_for_recorder=record),
+                            secure=secure.path if secure is not None else None, wait_for_recorder=record,
+                            forecast=forecast),
             stderr=child_output, start_new_session=True)
         layer_of_pid[children[layer].pid] = layer
         if layer == "recorder" and record:

@@ -91,6 +91,29 @@ def access_control(kind: str, twins: str = "*") -> dict:
                    "messages": ["declare_queryable", "reply"], "key_exprs": answered},
                   {"id": f"{role}-asked", "permission": "allow", "flows": ["egress"], "messages": ["query"],
                    "key_exprs": answered}]
+    # Zenoh's advanced publishers and subscribers (a recorder's recovery of what it missed, a service's history of
+    # its twins' statuses) talk on <key>/@adv/...: a publisher's cache answers queries, beats and declares its
+    # liveliness token on <key>/@adv/pub/<zid>/<eid>/..., a subscriber asks and listens there and declares its own
+    # token on <key>/@adv/sub/.... '**' does not match the verbatim chunk '@adv', so these keys have rules of their
+    # own. Every role may ask and listen; a role may answer, beat and announce only under its own keys, so a
+    # recovered message is as trustworthy as a live one.
+    caches = "dtpf/**/@adv/**" if twins == "*" else f"dtpf/{twins}/**/@adv/**"
+    listening = ["query", "declare_subscriber", "declare_liveliness_subscriber", "liveliness_query", "liveliness_token"]
+    rules += [
+        {"id": "cache-listen", "permission": "allow", "flows": ["ingress"], "messages": listening,
+         "key_exprs": [caches]},
+        {"id": "cache-delivered", "permission": "allow", "flows": ["egress"],
+         "messages": [*listening, "put", "reply", "declare_queryable"], "key_exprs": [caches]},
+    ]
+    # A cache answers with the messages themselves, on their own keys: a role replies only on its own.
+    rules.append({"id": "cache-replies-delivered", "permission": "allow", "flows": ["egress"], "messages": ["reply"],
+                  "key_exprs": [_twin_keys(twins, "")]})
+    for role in PUTTING_ROLES:
+        rules.append({"id": f"{role}-cache", "permission": "allow", "flows": ["ingress"],
+                      "messages": ["put", "reply", "declare_queryable", "liveliness_token"],
+                      "key_exprs": [_twin_keys(twins, f"{role}/**/@adv/**")]})
+        rules.append({"id": f"{role}-cache-replies", "permission": "allow", "flows": ["ingress"],
+                      "messages": ["reply"], "key_exprs": [_twin_keys(twins, f"{role}/**")]})
     field = "cert_common_names" if kind == "tls" else "usernames"
     subjects = [{"id": role, field: [role]} for role in ROLES]
     policies = [{"id": "readers", "rules": ["read", "delivered"], "subjects": list(READING_ROLES)},
@@ -99,6 +122,10 @@ def access_control(kind: str, twins: str = "*") -> dict:
     policies += [{"id": f"{role}-writes", "rules": [f"{role}-puts", "hears-subscribers"],
                   "subjects": [role]} for role in PUTTING_ROLES]
     policies += [{"id": "askers", "rules": ["ask", "hear-answers"], "subjects": list(READING_ROLES)}]
+    policies += [{"id": "caches", "rules": ["cache-listen", "cache-delivered", "cache-replies-delivered"],
+                  "subjects": list(ROLES)}]
+    policies += [{"id": f"{role}-caches", "rules": [f"{role}-cache", f"{role}-cache-replies"], "subjects": [role]}
+                 for role in PUTTING_ROLES]
     policies += [{"id": f"{role}-answers", "rules": [f"{role}-answers", f"{role}-asked"], "subjects": [role]}
                  for role in ("entity", "recorder")]
     return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects,

@@ -363,3 +363,47 @@ def test_a_message_on_a_layers_key_must_name_that_layer_and_twin():
         decode_for_key("dtpf/t-own/entity/status", status("system"))
     with pytest.raises(MessageError, match="twin_id 't-other'"):
         decode_for_key("dtpf/t-own/entity/status", status("entity", twin="t-other"))
+
+
+@pytest.mark.parametrize("kind", ["tls", "usrpwd"])
+def test_a_recorder_recovers_from_a_layers_cache_and_no_other_role_can_answer_for_it(folder, kind):
+    """Zenoh's advanced publishers and subscribers talk on <key>/@adv/..., which '**' does not match: the access
+    rules let a recorder ask the entity's cache for what it missed, and refuse a viewer's queryable that offers
+    forged messages under the entity's keys."""
+    deployment = open_secure_dir(folder / kind)
+    port = free_port()
+    endpoint = deployment.endpoint("127.0.0.1", port)
+    router = open_session(zenoh_config(secure=deployment, role="router", listen=[endpoint]))
+    sessions, declared = [], []
+    try:
+        def client(role):
+            sessions.append(open_session(zenoh_config(secure=deployment, role=role, connect=[endpoint])))
+            return sessions[-1]
+
+        key = "dtpf/t-cache/entity/estimate"
+        entity = publisher(client("entity"), key, cache_samples=50)
+        declared.append(entity)
+        for step in range(1, 21):  # before the recorder subscribes: only the cache has them
+            entity.put(f"step {step}".encode())
+        viewer = client("viewer")
+        declared.append(viewer.liveliness().declare_token(f"{key}/@adv/pub/forged/1/_"))
+        declared.append(viewer.declare_queryable(f"{key}/@adv/pub/forged/1/_",
+                                                 lambda query: query.reply(key, b"forged")))
+        inbox = Inbox(client("recorder"), "dtpf/t-cache/**", recover=True)
+        heard: list[bytes] = []
+        deadline = time.monotonic() + 60.0
+        while len(heard) < 20 and time.monotonic() < deadline:
+            item = inbox.get(timeout=0.1)
+            if item is not None and item.payload:
+                heard.append(item.payload)
+        time.sleep(0.5)  # a forged answer would have come with the cache's
+        while (item := inbox.get(timeout=0)) is not None:
+            heard.append(item.payload)
+        assert heard == [f"step {step}".encode() for step in range(1, 21)]
+        inbox.close()
+    finally:
+        for thing in reversed(declared):
+            thing.undeclare()
+        for session in sessions:
+            session.close()
+        router.close()

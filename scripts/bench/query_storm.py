@@ -76,7 +76,7 @@ def asker(endpoint: str, twin: str, qps: float) -> int:
         tick += period
         time.sleep(max(0.0, tick - time.monotonic()))
     session.close()
-    print(json.dumps({"asked": asked, "answered": answered, "largest": largest, "refused": dict(reasons)}),
+    print(json.dumps({"asked": asked, "answered": answered, "largest": largest, "errors": dict(reasons)}),
           flush=True)
     return 0
 
@@ -207,7 +207,7 @@ def main(argv=None) -> int:
     asked = sum(c["asked"] for c in counts)
     refused = Counter()
     for c in counts:
-        refused.update(c["refused"])
+        refused.update(c["errors"])
     print(f"\nquestions: {asked} asked, {sum(c['answered'] for c in counts)} answered, error replies "
           f"{dict(refused) or 0}; largest answer {max((c['largest'] for c in counts), default=0)} bytes")
     return 0

@@ -201,6 +201,18 @@ def test_the_foxglove_layout_draws_the_forecast_band_and_docs_holds_the_one_dtpf
     assert '"dtpf/ungm-1/entity/forecast_band".ahead[:].step' in json.dumps(written).replace('\\"', '"')
 
 
+def test_the_calibration_tables_interval_and_a_small_run(capsys):
+    from dtpf.scripts.paper import forecast_calibration as calibration
+
+    low, high = calibration.wilson(950, 1000)  # the Wilson interval of 95% of 1000: 0.935 .. 0.962
+    assert (round(low, 3), round(high, 3)) == (0.935, 0.962)
+    assert calibration.wilson(0, 10)[0] == 0.0 and calibration.wilson(10, 10)[1] == pytest.approx(1.0)
+    assert calibration.main(["--seeds", "4", "--steps", "5", "--particles", "200", "--scenarios", "drift"]) == 0
+    rows = [line for line in capsys.readouterr().out.splitlines() if line.startswith("| drift")]
+    assert len(rows) == 1 and rows[0].count("(") == len(calibration.HORIZONS)
+    assert calibration.main(["--seeds", "0"]) == 2
+
+
 # --- one live twin ---------------------------------------------------------------------------------------
 
 def wait_until(condition, timeout: float, what: str):

@@ -213,6 +213,45 @@ def test_the_calibration_tables_interval_and_a_small_run(capsys):
     assert calibration.main(["--seeds", "0"]) == 2
 
 
+def test_a_driven_twin_answers_a_horizon_in_seconds_and_publishes_with_its_last_steps_dt():
+    import logging
+    from types import SimpleNamespace
+
+    from dtpf.entity.answers import ForecastPublisher, LiveAnswers
+    from dtpf.entity.timeline import Drive
+
+    shell = SimpleNamespace(session=None, log=logging.getLogger("test-ask"), state=SimpleNamespace(value="running"),
+                            detail=None, header=lambda step: {"run_id": RUN_ID, "twin_id": TWIN, "step": step})
+    config = SimpleNamespace(twin=TWIN, seed=SEED)
+    answers = LiveAnswers(shell, config, _Walk())  # no session: no queryables, the answers all the same
+    x, w = np.zeros((500, 1)), np.full(500, 1 / 500)
+    answers.keep(SimpleNamespace(step=9, particles=x, weights=w, drive=Drive(np.array([[0.25]]))), {})
+    answer = json.loads(answers.answer_forecast("", "horizon_s=1;dt=0.3"))
+    assert [entry["step"] for entry in answer["steps"]] == [10, 11, 12, 13]
+    assert [entry["seconds"] for entry in answer["steps"]] == pytest.approx([0.3, 0.6, 0.9, 1.0])
+    publisher = ForecastPublisher(shell, config, _Walk(), 2)
+    try:
+        band = publisher.message(answers.latest)  # steps of the last step's 0.25 s: the mean moves 0.25 a step
+        assert [p.step for p in band.ahead] == [10, 11]
+        assert abs(band.ahead[1].mean[0] - 0.5) < 5 * math.sqrt(0.5 / 500)
+        first = answers.latest.__class__(1, {}, 0, x, w, None)
+        assert publisher.message(first) is None  # a driven twin's first step has no dt: nothing to publish
+    finally:
+        publisher.close()
+    with pytest.raises(queries.SelectorError, match="takes no dt"):
+        _ungm_answers(shell, config, x, w).answer_forecast("", "horizon_s=1;dt=0.5")
+
+
+def _ungm_answers(shell, config, x, w):
+    from types import SimpleNamespace
+
+    from dtpf.entity.answers import LiveAnswers
+
+    answers = LiveAnswers(shell, config, get_model("ungm"))
+    answers.keep(SimpleNamespace(step=2, particles=x, weights=w, drive=None), {})
+    return answers
+
+
 # --- one live twin ---------------------------------------------------------------------------------------
 
 def wait_until(condition, timeout: float, what: str):

@@ -520,7 +520,10 @@ def test_topic_table():
     assert table[("recorder", "missed")] == (Missed, None)
     assert table[("entity", "cloud")] == (PointCloud, None)
     assert table[("entity", "annotations")] == (ImageAnnotations, None)
-    assert len(table) == 17
+    from dtpf.messages.models import ForecastBand
+
+    assert table[("entity", "forecast_band")] == (ForecastBand, None)
+    assert len(table) == 18
 
 
 @pytest.mark.parametrize("make, key", [

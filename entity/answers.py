@@ -135,8 +135,9 @@ class ForecastPublisher:
     """Publishes the forecast of each step it is offered, ``horizon`` steps ahead, on a thread of its own.
 
     One step waits at most: :meth:`offer` replaces a step still waiting (skipped, counted) and never blocks.
-    A driven twin's forecast steps last as long as the step it starts from (its drive's dt) and hold zero
-    control. A forecast that cannot be made (a model that fails) is said once in the log and skipped.
+    A driven twin's forecast steps last as long as the step it starts from (its drive's dt; the last step
+    with a dt above zero when two observations share a stamp) and hold zero control. A forecast that cannot
+    be made (a model that fails) is said once in the log and skipped.
     """
 
     def __init__(self, shell, config, model, horizon: int):
@@ -145,6 +146,8 @@ class ForecastPublisher:
         self.shell, self.config, self.model, self.horizon = shell, config, model, int(horizon)
         self.takes_dt = ModelCalls(model).takes_dt
         self.published = self.skipped = self.failed = 0
+        #: The last step length above zero (a driven twin's), which the forecast steps take.
+        self.dt: float | None = None
         self._waiting: _Latest | None = None
         self._closed = False
         self._ready = threading.Condition()
@@ -160,8 +163,10 @@ class ForecastPublisher:
             self._ready.notify()
 
     def message(self, latest: _Latest) -> ForecastBand | None:
-        """The ForecastBand of ``latest`` (None: a driven twin's first step, which has no dt yet)."""
-        dt = latest.dt if self.takes_dt else None
+        """The ForecastBand of ``latest`` (None: a driven twin before a step with a dt above zero)."""
+        if self.takes_dt and latest.dt:
+            self.dt = latest.dt
+        dt = self.dt if self.takes_dt else None
         if self.takes_dt and not dt:
             return None
         ahead = forecast(self.model, latest.particles, latest.weights, latest.step, self.horizon,

@@ -231,11 +231,14 @@ def test_a_driven_twin_answers_a_horizon_in_seconds_and_publishes_with_its_last_
     assert [entry["seconds"] for entry in answer["steps"]] == pytest.approx([0.3, 0.6, 0.9, 1.0])
     publisher = ForecastPublisher(shell, config, _Walk(), 2)
     try:
+        first = answers.latest.__class__(1, {}, 0, x, w, None)
+        assert publisher.message(first) is None  # a driven twin's first step has no dt: nothing to publish
         band = publisher.message(answers.latest)  # steps of the last step's 0.25 s: the mean moves 0.25 a step
         assert [p.step for p in band.ahead] == [10, 11]
         assert abs(band.ahead[1].mean[0] - 0.5) < 5 * math.sqrt(0.5 / 500)
-        first = answers.latest.__class__(1, {}, 0, x, w, None)
-        assert publisher.message(first) is None  # a driven twin's first step has no dt: nothing to publish
+        same_stamp = answers.latest.__class__(10, {}, 0, x, w, 0.0)  # two observations of one stamp: dt 0
+        expected = forecast(_Walk(), x, w, 10, 2, seed=SEED, twin=TWIN, dt=0.25)  # the last dt above zero
+        assert [p.mean for p in publisher.message(same_stamp).ahead] == expected.mean.tolist()
     finally:
         publisher.close()
     with pytest.raises(queries.SelectorError, match="takes no dt"):

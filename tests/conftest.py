@@ -30,16 +30,17 @@ ROOT = Path(__file__).resolve().parent.parent
 #: (a hole of the product under load, not of the test; alone it passed 5 of 5).
 RUN_LAST = {"test_partition.py"}
 FILE_SECONDS = {
-    "test_components.py": 106, "test_one_twin.py": 57, "test_one_log.py": 51, "test_compare.py": 28,
-    "test_damaged_files.py": 23, "test_thresholds.py": 8,
-    "test_fuzz.py": 104, "test_resilience.py": 97, "test_real_twin.py": 76, "test_fleet.py": 73,
-    "test_services.py": 38, "test_nothing_lost.py": 36, "test_partition.py": 33, "test_packaging.py": 28,
-    "test_ros2_live.py": 28, "test_schemas.py": 28, "test_security.py": 27, "test_tracking.py": 27,
-    "test_cli_habits.py": 27, "test_plot.py": 19, "test_guard.py": 19, "test_replay.py": 18,
-    "test_ros2_bag.py": 17, "test_experiments.py": 17, "test_choose.py": 15, "test_newcomer.py": 14,
-    "test_foxglove_live.py": 11, "test_logfile.py": 8, "test_policy.py": 6, "test_mcap_file.py": 5,
-    "test_observations.py": 4,
-    "test_rules.py": 4, "test_resampling.py": 2, "test_messages.py": 2, "test_filter.py": 2,
+    "test_components.py": 88, "test_real_twin.py": 48, "test_one_log.py": 42, "test_ros2_live.py": 41,
+    "test_damaged_files.py": 38, "test_services.py": 36, "test_security.py": 36, "test_compare.py": 33,
+    "test_cli_habits.py": 31, "test_fleet.py": 29, "test_packaging.py": 25, "test_nothing_lost.py": 24,
+    "test_schemas.py": 24, "test_ros2_driven.py": 22, "test_ros2_bag.py": 19, "test_foxglove_live.py": 18,
+    "test_plot.py": 16, "test_guard.py": 16, "test_one_twin.py": 14, "test_tracking.py": 14, "test_replay.py": 12,
+    "test_newcomer.py": 11, "test_ask.py": 9, "test_thresholds.py": 9, "test_filter.py": 8, "test_driven.py": 8,
+    "test_fuzz.py": 8, "test_missed.py": 7, "test_choose.py": 7, "test_policy.py": 7, "test_resilience.py": 6,
+    "test_logfile.py": 5, "test_mcap_file.py": 2, "test_rules.py": 1, "test_observations.py": 1,
+    "test_messages.py": 1, "test_resampling.py": 1,
+    # files only the long tier runs
+    "test_experiments.py": 39, "test_serve_again.py": 21,
 }
 
 
@@ -64,6 +65,11 @@ LONG = {
     "test_fleet.py::test_a_fleet_launch_restarts_a_killed_shared_service_and_every_twin_finishes",
     "test_fleet.py::test_a_fleet_launch_restarts_a_killed_recorder_and_the_segments_hold_every_twin",
     "test_nothing_lost.py::test_a_status_flood_does_not_hold_the_end_of_a_launch",
+    "test_nothing_lost.py::test_a_router_stalled_longer_than_zenohs_wait_loses_none_of_a_clients_blocked_messages",
+    "test_nothing_lost.py::test_a_launch_onto_a_full_disk_ends_its_log_cleanly_and_says_up_to_which_step",
+    "test_services.py::test_entity_survives_the_information_layer_being_killed_and_restarted",
+    "test_real_twin.py::test_a_live_twin_follows_its_sensor_waits_when_it_dies_and_continues_when_it_is_back",
+    "test_one_twin.py::test_a_competitor_of_one_twin_of_a_fleet_fails_the_fleet_and_is_named",
 }
 
 

@@ -72,20 +72,23 @@ READER_ARGS = ("--model", str(EXAMPLES / "range_bearing.py:RangeBearingTarget"),
                "--observations", str(EXAMPLES / "components" / "range_bearing.txt"))
 
 
-@pytest.mark.parametrize("family", sorted(COMPONENTS))
-def test_a_users_member_runs_launches_with_the_same_numbers_and_verifies(user, family, tmp_path):
-    flag, reference = COMPONENTS[family]
-    args = ("-q", "-n", "300", "-T", "25", "--seed", "5", flag, str(user / reference))
-    ran = dtpf("run", *args, cwd=tmp_path)
+def test_a_users_members_run_launch_with_the_same_numbers_and_verify(user, tmp_path):
+    """A resampler, a move and a policy of the user's, all in one run: dtpf launch gives dtpf run's numbers, the
+    log records each member with its file's SHA-256, and dtpf verify re-runs them bit for bit."""
+    members = [value for family in sorted(COMPONENTS) for value in
+               (COMPONENTS[family][0], str(user / COMPONENTS[family][1]))]
+    base = ("-q", "-n", "300", "-T", "25", "--seed", "5")
+    ran = dtpf("run", *base, *members, cwd=tmp_path)
     assert ran.returncode == 0, ran.stderr
-    launched = dtpf("launch", *args, "-o", "run.mcap", cwd=tmp_path)
+    launched = dtpf("launch", *base, *members, "-o", "run.mcap", cwd=tmp_path)
     assert launched.returncode == 0, launched.stderr
     assert figures(launched.stdout) == figures(ran.stdout) and len(figures(ran.stdout)) == 5
-    plain = dtpf("run", "-q", "-n", "300", "-T", "25", "--seed", "5", cwd=tmp_path)
-    if family != "resampler":  # the numpy resampler is the built-in systematic, bit for bit
-        assert figures(plain.stdout) != figures(ran.stdout)
-    else:
-        assert figures(plain.stdout) == figures(ran.stdout)
+    plain = dtpf("run", *base, cwd=tmp_path)
+    assert figures(plain.stdout) != figures(ran.stdout)
+    # The numpy resampler alone is the built-in systematic, bit for bit.
+    flag, reference = COMPONENTS["resampler"]
+    resampled = dtpf("run", *base, flag, str(user / reference), cwd=tmp_path)
+    assert figures(resampled.stdout) == figures(plain.stdout)
     verified = dtpf("verify", "run.mcap", cwd=tmp_path)
     assert verified.returncode == 0, verified.stdout + verified.stderr
     assert "OK: 25 steps reproduced exactly" in verified.stdout
@@ -95,9 +98,10 @@ def test_a_users_member_runs_launches_with_the_same_numbers_and_verifies(user, f
     statuses = [m for _, m in read_log(tmp_path / "run.mcap").decoded(lambda topic: topic.endswith("/status"))]
     recorded = {(c.field, c.reference, c.sha256) for s in statuses for c in s.components}
     import hashlib
-    digest = hashlib.sha256((user / reference.split(":")[0]).read_bytes()).hexdigest()
-    field = {"resampler": "resampler", "move": "jitter", "policy": "policy"}[family]
-    assert recorded == {(field, str(user / reference), digest)}
+    fields = {"resampler": "resampler", "move": "jitter", "policy": "policy"}
+    assert recorded == {(fields[family], str(user / reference),
+                         hashlib.sha256((user / reference.split(":")[0]).read_bytes()).hexdigest())
+                        for family, (_, reference) in COMPONENTS.items()}
 
 
 def test_a_users_reader_runs_launches_with_the_csvs_numbers_and_verifies(user, tmp_path):

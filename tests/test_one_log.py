@@ -192,9 +192,15 @@ def test_a_launch_on_a_name_whose_segments_exist_is_refused_and_touches_nothing(
 
 def test_summary_and_verify_refuse_files_of_two_runs_naming_them(tmp_path):
     a, b, c = tmp_path / "a.mcap", tmp_path / "b.mcap", tmp_path / "c.mcap"
-    for log, seed, steps in ((a, "0", "12"), (b, "3", "8"), (c, "0", "12")):
-        done = dtpf("launch", *RUN, "--steps", steps, "--seed", seed, "-o", str(log), cwd=tmp_path)
-        assert done.returncode == 0, done.stderr
+    from concurrent.futures import ThreadPoolExecutor
+
+    def launched(log, seed, steps):  # three launches at once, each on a free port of its own
+        return dtpf("launch", *RUN, "--steps", steps, "--seed", seed, "--port", str(free_port()), "-o", str(log),
+                    cwd=tmp_path)
+
+    with ThreadPoolExecutor(3) as pool:
+        done = list(pool.map(launched, (a, b, c), ("0", "3", "0"), ("12", "8", "12")))
+    assert [d.returncode for d in done] == [0, 0, 0], [d.stderr for d in done]
     for command in ("summary", "verify", "cat"):
         done = dtpf(command, str(a), str(b), cwd=tmp_path)
         assert done.returncode == 2, (command, done.stdout, done.stderr)

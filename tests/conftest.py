@@ -107,6 +107,18 @@ def pytest_xdist_make_scheduler(config, log):
     return LongestFirst(config, log)
 
 
+def example_module(name: str):
+    """A script of docs/examples imported as a module (the examples import each other by name)."""
+    import importlib
+
+    folder = str(ROOT / "docs" / "examples")
+    sys.path.insert(0, folder)
+    try:
+        return importlib.import_module(name)
+    finally:
+        sys.path.remove(folder)
+
+
 class Processes:
     """Starts service processes and guarantees they are stopped."""
 

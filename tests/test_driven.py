@@ -24,7 +24,7 @@ from dtpf.messages.config import RunConfig
 from dtpf.messages.models import Estimate, ServiceState, Status
 from dtpf.scripts import inprocess
 
-from conftest import ROOT, service_args
+from conftest import ROOT, example_module, service_args
 
 MODEL = "docs/examples/unicycle.py:Unicycle"
 
@@ -37,12 +37,7 @@ def dtpf(*args: str, timeout: float = 120) -> subprocess.CompletedProcess:
 @pytest.fixture(scope="module")
 def robot(tmp_path_factory):
     """2 s of the robot: 40 odometry rows, 20 beacon rows, 2 GPS rows (at 1.000 and 2.000, beacon stamps too)."""
-    sys.path.insert(0, str(ROOT / "docs/examples"))
-    try:
-        import make_unicycle_csv
-    finally:
-        sys.path.remove(str(ROOT / "docs/examples"))
-    return make_unicycle_csv.main(tmp_path_factory.mktemp("robot"), duration=2.0, seed=5)
+    return example_module("make_unicycle_csv").main(tmp_path_factory.mktemp("robot"), duration=2.0, seed=5)
 
 
 def config_of(robot, **options) -> RunConfig:

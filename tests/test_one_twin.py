@@ -150,24 +150,31 @@ class Competitor:
         self.session.close()
 
 
-def test_a_competitor_that_appears_mid_run_fails_the_launch_and_is_named(processes, tmp_path, capsys):
-    from dtpf.scripts.logs.verify import cmd_verify
-
-    twin, steps, port, log = "t-rival", 200, free_port(), tmp_path / "run.mcap"
-    launcher = processes.start("launcher", ["-m", "dtpf.scripts.cli", "launch", "--steps", str(steps), "--rate",
-                                            "40", "--particles", "100", "--twin", twin, "--port", str(port),
-                                            "-o", str(log), "--quiet"])
+def launch_beside_a_competitor(processes, args: list[str], twin: str, count: int):
+    """``dtpf launch ARGS`` (40 steps/s, N = 100) with a :class:`Competitor` of ``twin`` echoing ``count`` of its
+    estimates mid-run: (the launcher's exit code, its output, the competitor)."""
+    port = free_port()
+    launcher = processes.start("launcher", ["-m", "dtpf.scripts.cli", "launch", "--rate", "40", "--particles", "100",
+                                            "--port", str(port), "--quiet", *args])
     competitor = None
     try:
         competitor = Competitor(port, twin, "run")
-        competitor.echo(5, START)
-        assert len(competitor.sent) == 5, processes.output(launcher)
+        competitor.echo(count, START)
+        assert len(competitor.sent) == count, processes.output(launcher)
         launcher.wait(timeout=RUN)
     finally:
         if competitor is not None:
             competitor.close()
-    output = processes.output(launcher)
-    assert launcher.returncode == 1, output
+    return launcher.returncode, processes.output(launcher), competitor
+
+
+def test_a_competitor_that_appears_mid_run_fails_the_launch_and_is_named(processes, tmp_path, capsys):
+    from dtpf.scripts.logs.verify import cmd_verify
+
+    twin, log = "t-rival", tmp_path / "run.mcap"
+    returncode, output, competitor = launch_beside_a_competitor(
+        processes, ["--steps", "200", "--twin", twin, "-o", str(log)], twin, 5)
+    assert returncode == 1, output
     named = "competing       another entity ran this twin during the run (twin t-rival: run run, process 4242 " \
             "on elsewhere)"
     assert named in output
@@ -185,21 +192,10 @@ def test_a_competitor_that_appears_mid_run_fails_the_launch_and_is_named(process
 
 
 def test_a_competitor_of_one_twin_of_a_fleet_fails_the_fleet_and_is_named(processes):
-    base, port = "t-crowd", free_port()
-    launcher = processes.start("fleet", ["-m", "dtpf.scripts.cli", "launch", "--twins", "2", "--steps", "150",
-                                         "--rate", "40", "--particles", "100", "--twin", base, "--port", str(port),
-                                         "--entities", "1", "--quiet"])
-    competitor = None
-    try:
-        competitor = Competitor(port, f"{base}-2", "run")
-        competitor.echo(3, START)
-        assert len(competitor.sent) == 3, processes.output(launcher)
-        launcher.wait(timeout=RUN)
-    finally:
-        if competitor is not None:
-            competitor.close()
-    output = processes.output(launcher)
-    assert launcher.returncode == 1, output
+    base = "t-crowd"
+    returncode, output, _ = launch_beside_a_competitor(
+        processes, ["--twins", "2", "--steps", "150", "--twin", base, "--entities", "1"], f"{base}-2", 3)
+    assert returncode == 1, output
     assert f"competing       another entity ran twin {base}-2: run run, process 4242 on elsewhere" in output
     assert re.search(rf"^{base}-2 .*another entity ran this twin during the run", output, re.M), output
     assert not re.search(rf"^{base}-1 .*another entity", output, re.M), output

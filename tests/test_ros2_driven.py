@@ -22,7 +22,7 @@ from dtpf.recording.logfile import read_log
 from dtpf.scripts import inprocess
 from dtpf.shell.bus import free_port
 
-from conftest import ROOT
+from conftest import ROOT, example_module
 from test_ros2_live import needs_ros2, ros_env, start, wait_for_line
 
 MODEL = "docs/examples/unicycle.py:Unicycle"
@@ -33,15 +33,9 @@ RUN = {"particles": 150, "seed": 3, "twin": "robot-1"}
 @pytest.fixture(scope="module")
 def robot(tmp_path_factory):
     """3 s of the robot as CSV files and as a bag (33 steps: 30 beacon rows, 3 GPS rows; 60 odometry rows)."""
-    sys.path.insert(0, str(ROOT / "docs/examples"))
-    try:
-        import make_unicycle_bag
-        import make_unicycle_csv
-    finally:
-        sys.path.remove(str(ROOT / "docs/examples"))
     folder = tmp_path_factory.mktemp("robot")
-    files = make_unicycle_csv.main(folder, duration=3.0, seed=5)
-    files["bag"] = make_unicycle_bag.main(folder / "bag", duration=3.0, seed=5)
+    files = example_module("make_unicycle_csv").main(folder, duration=3.0, seed=5)
+    files["bag"] = example_module("make_unicycle_bag").main(folder / "bag", duration=3.0, seed=5)
     return files
 
 

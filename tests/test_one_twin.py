@@ -11,11 +11,12 @@ import time
 
 import numpy as np
 
-from conftest import service_args
 from dtpf.messages.codec import MessageError, decode_for_key, encode
 from dtpf.messages.config import RunConfig
 from dtpf.recording.logfile import read_log
 from dtpf.shell.bus import BusError, Claim, Claims, Inbox, claims_alive, free_port, open_session, zenoh_config
+
+from conftest import service_args
 
 #: Deadlines for a loaded 2-core machine (a service's start imports numpy and numba: seconds).
 START = 90.0
@@ -197,8 +198,8 @@ def test_a_competitor_of_one_twin_of_a_fleet_fails_the_fleet_and_is_named(proces
         processes, ["--twins", "2", "--steps", "150", "--twin", base, "--entities", "1"], f"{base}-2", 3)
     assert returncode == 1, output
     assert f"competing       another entity ran twin {base}-2: run run, process 4242 on elsewhere" in output
-    assert re.search(rf"^{base}-2 .*another entity ran this twin during the run", output, re.M), output
-    assert not re.search(rf"^{base}-1 .*another entity", output, re.M), output
+    assert re.search(rf"^{base}-2 .*another entity ran this twin during the run", output, re.MULTILINE), output
+    assert not re.search(rf"^{base}-1 .*another entity", output, re.MULTILINE), output
     assert "dtpf launch: error: another entity ran 1 of the fleet's twins" in output
 
 

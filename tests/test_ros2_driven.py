@@ -11,6 +11,7 @@ import sys
 
 import numpy as np
 import pytest
+from test_ros2_live import needs_ros2, ros_env, start, wait_for_line
 
 from dtpf.entity import sources
 from dtpf.entity.model_ref import resolve
@@ -23,7 +24,6 @@ from dtpf.scripts import inprocess
 from dtpf.shell.bus import free_port
 
 from conftest import ROOT, example_module
-from test_ros2_live import needs_ros2, ros_env, start, wait_for_line
 
 MODEL = "docs/examples/unicycle.py:Unicycle"
 FIELDS = {"gps": "point.x,point.y", "beacons": "vector.x,vector.y,vector.z"}

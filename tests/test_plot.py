@@ -27,14 +27,24 @@ N = 200
 @pytest.fixture(scope="module")
 def logs(tmp_path_factory):
     """A log with DT preprocessing and one without, from real launches (about 4 s each)."""
+    from types import SimpleNamespace
+
+    from dtpf.recording.logfile import read_log as read_recording
+
     folder = tmp_path_factory.mktemp("plot")
     runs = {}
     for name, preprocess in (("dt", True), ("plain", False)):
         # The lockstep timeout of the other launch tests: a step of a loaded machine needs more than 2 s at times.
         result = launch(RunConfig(particles=N, steps=STEPS, twin=TWIN, preprocess=preprocess),
                         log_path=folder / f"{name}.mcap", timeout=5.0)
-        assert len(result.estimates) == STEPS, f"the {name} launch did not finish"
-        runs[name] = result
+        assert result.failure is None, result.failure
+        # What the plots draw is the log: its estimates, every step once.
+        estimates = sorted((m for _, m in read_recording(result.log_path).decoded(
+            lambda topic: topic.endswith("/entity/estimate"))), key=lambda e: e.step)
+        assert [e.step for e in estimates] == list(range(1, STEPS + 1)), f"the {name} log lacks steps"
+        errors = np.array([np.subtract(e.mean, e.truth) for e in estimates])
+        runs[name] = SimpleNamespace(log_path=result.log_path, estimates=estimates,
+                                     rmse=float(np.sqrt(np.mean(errors ** 2))))
     return runs
 
 

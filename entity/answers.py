@@ -101,6 +101,7 @@ class LiveAnswers:
         if self.shell.detail:
             head["detail"] = self.shell.detail
         if selector.particles:
+            queries.check_values(latest.particles.size + latest.weights.size, selector.max_bytes)
             head["particles"] = latest.particles.tolist()
             head["weights"] = latest.weights.tolist()
         return queries.check_size(_with_message(head, "estimate", encode(Estimate(**fields))), selector.max_bytes)
@@ -113,6 +114,8 @@ class LiveAnswers:
             raise queries.SelectorError(f"horizon={selector.horizon} with N = {n} particles is more than "
                                         f"{queries.MAX_FORECAST_WORK} particle-steps; at most horizon="
                                         f"{max(1, queries.MAX_FORECAST_WORK // n)}")
+        if selector.particles:
+            queries.check_values(latest.particles.size + latest.weights.size, selector.max_bytes)
         dts = None
         if selector.horizon_s is not None:
             if not self.takes_dt:

@@ -31,7 +31,7 @@ from dtpf.messages.errors import DtpfError
 from dtpf.messages.models import check_id
 
 __all__ = ["KINDS", "SelectorError", "StateSelector", "ForecastSelector", "HistorySelector", "parse", "key",
-           "parameters_text", "check_size", "DEFAULT_LIMIT", "MAX_LIMIT", "DEFAULT_MAX_BYTES", "MAX_BYTES", "MAX_HORIZON",
+           "parameters_text", "check_size", "check_values", "DEFAULT_LIMIT", "MAX_LIMIT", "DEFAULT_MAX_BYTES", "MAX_BYTES", "MAX_HORIZON",
            "MAX_FORECAST_WORK", "MAX_SELECTOR_TEXT"]
 
 #: The questions, and the layer whose key space answers each.
@@ -214,6 +214,20 @@ def check_size(body: bytes, max_bytes: int) -> bytes:
         raise SelectorError(f"the answer is {len(body)} bytes of JSON, more than max_bytes={max_bytes} (at most "
                             f"{MAX_BYTES}); ask without particles=true, or raise max_bytes=")
     return body
+
+
+#: The fewest bytes one float takes in a JSON array ("0.0,"): what an answer's numbers weigh at the least.
+MIN_JSON_FLOAT_BYTES = 4
+
+
+def check_values(count: int, max_bytes: int) -> None:
+    """SelectorError, before the answer is built, when ``count`` numbers in JSON cannot fit in ``max_bytes``
+    (a particle set asked of a twin of a million particles is refused without turning it into a list first)."""
+    least = count * MIN_JSON_FLOAT_BYTES
+    if least > max_bytes:
+        raise SelectorError(f"the answer holds {count} numbers, at least {least} bytes of JSON, more than "
+                            f"max_bytes={max_bytes} (at most {MAX_BYTES}); ask without particles=true, or raise "
+                            f"max_bytes=")
 
 
 def _max_bytes(pairs: dict) -> int:

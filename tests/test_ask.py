@@ -528,3 +528,14 @@ def test_under_access_control_the_readers_ask_and_only_the_entity_and_the_record
     finally:
         for session in sessions:
             session.close()
+
+
+def test_a_particle_set_that_cannot_fit_is_refused_before_it_is_built():
+    """Every float takes at least 4 bytes of JSON ("0.0,"): a set of more numbers than max_bytes / 4 is refused
+    from its size alone, never turned into a list (a million particles asked with the default bound)."""
+    assert len(json.dumps([0.0] * 251, separators=(",", ":"))) > 1000  # the least 251 floats can weigh
+    queries.check_values(250, 1000)
+    with pytest.raises(queries.SelectorError, match="251 numbers, at least 1004 bytes of JSON, more than max_bytes=1000"):
+        queries.check_values(251, 1000)
+    with pytest.raises(queries.SelectorError, match="more than max_bytes"):
+        queries.check_values(2_000_000, queries.DEFAULT_MAX_BYTES)

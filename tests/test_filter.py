@@ -362,18 +362,23 @@ def test_steps_kept_after_the_run_keep_their_own_numbers(model, preprocessor):
         np.testing.assert_array_equal(step.ancestors, ancestors)
 
 
+def write_late_model(folder) -> None:
+    """late.py:MODEL, the growth model whose propagate raises an IndexError at step 5 (at late.py line 7)."""
+    (folder / "late.py").write_text(
+        "from dtpf.entity.models import get\n\n\nclass Late(type(get('ungm'))):\n"
+        "    def propagate(self, particles, k, rng, noise=None):\n"
+        "        if k == 5:\n"
+        "            return particles[[1, 2, 3]][10]\n"
+        "        return super().propagate(particles, k, rng, noise=noise)\n\n\nMODEL = Late()\n")
+
+
 def test_a_model_that_fails_mid_run_is_one_line_naming_the_step_the_method_and_its_line(tmp_path):
     """An IndexError in a model's propagate at step 5 stops the run with one line (exit 2 from the CLI), not a
     traceback."""
     import subprocess
     import sys
 
-    (tmp_path / "late.py").write_text(
-        "from dtpf.entity.models import get\n\n\nclass Late(type(get('ungm'))):\n"
-        "    def propagate(self, particles, k, rng, noise=None):\n"
-        "        if k == 5:\n"
-        "            return particles[[1, 2, 3]][10]\n"
-        "        return super().propagate(particles, k, rng, noise=noise)\n\n\nMODEL = Late()\n")
+    write_late_model(tmp_path)
     from dtpf.entity import model_ref
 
     model = model_ref.resolve(f"{tmp_path / 'late.py'}:MODEL")
@@ -396,12 +401,7 @@ def test_a_model_that_fails_mid_run_under_launch_ends_with_its_line_and_the_summ
     import subprocess
     import sys
 
-    (tmp_path / "late.py").write_text(
-        "from dtpf.entity.models import get\n\n\nclass Late(type(get('ungm'))):\n"
-        "    def propagate(self, particles, k, rng, noise=None):\n"
-        "        if k == 5:\n"
-        "            return particles[[1, 2, 3]][10]\n"
-        "        return super().propagate(particles, k, rng, noise=noise)\n\n\nMODEL = Late()\n")
+    write_late_model(tmp_path)
     said = ("step 5: the model's propagate raised IndexError: index 10 is out of bounds for axis 0 with size 3 "
             "(at late.py line 7)")
     done = subprocess.run([sys.executable, "-P", "-m", "dtpf", "launch", "-T", "10", "-n", "200", "--model",

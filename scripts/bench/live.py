@@ -65,6 +65,23 @@ BUSY_LOAD = 1.0
 MODES = ("twin", "floor", "inprocess")
 
 
+def step_latency(out, estimates: Inbox, twin: str, k: int, values, where: str = "") -> float:
+    """Publish observation ``k`` (``values``) on ``out`` and wait for the twin's estimate of step ``k`` on
+    ``estimates``: milliseconds from the observation's stamp to the estimate's."""
+    sent = Observation(run_id="run", twin_id=twin, step=k, values=np.asarray(values).tolist(), stamp=Time.now())
+    out.put(encode(sent))
+    while True:
+        item = estimates.get(timeout=30)
+        if item is None:
+            raise RuntimeError(f"no estimate of step {k}{where}")
+        try:
+            message = decode_for_key(item.key, item.payload)
+        except MessageError:
+            continue
+        if isinstance(message, Estimate) and message.step == k:
+            return (message.stamp.to_ns() - sent.stamp.to_ns()) / 1e6
+
+
 def one_run(n: int, steps: int, warm_up: int, gap: float, seed: int, log_dir: Path) -> np.ndarray:
     """Latencies in ms of steps warm_up+1 .. steps of one live launch at N = n."""
     twin = f"bench-live-{n}"
@@ -98,21 +115,9 @@ def one_run(n: int, steps: int, warm_up: int, gap: float, seed: int, log_dir: Pa
                 break
         latencies = []
         for k in range(1, steps + 1):
-            sent = Observation(run_id="run", twin_id=twin, step=k, values=data.observations[k - 1].tolist(),
-                               stamp=Time.now())
-            out.put(encode(sent))
-            while True:
-                item = estimates.get(timeout=30)
-                if item is None:
-                    raise RuntimeError(f"no estimate of step {k} at N = {n}")
-                try:
-                    message = decode_for_key(item.key, item.payload)
-                except MessageError:
-                    continue
-                if isinstance(message, Estimate) and message.step == k:
-                    break
+            latency = step_latency(out, estimates, twin, k, data.observations[k - 1], f" at N = {n}")
             if k > warm_up:
-                latencies.append((message.stamp.to_ns() - sent.stamp.to_ns()) / 1e6)
+                latencies.append(latency)
             time.sleep(gap)
         out.put(encode(Observation(run_id="run", twin_id=twin, step=steps + 1, values=[], end=True)))
         launcher.wait(timeout=60)

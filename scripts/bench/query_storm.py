@@ -35,9 +35,10 @@ import numpy as np
 
 from dtpf.entity import sources
 from dtpf.messages import keys, queries
-from dtpf.messages.codec import MessageError, decode_for_key, encode
+from dtpf.messages.codec import decode_for_key, encode
 from dtpf.messages.config import RunConfig
-from dtpf.messages.models import Estimate, Observation, ServiceState, Status, Time
+from dtpf.messages.models import Observation, ServiceState, Status
+from dtpf.scripts.bench.live import step_latency
 from dtpf.shell.bus import BusError, Inbox, free_port, open_session, publisher, zenoh_config
 
 MODES = ("unqueried", "queried")
@@ -113,21 +114,9 @@ def one_run(mode: str, n: int, steps: int, rate: float, qps: float, warm_up: int
                 raise RuntimeError("the asker did not start")
         times, tick = [], time.monotonic()
         for k in range(1, steps + 1):
-            sent = Observation(run_id="run", twin_id=twin, step=k, values=data.observations[k - 1].tolist(),
-                               stamp=Time.now())
-            out.put(encode(sent))
-            while True:
-                item = estimates.get(timeout=30)
-                if item is None:
-                    raise RuntimeError(f"no estimate of step {k}")
-                try:
-                    message = decode_for_key(item.key, item.payload)
-                except MessageError:
-                    continue
-                if isinstance(message, Estimate) and message.step == k:
-                    break
+            latency = step_latency(out, estimates, twin, k, data.observations[k - 1])
             if k > warm_up:
-                times.append((message.stamp.to_ns() - sent.stamp.to_ns()) / 1e6)
+                times.append(latency)
             tick += 1.0 / rate
             time.sleep(max(0.0, tick - time.monotonic()))
         counts = None

@@ -44,6 +44,7 @@ passed (the system layer's stream of step k).
 """
 from __future__ import annotations
 
+import math
 from collections import deque
 from dataclasses import dataclass
 
@@ -77,13 +78,13 @@ def point_log_likelihood(model: StateSpaceModel, particles: np.ndarray, observat
 
 def _difference(arm: float, plain: float, lowest: float = -CLIP) -> float:
     """arm - plain in nats, clipped to [``lowest``, CLIP]; -inf against -inf is 0."""
-    if not np.isfinite(arm) and not np.isfinite(plain):
+    if not math.isfinite(arm) and not math.isfinite(plain):
         return 0.0
-    if not np.isfinite(plain):
+    if not math.isfinite(plain):
         return CLIP
-    if not np.isfinite(arm):
+    if not math.isfinite(arm):
         return lowest
-    return float(np.clip(arm - plain, lowest, CLIP))
+    return float(min(max(arm - plain, lowest), CLIP))
 
 
 class ArmEvidence:
@@ -124,8 +125,11 @@ class ArmEvidence:
         self.differences: deque[dict[str, float]] = deque(maxlen=int(window))
         #: e_a(k): the copies' predicted means scored against plain's (see the module docstring).
         self.point_differences: deque[dict[str, float]] = deque(maxlen=int(window))
-        #: (k + 1, arm -> M particles of its copy propagated to k + 1)
-        self._copies: tuple[int, dict[str, np.ndarray]] | None = None
+        #: Propagate all copies in one call when the model draws its noise on its own (False: one call per copy,
+        #: the same numbers; the reference the batched call is tested against).
+        self.batched = True
+        #: (k + 1, the (A, M, d) copies propagated to k + 1, in the order of :attr:`arms`)
+        self._copies: tuple[int, np.ndarray] | None = None
         self._z = np.empty(0)
 
     @property
@@ -135,6 +139,14 @@ class ArmEvidence:
     @property
     def window(self) -> int:
         return self.differences.maxlen
+
+    @property
+    def copies(self) -> dict[str, np.ndarray]:
+        """Each arm's copy, (M, d) particles propagated to the next step (views of one array; empty before
+        the first step)."""
+        if self._copies is None:
+            return {}
+        return dict(zip(self.names, self._copies[1]))
 
     @property
     def steps(self) -> int:
@@ -156,35 +168,61 @@ class ArmEvidence:
         Returns the new differences d_a(step - 1) (scored with z_step), or None when the copies had
         not reached ``step`` (the first step, or after a gap). Call once per step, in order.
         """
-        model, k = self.model, int(step)
+        k = int(step)
         z = np.asarray(observation, dtype=np.float64).reshape(-1)
         self._z = z
         scored = None
         copies, self._copies = self._copies, None
         weighted: dict[str, tuple[np.ndarray, np.ndarray]] = {}
         if copies is not None and copies[0] == k:
-            values, points = {}, {}
-            for name, x in copies[1].items():
-                log_w = model.log_likelihood(x, z, k)
-                top = float(np.max(log_w))
-                values[name] = predictive_log_likelihood(model, x, z, k) if np.isfinite(top) else -np.inf
-                points[name] = point_log_likelihood(model, x, z, k)
-                if np.isfinite(top):
-                    w = np.exp(log_w - top)
-                    weighted[name] = (x, w / w.sum())
-            scored = {name: _difference(value, values["plain"]) for name, value in values.items()}
-            self.differences.append(scored)
-            self.point_differences.append({name: _difference(value, points["plain"], lowest=-POINT_FLOOR)
-                                           for name, value in points.items()})
+            scored = self._score(k, copies[1], z, weighted)
         for name in self.names:  # a copy that lost the observation (or the first step): the entity's set
             if name not in weighted:
                 weighted[name] = (particles, weights)
         self._copies = (k + 1, self._advance(k, weighted, rng))
         return scored
 
+    def _score(self, k: int, copies: np.ndarray, z: np.ndarray,
+               weighted: dict[str, tuple[np.ndarray, np.ndarray]]) -> dict[str, float]:
+        """Score the (A, M, d) copies of step k with z_k: append d_a(k - 1) and e_a(k - 1), put each copy that
+        kept the observation into ``weighted`` as (particles, normalised weights), and return d_a(k - 1).
+
+        One likelihood call over all A x M particles and one over the A means (the model is vectorised over
+        particles, so each copy's numbers are those of a call on its own); the sums run per copy, as
+        :func:`~dtpf.system.evidence.predictive_log_likelihood` and :func:`point_log_likelihood` do.
+        """
+        model, names = self.model, self.names
+        a, m, d = copies.shape
+        log_w = np.asarray(model.log_likelihood(copies.reshape(a * m, d), z, k), dtype=np.float64).reshape(a, m)
+        top = np.max(log_w, axis=1)
+        kept = np.isfinite(top)
+        every = bool(kept.all())
+        w = np.exp(log_w - top[:, None]) if every else np.exp(log_w[kept] - top[kept, None])
+        total = np.sum(w, axis=1)
+        values = top + np.log(total / m) if every else np.full(a, -np.inf)
+        if not every:
+            values[kept] = top[kept] + np.log(total / m)
+        w /= total[:, None]
+        for row, i in enumerate(range(a) if every else np.flatnonzero(kept)):
+            weighted[names[i]] = (copies[i], w[row])
+        means = np.mean(copies, axis=1)
+        finite = np.isfinite(means).all(axis=1)
+        points = np.full(a, -np.inf)
+        if finite.any():
+            at = np.asarray(model.log_likelihood(means if finite.all() else means[finite], z, k),
+                            dtype=np.float64).reshape(-1)
+            points[finite] = at
+        values, points = values.tolist(), points.tolist()
+        plain, plain_point = values[0], points[0]              # plain is the first arm
+        scored = {name: _difference(values[i], plain) for i, name in enumerate(names)}
+        self.differences.append(scored)
+        self.point_differences.append({name: _difference(points[i], plain_point, lowest=-POINT_FLOOR)
+                                       for i, name in enumerate(names)})
+        return scored
+
     def _advance(self, k: int, weighted: dict[str, tuple[np.ndarray, np.ndarray]],
-                 rng: np.random.Generator) -> dict[str, np.ndarray]:
-        """Each arm's move on its weighted copy of step k, resampled to M and propagated to k + 1."""
+                 rng: np.random.Generator) -> np.ndarray:
+        """Each arm's move on its weighted copy of step k, resampled to M and propagated to k + 1: (A, M, d)."""
         model = self.model
         m = min(self.particles, min(w.size for _, w in weighted.values()))
         points = (rng.random() + np.arange(m)) / m          # the same points resample every copy
@@ -212,9 +250,26 @@ class ArmEvidence:
             x, w = weighted[arm.name]
             move = self.move if arm.jitter == OWN_ARM else arm.jitter
             resampled[arm.name] = jitters.apply(move, resampled[arm.name], x, w, rng, n=self.n)
+        stacked = np.stack([np.asarray(resampled[arm.name], dtype=np.float64).reshape(m, -1) for arm in self.arms])
+        return self._propagate(k + 1, stacked, rng)
+
+    def _propagate(self, k: int, stacked: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        """The (A, M, d) copies propagated to k, every copy with the same numbers (common random numbers).
+
+        A model that draws its noise on its own (``propagation_noise``, which ``propagate`` then uses instead
+        of drawing) propagates all copies in one call, each with the same noise; any other in one call per
+        copy, each from the same generator state. Both give the numbers of one call per copy.
+        """
+        model = self.model
+        a, m, d = stacked.shape
         state = rng.bit_generator.state
-        out: dict[str, np.ndarray] = {}
-        for arm in self.arms:                                 # the same numbers propagate every copy
+        noise = model.propagation_noise(m, k, rng) if self.batched else None
+        if noise is not None and np.ndim(noise) >= 1 and np.shape(noise)[0] == m:
+            noise = np.asarray(noise)
+            out = model.propagate(stacked.reshape(a * m, d), k, rng, noise=np.concatenate([noise] * a, axis=0))
+            return np.asarray(out, dtype=np.float64).reshape(a, m, -1)
+        out = []
+        for row in stacked:
             rng.bit_generator.state = state
-            out[arm.name] = model.propagate(resampled[arm.name], k + 1, rng)
-        return out
+            out.append(np.asarray(model.propagate(row, k, rng), dtype=np.float64).reshape(m, -1))
+        return np.stack(out)

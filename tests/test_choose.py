@@ -93,7 +93,7 @@ def _evidence_after_one_step(arm: str, n: int = 4000, d: int = 2, seed: int = 5)
     weights = np.full(n, 1.0 / n)
     evidence = ArmEvidence(model, ("plain", arm), n=n, particles=n)
     evidence.observe(1, particles, weights, np.zeros(d), np.random.default_rng(seed + 1))
-    copies = evidence._copies[1]
+    copies = evidence.copies
     return particles, weights, copies["plain"], copies[arm]
 
 
@@ -128,7 +128,7 @@ def test_the_jitter_arms_use_the_entity_n_in_their_bandwidth():
     particles, weights = rng.standard_normal((2000, 1)), np.full(2000, 1 / 2000)
     evidence = ArmEvidence(model, ("roughening",), n=100_000, particles=500)
     evidence.observe(1, particles, weights, np.zeros(1), np.random.default_rng(4))
-    copies = evidence._copies[1]
+    copies = evidence.copies
     assert copies["plain"].shape == (500, 1)  # M copies of N
     added = copies["roughening"] - copies["plain"]
     sigma = jitter.ROUGHENING_K * float(np.ptp(copies["plain"])) * 100_000 ** -1.0
@@ -148,7 +148,7 @@ def test_the_dt_arm_moves_the_copy_by_the_rules_with_its_own_random_numbers():
     evidence = ArmEvidence(model, ("dt-paper",), n=400, particles=400)
     draws = np.random.default_rng(9)
     evidence.observe(1, particles, weights, np.zeros(1), draws)
-    copies = evidence._copies[1]
+    copies = evidence.copies
     replay = np.random.default_rng(9)
     points = (replay.random() + np.arange(400)) / 400
     plain = particles[resampling.inverse_cdf(points, weights)]
@@ -279,7 +279,7 @@ def test_the_point_evidence_scores_the_copies_predicted_means():
     particles = rng.normal(0.0, 1.0, (200, 1))
     evidence = ArmEvidence(model, ("roughening",), n=200, particles=200)
     evidence.observe(1, particles, np.full(200, 1 / 200), np.zeros(1), np.random.default_rng(4))
-    copies = {name: x.copy() for name, x in evidence._copies[1].items()}
+    copies = {name: x.copy() for name, x in evidence.copies.items()}
     evidence.observe(2, particles, np.full(200, 1 / 200), z, np.random.default_rng(5))
     plain = point_log_likelihood(model, copies["plain"], z, 2)
     rough = point_log_likelihood(model, copies["roughening"], z, 2)

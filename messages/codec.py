@@ -180,6 +180,15 @@ def _arrays_json(particles_shape: tuple[int, ...], weights_shape: tuple[int, ...
 
 
 def _encode_envelope(message: ParticleSet) -> bytes:
+    # One copy of each array, straight into the result.
+    return b"".join(encode_parts(message))
+
+
+def encode_parts(message: ParticleSet) -> tuple[bytes, np.ndarray, np.ndarray]:
+    """The envelope of a particle set in three pieces whose concatenation is :func:`encode`'s bytes: the
+    prefix, header and padding, then the particles and the weights as little-endian float64 arrays (the
+    message's own arrays on a little-endian machine: no copy), for a writer that copies them once, straight
+    into its buffer (a shared-memory slot)."""
     particles, weights = message.particles, message.weights
     # The fields go through the same pydantic serializer as JSON messages.
     fields = message.model_dump_json(exclude=_EXCLUDED_ARRAYS, exclude_none=True).encode("utf-8")
@@ -187,8 +196,7 @@ def _encode_envelope(message: ParticleSet) -> bytes:
         fields, _arrays_json(particles.shape, weights.shape))
     padding = b"\0" * (-(_PREFIX.size + len(header)) % _ALIGN)
     prefix = _PREFIX.pack(MAGIC, VERSION, b"\0\0\0", len(header))
-    # One copy of each array, straight into the result.
-    return b"".join((prefix, header, padding, _little_endian(particles), _little_endian(weights)))
+    return prefix + header + padding, _little_endian(particles), _little_endian(weights)
 
 
 # --- decode ---

@@ -36,12 +36,14 @@ import re
 import socket
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import zenoh
 import zenoh.ext
 
 from dtpf.messages.errors import DtpfError
+from dtpf.shell.shared_sets import SetLost, SetResolver
+from dtpf.shell.slots import MAX_REFERENCE, SlotError, is_reference
 
 __all__ = [
     "BusError",
@@ -372,8 +374,10 @@ class Inbox:
     def __init__(self, session: zenoh.Session, key_expr: str, *more_key_exprs: str,
                  max_payload: int = DEFAULT_MAX_PAYLOAD, max_items: int = DEFAULT_MAX_ITEMS,
                  max_bytes: int = DEFAULT_MAX_BYTES, on_drop=None, doorbell: Doorbell | None = None,
-                 name: str = "", history: int | None = None, recover: bool = False):
+                 name: str = "", history: int | None = None, recover: bool = False, views: bool = False):
         self.key_expr = key_expr
+        self.views = views
+        self._sets = SetResolver(session)
         self.doorbell = doorbell
         self.name = name
         self.max_payload = max_payload
@@ -421,6 +425,8 @@ class Inbox:
             if not full:
                 self._queued_bytes += size
         if full:
+            if size <= MAX_REFERENCE and is_reference(sample.payload.to_bytes()):
+                self._sets.skipped.append(sample.payload.to_bytes())  # the writer is told at the next get
             self._drop(key, "inbox full", f"inbox of {self.key_expr} full ({self.max_items} samples or "
                                           f"{self.max_bytes} bytes waiting): dropped a sample on {key[:200]}")
             return
@@ -445,14 +451,29 @@ class Inbox:
             self.doorbell.ring(self.name)
 
     def get(self, timeout: float | None = None) -> Received | None:
-        """The next sample, waiting up to ``timeout`` seconds (None: forever); None on timeout."""
-        try:
-            item = self._queue.get(timeout=timeout)
-        except queue.Empty:
-            return None
-        with self._lock:
-            self._queued_bytes -= len(item.payload)
-        return item
+        """The next sample, waiting up to ``timeout`` seconds (None: forever); None on timeout.
+
+        A particle set sent by reference (:mod:`dtpf.shell.shared_sets`) comes as its payload: with
+        ``views``, a read-only view of the publisher's shared memory, valid until the next :meth:`get`
+        (whoever keeps its arrays longer copies them); without, bytes. One that cannot be had is reported
+        to ``on_drop`` (and, with ``recover``, comes as a :class:`Received` with ``missed`` = 1)."""
+        self._sets.release()
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while True:
+            try:
+                item = self._queue.get(timeout=None if deadline is None else max(0.0, deadline - time.monotonic()))
+            except queue.Empty:
+                return None
+            with self._lock:
+                self._queued_bytes -= len(item.payload)
+            if item.missed or not is_reference(item.payload):
+                return item
+            try:
+                return replace(item, payload=self._sets.resolve(item.key, item.payload, self.views))
+            except (SlotError, SetLost) as error:
+                self._drop(item.key, "particle set by reference not had", f"on {item.key[:200]}: {error}")
+                if self.recover and isinstance(error, SetLost):
+                    return Received("", b"", item.source, 1, item.sn)
 
     def __len__(self) -> int:
         return self._queue.qsize()
@@ -463,6 +484,7 @@ class Inbox:
                 handle.undeclare()
             except zenoh.ZError:
                 pass
+        self._sets.close()
 
 
 class Presence:

@@ -31,10 +31,11 @@ from threadpoolctl import threadpool_limits
 
 from dtpf.messages import family, keys
 from dtpf.messages.admission import RunShape, kind_of
-from dtpf.messages.codec import MessageError, decode_for_key, encode
+from dtpf.messages.codec import MessageError, decode_for_key, encode, encode_parts
 from dtpf.messages.config import RunConfig
 from dtpf.messages.errors import DtpfError
-from dtpf.messages.models import Component, Layer, Message, NamedCount, ServiceState, Status
+from dtpf.messages.models import Component, Layer, Message, NamedCount, ParticleSet, ServiceState, Status
+from dtpf.shell.shared_sets import MIN_SHARED_BYTES, SetPublisher, shared_sets
 from dtpf.shell.bus import (DEFAULT_MAX_ITEMS, BusError, Inbox, Presence, PublisherCache, Received, claims_alive,
                             open_session, publisher, publisher_cache, set_publisher_cache)
 
@@ -62,6 +63,10 @@ _LAYER_NAMES = frozenset(layer.value for layer in Layer)
 EXIT_GRACE = 1.8
 #: Largest JSON message a service takes (a status with its configuration is about 3 KB).
 MAX_JSON_PAYLOAD = 4 << 20
+#: Bytes of a reference to a set in shared memory, for its publisher's cache (about 250 in practice).
+REFERENCE_SIZE = 512
+#: Seconds an ending process waits for the readers on its host to take its last sets by reference.
+SET_DRAIN = 3.0
 #: Bytes an inbox may hold: this many of its largest payload, at least MIN_INBOX_BYTES.
 _INBOX_PAYLOADS, MIN_INBOX_BYTES = 16, 64 << 20
 #: Most bad messages :meth:`ServiceShell.take` skips in one call.
@@ -272,6 +277,7 @@ class ServiceShell:
         self._next_rejection_log = time.monotonic() + REJECTION_LOG_INTERVAL
         self._stop = threading.Event()
         self._publishers: dict[str, zenoh.Publisher] = {}
+        self._set_publishers: dict[str, SetPublisher] = {}
         self._inboxes: list[Inbox] = []
         self._lock = threading.Lock()
         self._config_json = config.model_dump_json()
@@ -331,6 +337,9 @@ class ServiceShell:
         self.watchdog.step = "closing subscribers"
         for inbox in self._inboxes:
             inbox.close()
+        self.watchdog.step = "letting readers on this host take the last sets"
+        for sets in self._set_publishers.values():
+            sets.undeclare(drain=SET_DRAIN)
         self.watchdog.step = "closing the liveliness token"
         self.presence.close()
         self.watchdog.step = "closing the Zenoh session"
@@ -338,7 +347,11 @@ class ServiceShell:
         self.watchdog.step = "exiting the interpreter"
 
     def _close_publishers(self) -> None:
-        """Undeclare the publishers (and free their caches): a fleet's twin that ends leaves nothing behind."""
+        """Undeclare the publishers (and free their caches): a fleet's twin that ends leaves nothing behind.
+        A publisher of sets by reference first gives the readers on this host a moment to take its last."""
+        for sets in self._set_publishers.values():
+            sets.undeclare()
+        self._set_publishers.clear()
         for pub in self._publishers.values():
             try:
                 pub.undeclare()
@@ -387,7 +400,7 @@ class ServiceShell:
         largest = self.largest_payload()
         inbox = Inbox(self.session, key_expr, *more, max_payload=largest, max_items=max_items,
                       max_bytes=max(min_bytes, payloads * largest), on_drop=self._on_drop,
-                      doorbell=self.doorbell, name=self.config.twin, recover=recover)
+                      doorbell=self.doorbell, name=self.config.twin, recover=recover, views=True)
         self._inboxes.append(inbox)
         return inbox
 
@@ -459,12 +472,27 @@ class ServiceShell:
         bytes, made by a codec function such as :func:`~dtpf.messages.codec.encode_with_base64`), else
         ``encode(message)``."""
         key = keys.key_for(message)
+        if payload is None and isinstance(message, ParticleSet) and shared_sets() \
+                and message.particles.nbytes + message.weights.nbytes >= MIN_SHARED_BYTES:
+            parts = encode_parts(message)
+            length = sum(memoryview(part).nbytes for part in parts)
+            sets = self._set_publishers.get(key)
+            if sets is None:  # the references are small: the cache keeps as many as it would of JSON messages
+                sets = self._set_publishers[key] = SetPublisher(
+                    self.session, key, self._publisher(key, REFERENCE_SIZE))
+            sets.put_parts(parts, length)
+            return
         data = encode(message) if payload is None else payload
+        self._publisher(key, len(data)).put(data)
+
+    def _publisher(self, key: str, size: int):
+        """The publisher of ``key``, declared on first use with the cache that its share of the process's
+        budget holds of messages of ``size`` bytes."""
         pub = self._publishers.get(key)
-        if pub is None:  # its cache: what its share of the process's budget holds of messages of this size
+        if pub is None:
             pub = self._publishers[key] = publisher(self.session, key,
-                                                    publisher_cache().samples_for(len(data), ServiceShell.live))
-        pub.put(data)
+                                                    publisher_cache().samples_for(size, ServiceShell.live))
+        return pub
 
     def header(self, step: int) -> dict:
         """The header fields of a message of this run at ``step``."""

@@ -52,7 +52,10 @@ import sys
 import time
 
 from dtpf.scripts.bench.cpu import RssSampler
+import numpy as np
+
 from dtpf.shell.bus import Doorbell, Inbox, free_port, open_session, publisher, zenoh_config
+from dtpf.shell.shared_sets import MIN_SHARED_BYTES, SetPublisher, shared_sets
 
 RECEIVERS = ("inbox", "demux")
 ROLES = ("recorder", "system", "information", "entity")
@@ -127,9 +130,10 @@ class Receiver:
     def __init__(self, session, topic: str, twins: list[str] | None, chunk: str, how: str, doorbell: Doorbell):
         self.inboxes: list[Inbox] = []
         if how == "demux" or twins is None:
-            self.inboxes.append(Inbox(session, f"{PREFIX}/{chunk}/{topic}", doorbell=doorbell, name=topic))
+            self.inboxes.append(Inbox(session, f"{PREFIX}/{chunk}/{topic}", doorbell=doorbell, name=topic,
+                                      views=True))
         else:
-            self.inboxes += [Inbox(session, f"{PREFIX}/{twin}/{topic}", doorbell=doorbell, name=topic)
+            self.inboxes += [Inbox(session, f"{PREFIX}/{twin}/{topic}", doorbell=doorbell, name=topic, views=True)
                              for twin in twins]
 
     def drain(self):
@@ -139,18 +143,32 @@ class Receiver:
 
 
 class Publishers:
-    """One publisher per key, declared on first use (as ``ServiceShell.publish`` does)."""
+    """One publisher per key, declared on first use (as ``ServiceShell.publish`` does). A message of a
+    particle set's size goes as ``ServiceShell.publish`` sends a set: through a shared-memory slot when the
+    process shares its sets (:func:`dtpf.shell.shared_sets.shared_sets`), its body copied once from an array
+    as the product copies a set's arrays; else as fresh bytes, as the product encodes one."""
 
     def __init__(self, session):
         self.session = session
         self.by_key = {}
+        self.sets = {}
+        self.bodies = {}
 
-    def put(self, twin: str, topic: str, payload: bytes) -> None:
+    def put(self, twin: str, topic: str, size: int, step: int) -> None:
         key = f"{PREFIX}/{twin}/{topic}"
         pub = self.by_key.get(key)
         if pub is None:
             pub = self.by_key[key] = publisher(self.session, key)
-        pub.put(payload)
+        if size < MIN_SHARED_BYTES or not shared_sets():
+            pub.put(_payload(size, step))
+            return
+        sets = self.sets.get(key)
+        if sets is None:
+            sets = self.sets[key] = SetPublisher(self.session, key, pub)
+        body = self.bodies.get(size)
+        if body is None:
+            body = self.bodies[size] = np.ones(size - _STEP.size, dtype=np.uint8)
+        sets.put_parts([_STEP.pack(step), body], size)
 
 
 def _serve(role: str, router: str, how: str, k: int, processes: int, process: int, steps: int,
@@ -177,7 +195,7 @@ def _serve(role: str, router: str, how: str, k: int, processes: int, process: in
             for twin, payload in weights.drain():
                 step = _STEP.unpack_from(payload)[0]
                 for topic, size in mine:
-                    out.put(twin, topic, _payload(size, step))
+                    out.put(twin, topic, size, step)
         os._exit(0)
     if role == "information":
         answer = sorted(mine, key=lambda item: item[0] != "information/preprocessed")
@@ -198,7 +216,7 @@ def _serve(role: str, router: str, how: str, k: int, processes: int, process: in
                 while steps_held and (not waits or steps_held[0] - 1 <= decided[twin]):
                     step = steps_held.pop(0)
                     for topic, size in answer:
-                        out.put(twin, topic, _payload(size, step))
+                        out.put(twin, topic, size, step)
         os._exit(0)
     twins = _twins_of(process, processes, k)
     particles = plan["entity/particles"]
@@ -207,14 +225,14 @@ def _serve(role: str, router: str, how: str, k: int, processes: int, process: in
     time.sleep(2.0)  # every stand-in subscribed
     done = 0
     for twin in twins:
-        out.put(twin, "entity/particles", _payload(particles, 1))
+        out.put(twin, "entity/particles", particles, 1)
     while done < len(twins) and doorbell.wait(10):
         for twin, payload in answers.drain():
             step = _STEP.unpack_from(payload)[0]
             for topic, size in after:
-                out.put(twin, topic, _payload(size, step))
+                out.put(twin, topic, size, step)
             if step < steps:
-                out.put(twin, "entity/particles", _payload(particles, step + 1))
+                out.put(twin, "entity/particles", particles, step + 1)
             else:
                 done += 1
     time.sleep(0.5)

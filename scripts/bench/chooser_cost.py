@@ -1,0 +1,140 @@
+"""What the choosing policy costs: time per step of ``--policy choose`` against the plain filter and the paper's default.
+
+Three runs of the same scenario, N and seed, side by side:
+
+- plain   ``--no-preprocess``: the entity alone, systematic resampling (no twin consulted);
+- paper   the paper's default: DT preprocessing at PS 0.81 (fixed policy), the layers every step;
+- choose  ``--policy choose``: the system layer runs the five arms' copies (docs/guides/policies.md).
+
+Each is timed two ways: in one process (``dtpf run``'s pipeline, :func:`dtpf.scripts.bench.pipeline.inprocess_times`:
+wall time per step over steps FIRST_TIMED..T after an untimed warm-up), and through ``dtpf launch`` (the layers as
+processes over Zenoh, no recorder): the CPU seconds of all the twin's processes (entity, information, system) between
+the estimates of step FIRST_TIMED and T, sampled from /proc (:class:`dtpf.scripts.bench.cpu.RssSampler`), per step.
+The runs are interleaved in random order in every repetition; the table shows medians over repetitions, and the
+ratios are medians of the per-repetition ratios. Targets (printed PASS/FAIL, no exit code): choose at most 2 x plain
+at N = 100 and 1.5 x at N = 1000, in process and through launch::
+
+    python -m dtpf.scripts.bench.chooser_cost                       # N = 100 and 1000, 3 repetitions
+    python -m dtpf.scripts.bench.chooser_cost --repeats 5 --steps 400
+    python -m dtpf.scripts.bench.chooser_cost --where inprocess     # in process only (seconds)
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import random
+import statistics
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+from threadpoolctl import threadpool_limits
+
+from dtpf.messages.config import RunConfig
+from dtpf.scripts.bench.cpu import RssSampler
+from dtpf.scripts.bench.pipeline import FIRST_TIMED, inprocess_times, window_time
+
+#: The runs compared, by label: their RunConfig fields.
+MODES = {"plain": dict(preprocess=False), "paper": dict(), "choose": dict(policy="choose")}
+#: Targets: choose / plain at most this at N.
+TARGETS = {100: 2.0, 1000: 1.5}
+#: The twin's processes whose CPU a launch counts (the launcher's embedded router is not the twin's).
+LAYERS = ("entity", "information", "system")
+
+
+def config_of(mode: str, n: int, steps: int, seed: int) -> RunConfig:
+    return RunConfig(particles=n, steps=steps, seed=seed, run_id="bench", twin=f"cost-{mode}-{n}", **MODES[mode])
+
+
+def inprocess_ms(config: RunConfig) -> float:
+    """Wall ms per step of the in-process pipeline over the timed window, after an untimed warm-up run."""
+    inprocess_times(config.model_copy(update={"steps": FIRST_TIMED + 2}))
+    return 1e3 * inprocess_times(config)[0]
+
+
+def launched_ms(config: RunConfig, folder: Path, timeout: float = 10.0) -> float:
+    """CPU ms per step of the twin's processes (:data:`LAYERS`) through ``dtpf launch`` (no recorder), between the
+    estimates of steps FIRST_TIMED and T."""
+    from dtpf.scripts import launch as launch_module
+
+    with RssSampler(interval=0.02) as sampler:
+        result = launch_module.launch(config, log_path=folder / f"{config.twin}-{time.monotonic_ns()}.mcap",
+                                      timeout=timeout, child_output=None, record=False, notify=lambda text: None)
+    stamps = {e.step: e.stamp.to_ns() * 1e-9 for e in result.estimates}
+    if len(stamps) < config.steps or any(code != 0 for code in result.exit_codes.values()):
+        raise RuntimeError(f"launch of {config.twin} incomplete: {len(stamps)} of {config.steps} estimates, "
+                           f"exit codes {result.exit_codes}")
+    first, last = stamps[FIRST_TIMED], stamps[config.steps]
+    cpu = sampler.cpu_between(first, last)
+    return 1e3 * sum(cpu.get(kind, 0.0) for kind in LAYERS) / (config.steps - FIRST_TIMED)
+
+
+def measure(sizes, wheres, repeats: int, steps: int, seed: int, progress=print) -> dict:
+    """{(where, n, mode): [ms per step of each repetition]}, the runs interleaved in random order."""
+    order = random.Random(seed)
+    figures: dict[tuple[str, int, str], list[float]] = {}
+    with tempfile.TemporaryDirectory() as folder:
+        for repeat in range(repeats):
+            runs = [(where, n, mode) for where in wheres for n in sizes for mode in MODES]
+            order.shuffle(runs)
+            for where, n, mode in runs:
+                config = config_of(mode, n, steps, seed)
+                ms = inprocess_ms(config) if where == "inprocess" else launched_ms(config, Path(folder))
+                figures.setdefault((where, n, mode), []).append(ms)
+                progress(f"repetition {repeat + 1}: {where} N = {n} {mode}: {ms:.3f} ms / step")
+    return figures
+
+
+def ratio(figures: dict, where: str, n: int, mode: str, against: str) -> float:
+    """Median over repetitions of ``mode``'s time over ``against``'s (the same repetition)."""
+    return statistics.median(a / b for a, b in zip(figures[where, n, mode], figures[where, n, against]))
+
+
+def table(figures: dict, sizes, wheres) -> str:
+    rows = ["| measured | N | plain, ms / step | paper (PS 0.81), ms / step | choose, ms / step | choose / plain "
+            "| paper / plain | choose / paper | target | verdict |", "|---|---|---|---|---|---|---|---|---|---|"]
+    labels = {"inprocess": "in process (wall)", "launch": "dtpf launch (CPU of entity + information + system)"}
+    for where in wheres:
+        for n in sizes:
+            ms = {mode: statistics.median(figures[where, n, mode]) for mode in MODES}
+            cost = ratio(figures, where, n, "choose", "plain")
+            target = TARGETS.get(n)
+            verdict = "-" if target is None else "PASS" if cost <= target else "FAIL"
+            rows.append(f"| {labels[where]} | {n} | {ms['plain']:.3f} | {ms['paper']:.3f} | {ms['choose']:.3f} | "
+                        f"{cost:.2f} | {ratio(figures, where, n, 'paper', 'plain'):.2f} | "
+                        f"{ratio(figures, where, n, 'choose', 'paper'):.2f} | "
+                        f"{'-' if target is None else f'<= {target:g}'} | {verdict} |")
+    return "\n".join(rows)
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--sizes", type=int, nargs="+", default=sorted(TARGETS))
+    parser.add_argument("--where", choices=("inprocess", "launch", "both"), default="both")
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--steps", type=int, default=300)
+    parser.add_argument("--seed", type=int, default=2)
+    parser.add_argument("--quiet", "-q", action="store_true", help="no line per run on stderr")
+    args = parser.parse_args(argv)
+    if args.steps <= FIRST_TIMED + 1:
+        parser.error(f"--steps must exceed {FIRST_TIMED + 1}")
+    wheres = ("inprocess", "launch") if args.where == "both" else (args.where,)
+    import sys
+
+    progress = (lambda text: None) if args.quiet else (lambda text: print(text, file=sys.stderr, flush=True))
+    start = time.perf_counter()
+    with threadpool_limits(limits=1, user_api="blas"):
+        figures = measure(args.sizes, wheres, args.repeats, args.steps, args.seed, progress)
+    print(f"`python -m dtpf.scripts.bench.chooser_cost {' '.join(argv if argv is not None else sys.argv[1:])}`"
+          f": ungm, T = {args.steps} (timed from step {FIRST_TIMED}), seed {args.seed}, median of {args.repeats} "
+          f"interleaved repetitions; Python {platform.python_version()}, numpy {np.__version__}, "
+          f"{os.cpu_count()} CPUs, load {os.getloadavg()[0]:.2f}; {time.perf_counter() - start:.0f} s")
+    print()
+    print(table(figures, args.sizes, wheres))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -114,6 +114,20 @@ def access_control(kind: str, twins: str = "*") -> dict:
                       "key_exprs": [_twin_keys(twins, f"{role}/**/@adv/**")]})
         rules.append({"id": f"{role}-cache-replies", "permission": "allow", "flows": ["ingress"],
                       "messages": ["reply"], "key_exprs": [_twin_keys(twins, f"{role}/**")]})
+    # Large particle sets travel by reference (dtpf.shell.shared_sets): a reader on another host asks the
+    # publisher's queryable <key>/@slot for a set's bytes. Every role may ask and hear the answer; a role may
+    # declare such a queryable, and answer, only under its own keys.
+    slots = _twin_keys(twins, "*/*/@slot")
+    rules += [
+        {"id": "slot-ask", "permission": "allow", "flows": ["ingress"], "messages": ["query"], "key_exprs": [slots]},
+        {"id": "slot-answers-delivered", "permission": "allow", "flows": ["egress"],
+         "messages": ["reply", "declare_queryable"], "key_exprs": [slots]},
+    ]
+    for role in PUTTING_ROLES:
+        rules += [{"id": f"{role}-slots", "permission": "allow", "flows": ["ingress"],
+                   "messages": ["declare_queryable", "reply"], "key_exprs": [_twin_keys(twins, f"{role}/*/@slot")]},
+                  {"id": f"{role}-slots-asked", "permission": "allow", "flows": ["egress"], "messages": ["query"],
+                   "key_exprs": [_twin_keys(twins, f"{role}/*/@slot")]}]
     field = "cert_common_names" if kind == "tls" else "usernames"
     subjects = [{"id": role, field: [role]} for role in ROLES]
     policies = [{"id": "readers", "rules": ["read", "delivered"], "subjects": list(READING_ROLES)},
@@ -128,6 +142,9 @@ def access_control(kind: str, twins: str = "*") -> dict:
                  for role in PUTTING_ROLES]
     policies += [{"id": f"{role}-answers", "rules": [f"{role}-answers", f"{role}-asked"], "subjects": [role]}
                  for role in ("entity", "recorder")]
+    policies += [{"id": "slot-readers", "rules": ["slot-ask", "slot-answers-delivered"], "subjects": list(ROLES)}]
+    policies += [{"id": f"{role}-slot-answers", "rules": [f"{role}-slots", f"{role}-slots-asked"],
+                  "subjects": [role]} for role in PUTTING_ROLES]
     return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects,
             "policies": policies}
 

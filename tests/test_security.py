@@ -407,3 +407,44 @@ def test_a_recorder_recovers_from_a_layers_cache_and_no_other_role_can_answer_fo
         for session in sessions:
             session.close()
         router.close()
+
+
+@pytest.mark.parametrize("kind", ["tls", "usrpwd"])
+def test_a_reader_on_another_host_gets_a_set_from_its_publisher_and_no_other_role_can_answer_for_it(folder, kind):
+    """A set sent by reference is asked of its publisher's queryable <key>/@slot by a reader on another host;
+    '**' does not match '@slot': the rules let every role ask, and only the set's own layer answer."""
+    from dtpf.shell.shared_sets import SetPublisher, slot_key
+    from dtpf.shell.slots import Reference
+
+    deployment = open_secure_dir(folder / kind)
+    endpoint = deployment.endpoint("127.0.0.1", free_port())
+    router = open_session(zenoh_config(secure=deployment, role="router", listen=[endpoint]))
+    sessions, declared = [], []
+    try:
+        def client(role):
+            sessions.append(open_session(zenoh_config(secure=deployment, role=role, connect=[endpoint])))
+            return sessions[-1]
+
+        key = "dtpf/t-slot/entity/particles"
+        entity = client("entity")
+        sets = SetPublisher(entity, key, publisher(entity, key))
+        values = np.arange(40_000, dtype=float)
+        sets.put_parts([b"HEADER!!", values], 8 + values.nbytes)
+        declared.append(client("viewer").declare_queryable(
+            slot_key(key), lambda query: query.reply(query.key_expr, b"forged".ljust(8 + values.nbytes))))
+        writer = sets.writer.id
+        recorder = client("recorder")
+        answers = []
+        deadline = time.monotonic() + 60.0
+        while not answers and time.monotonic() < deadline:  # until the router knows the entity's queryable
+            answers = [reply.ok.payload.to_bytes() for reply in
+                       recorder.get(f"{slot_key(key)}?writer={writer};seq=1", timeout=5.0) if reply.ok is not None]
+        assert answers == [b"HEADER!!" + values.tobytes()]
+        assert Reference.parse(sets.writer.write([b"x"])).seq == 2
+        sets.undeclare(drain=0)
+    finally:
+        for thing in reversed(declared):
+            thing.undeclare()
+        for session in sessions:
+            session.close()
+        router.close()

@@ -152,7 +152,7 @@ class SetResolver:
                 pass
 
     def _fetch(self, key: str, reference: Reference) -> bytes:
-        replies = self.session.get(slot_key(key), parameters=f"writer={reference.writer};seq={reference.seq}",
+        replies = self.session.get(f"{slot_key(key)}?writer={reference.writer};seq={reference.seq}",
                                    timeout=FETCH_TIMEOUT)
         reasons = []
         for reply in replies:

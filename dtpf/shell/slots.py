@@ -141,6 +141,8 @@ class Reference:
             raise SlotError("a slot reference whose host, file or writer is not a short string")
         if not all(type(value) is int for value in numbers.values()):
             raise SlotError("a slot reference whose slot, seq or length is not an integer")
+        if not re.fullmatch(r"[0-9a-f]{1,64}", text["writer"]):
+            raise SlotError("a slot reference whose writer is not a hex id")
         if not _FILE_NAME.match(text["file"]):
             raise SlotError(f"a slot reference to {text['file'][:60]!r}, not a slot file (dtpf-<32 hex>)")
         if not (0 <= numbers["slot"] < MAX_SLOTS and 1 <= numbers["seq"] < 2 ** 63

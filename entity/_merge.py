@@ -222,6 +222,58 @@ def _by_ends(weights, u, v, out):  # pragma: no cover - compiled
     return out
 
 
+@numba.njit(inline="always")
+def _put_below(out, k, end, j, limit):  # pragma: no cover - compiled
+    # _put with the unconditional stores kept below ``limit``, where the next block's output begins
+    # (another thread writes there).
+    i = k
+    if k + UNCONDITIONAL <= limit:
+        for q in range(UNCONDITIONAL):
+            out[_U(k + q)] = j
+        i = k + UNCONDITIONAL
+    while i < end:
+        out[i] = j
+        i += 1
+    return max(k, end)
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def systematic_blocks(weights, u, block, out):  # pragma: no cover - compiled
+    # Systematic ancestors of a set in blocks of ``block`` particles, on the threads. The running sum of
+    # particle j of block b is offset_b + (the sum of the block's weights up to j, from 0), offset_b the
+    # sum of the blocks' sums before b in block order; so block b's points are [ceil(N offset_b - u),
+    # ceil(N offset_(b+1) - u)), known before any block is merged, and each block merges its own (as
+    # _by_ends) from there. The same ancestors for any thread count; one block would give _by_ends's.
+    n = weights.shape[0]
+    count = (n + block - 1) // block
+    sums = np.empty(count)
+    for b in numba.prange(count):
+        total = 0.0
+        for j in range(b * block, min(n, (b + 1) * block)):
+            total += weights[j]
+        sums[b] = total
+    offsets = np.empty(count + 1)
+    starts = np.empty(count + 1, dtype=np.int64)
+    offsets[0] = 0.0
+    starts[0] = 0
+    for b in range(count):
+        offsets[b + 1] = offsets[b] + sums[b]
+        starts[b + 1] = max(starts[b], min(n, int(np.ceil(offsets[b + 1] * n - u))))
+    for b in numba.prange(count):
+        k = starts[b]
+        limit = starts[b + 1]
+        offset = offsets[b]
+        running = 0.0
+        for j in range(b * block, min(n, (b + 1) * block)):
+            if k >= limit:
+                break
+            running += weights[j]
+            end = min(limit, int(np.ceil((offset + running) * n - u)))
+            k = _put_below(out, k, end, j, limit)
+    fill_tail(out, starts[count], weights)
+    return out
+
+
 #: Stratified keeps the uniforms it may still read in a ring of this many (32 KB: in L1).
 STRATA_RING = 1 << 12
 #: ... drawn this far ahead of the merge before it starts (then one per particle).

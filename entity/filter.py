@@ -33,7 +33,11 @@ over it (``drives``: :class:`~dtpf.entity.timeline.Drive`, made from the observa
 without them is called as before (:class:`~dtpf.entity.calls.ModelCalls`).
 
 Random numbers of step k come from ``stream(seed, twin, k, "entity")``:
-propagation first, then resampling. The propagation noise of step k + 1
+propagation first, then resampling. A set of more than ``block`` particles (the
+run's ``block_particles``, :mod:`dtpf.entity.cores`) is worked on in blocks on
+the process's threads: its sums add per-block sums in block order, and block
+b >= 1 draws its propagation noise from its own stream (:mod:`dtpf.entity.blocks`),
+so the numbers do not depend on the thread count. The propagation noise of step k + 1
 depends on nothing of step k, so :meth:`ParticleFilter.prepare_next_step` can
 draw it while step k waits for its preprocessor; and when the preprocessor
 keeps the weights, :meth:`ParticleFilter.resample_ahead` can resample before
@@ -48,6 +52,8 @@ from typing import Protocol
 
 import numpy as np
 
+from dtpf.entity import blocks as blocked
+from dtpf.entity import cores
 from dtpf.entity import jitter as jitters
 from dtpf.entity import resampling
 from dtpf.entity.calls import ModelCalls
@@ -182,17 +188,23 @@ def normalise(log_weights: np.ndarray) -> np.ndarray:
 def _normalise(log_weights: np.ndarray) -> tuple[np.ndarray, float, float]:
     """Normalised weights, log sum_i exp(log_weights_i) and the largest log-weight, from one pass of
     exponentials into the new array (Eq. 23 normalised, shifted by the maximum)."""
+    top = _top_of(log_weights)
+    weights = np.subtract(log_weights, top)
+    np.exp(weights, out=weights)
+    total = weights.sum()
+    weights /= total
+    return weights, top + float(np.log(total)), top
+
+
+def _top_of(log_weights: np.ndarray) -> float:
+    """The largest log-weight; FilterError when it is NaN or infinite (no particle explains z_k)."""
     top = float(np.max(log_weights))
     if not np.isfinite(top):
         if np.isnan(top):
             raise FilterError("a log-weight is NaN (the model's log_likelihood gave NaN): no particle explains "
                               "the observation")
         raise FilterError(f"every log-weight is {top}: no particle explains the observation")
-    weights = np.subtract(log_weights, top)
-    np.exp(weights, out=weights)
-    total = weights.sum()
-    weights /= total
-    return weights, top + float(np.log(total)), top
+    return top
 
 
 def _shown(values: np.ndarray, most: int = 8) -> str:
@@ -295,6 +307,9 @@ class ParticleFilter:
         first and NaN after them (rows as long as the longest sensor's).
     drives : sequence of Drive or None, optional
         How each step is reached from the one before (:mod:`dtpf.entity.timeline`); None: not driven.
+    block : int or None
+        B, the run's ``block_particles``: N > B particles are worked on in blocks of B
+        (:mod:`dtpf.entity.blocks`); None (default): one block, whatever N.
 
     ``observations=None`` makes a filter for observations that arrive one at
     a time (a live sensor): call :meth:`update` with each z_k; there is no T
@@ -304,7 +319,8 @@ class ParticleFilter:
     def __init__(self, model: StateSpaceModel, observations, n_particles: int, *,
                  resampler: str = "systematic", resample_below: float | None = None,
                  seed: int = 0, twin: str = "twin", preprocessor: Preprocessor | None = None,
-                 innovation: bool = False, jitter: str = "none", sensors=None, drives=None):
+                 innovation: bool = False, jitter: str = "none", sensors=None, drives=None,
+                 block: int | None = None):
         self.move = jitters.get(jitter)  # a ValueError naming the move if it is unknown or breaks the contract
         self.calls = ModelCalls(model)
         if observations is None:
@@ -335,6 +351,11 @@ class ParticleFilter:
         self.model = model
         self.observations = z
         self.n = int(n_particles)
+        if block is not None and int(block) < 1:
+            raise ValueError(f"block must be at least 1 or None, got {block!r}")
+        self.block = None if block is None else int(block)
+        #: The set is worked on in blocks of ``block`` (more than one: dtpf.entity.blocks).
+        self.blocked = cores.blocks(self.n, self.block) > 1
         self.resampler_name = resampler
         self.resample = resampling.get(resampler)
         self.resample_below = resample_below
@@ -381,6 +402,14 @@ class ParticleFilter:
         resampling.gather(particles, self.resample(weights, np.random.default_rng(0)), np.empty_like(particles))
         resampling.distinct(np.zeros(2, dtype=np.int64))
         stream(self.seed, self.twin, 0, "entity")
+        if self.blocked:  # the kernels of a set in blocks, on 2 blocks of 4, writable and read-only
+            weights = blocked.normalise(np.zeros(8), 4, 0.0)[0]
+            particles = np.zeros((8, self.model.dim))
+            for writeable in (True, False):
+                weights.flags.writeable = particles.flags.writeable = writeable
+                blocked.moments(particles, weights, 4)
+                if self.resampler_name == "systematic":
+                    resampling.systematic_blocks(weights, np.random.default_rng(0), 4)
 
     def prepare_next_step(self) -> None:
         """Draw the random numbers that start the next step now: its stream and propagation noise.
@@ -396,7 +425,7 @@ class ParticleFilter:
             return
         rng = stream(self.seed, self.twin, k, "entity")
         try:
-            self._ahead = (k, rng, self.model.propagation_noise(self.n, k, rng))
+            self._ahead = (k, rng, self._noise(k, rng))
         except Exception as exc:
             raise _model_failed(self.model, k, "propagation_noise", exc) from exc
 
@@ -434,8 +463,18 @@ class ParticleFilter:
         self._gathered = resampling.gather(particles, ancestors, out)
         return out
 
+    def _noise(self, k: int, rng: np.random.Generator) -> np.ndarray | None:
+        """The model's propagation noise of step k (None: it draws none apart), block by block for a set
+        in blocks (:func:`dtpf.entity.blocks.noise`)."""
+        if self.blocked:
+            return blocked.noise(self.model, self.n, k, rng, self.block, (self.seed, self.twin))
+        return self.model.propagation_noise(self.n, k, rng)
+
     def _resample(self, weights: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-        """The configured scheme on weights made (normalised) or checked (check_set) this step: not scanned again."""
+        """The configured scheme on weights made (normalised) or checked (check_set) this step: not scanned
+        again; systematic in blocks for a set in blocks (:func:`dtpf.entity.resampling.systematic_blocks`)."""
+        if self.blocked and self.resampler_name == "systematic":
+            return resampling.systematic_blocks(weights, rng, self.block)
         return self.resample(weights, rng, checked=True)
 
     def _ancestors(self, k: int, weights: np.ndarray, rng: np.random.Generator) -> np.ndarray:
@@ -528,6 +567,8 @@ class ParticleFilter:
                 self.particles = check_particles(self.model.initial_particles(self.n, rng))
             elif drive is not None:
                 self.particles = check_particles(self.calls.advance(self.particles, k, rng, drive, noise))
+            elif noise is None and self.blocked and (noise := self._noise(k, rng)) is not None:
+                self.particles = check_particles(self.model.propagate(self.particles, k, rng, noise=noise))
             elif noise is None:
                 self.particles = check_particles(self.model.propagate(self.particles, k, rng))
             else:
@@ -552,12 +593,16 @@ class ParticleFilter:
         else:
             np.add(self.log_weights, log_likelihood, out=self.log_weights)
         try:
-            weights, log_total, top = _normalise(self.log_weights)
+            if self.blocked:
+                weights, log_total, top, ess = blocked.normalise(self.log_weights, self.block,
+                                                                 _top_of(self.log_weights))
+            else:
+                weights, log_total, top = _normalise(self.log_weights)
+                ess = 1.0 / float(np.dot(weights, weights))
         except FilterError as error:
             raise FilterError(f"step {k}: {error} z = {_shown(z)}") from None
         log_predictive = log_total - prior_log_total  # log sum_i W_(k-1)^i p(z_k | x_k^i)
         self._log_total = log_total - top
-        ess = 1.0 / float(np.dot(weights, weights))
 
         due = self.resample_below is None or ess < self.resample_below * self.n
         self._flat = due
@@ -598,7 +643,10 @@ class ParticleFilter:
                     else:
                         move = answer.jitter
 
-        mean, var, covariance = moments_and_covariances(target_particles, target_weights)
+        if self.blocked and not 2 <= target_particles.shape[1] <= MAX_COVARIANCE_DIM:
+            (mean, var), covariance = blocked.moments(target_particles, target_weights, self.block), None
+        else:
+            mean, var, covariance = moments_and_covariances(target_particles, target_weights)
         half = Z95 * np.sqrt(var)
         ancestors = None
         parents = self.parents

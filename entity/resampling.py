@@ -39,7 +39,7 @@ from typing import Callable
 import numba
 import numpy as np
 
-from dtpf.entity import _merge
+from dtpf.entity import _merge, cores
 from dtpf.entity.resamplers.multinomial import multinomial
 from dtpf.entity.resamplers.residual import residual
 from dtpf.entity.resamplers.stratified import stratified
@@ -56,6 +56,7 @@ __all__ = [
     "inverse_cdf",
     "distinct",
     "gather",
+    "systematic_blocks",
 ]
 
 Resampler = Callable[..., np.ndarray]
@@ -84,25 +85,40 @@ def inverse_cdf(points, weights) -> np.ndarray:
 
 
 def gather(particles: np.ndarray, ancestors: np.ndarray, out: np.ndarray | None = None, *,
-           threads: int = 1) -> np.ndarray:
+           threads: int | None = None) -> np.ndarray:
     """The resampled set ``particles[ancestors]`` of an (N, d) float64 set, into ``out`` if given.
 
-    ``threads`` > 1: from PARALLEL_GATHER particles on, the rows are copied on that many of
-    numba's threads, the same array whatever their number. ``python -m dtpf.scripts.bench.resampling``
-    found it slower than one thread on a small machine with other work running, so the filter gathers on one.
+    ``threads``: from PARALLEL_GATHER particles on, the rows are copied on that many of numba's threads
+    (None: the process's, :mod:`dtpf.entity.cores`), the same array whatever their number.
     """
     x = np.ascontiguousarray(particles, dtype=np.float64)
     a = np.ascontiguousarray(ancestors, dtype=np.int64)
     if out is None:
         out = np.empty((a.size,) + x.shape[1:])
-    if threads <= 1 or a.size < PARALLEL_GATHER:
+    count = cores.threads() if threads is None else int(threads)
+    if count <= 1 or a.size < PARALLEL_GATHER:
         return np.take(x, a, axis=0, out=out)
     previous = numba.get_num_threads()
-    numba.set_num_threads(min(int(threads), numba.config.NUMBA_NUM_THREADS))
+    numba.set_num_threads(min(count, numba.config.NUMBA_NUM_THREADS))
     try:
         return _merge.gather_parallel(x, a, out)
     finally:
         numba.set_num_threads(previous)
+
+
+def systematic_blocks(weights: np.ndarray, rng: np.random.Generator, block: int, *,
+                      out: np.ndarray | None = None) -> np.ndarray:
+    """Systematic resampling of normalised, checked ``weights`` in blocks of ``block`` particles on the
+    process's threads (:mod:`dtpf.entity.cores`): the running sum of a particle is its block's offset (the
+    blocks' sums before it, in block order) plus its sum inside the block, so the ancestors are the same for
+    any thread count; for N <= ``block``, :func:`systematic`'s. Draws ``rng.random()``, as systematic."""
+    w = np.ascontiguousarray(weights, dtype=np.float64)
+    out = np.empty(w.size, dtype=np.int64) if out is None else out
+    u = rng.random()
+    if cores.blocks(w.size, block) == 1:
+        return _merge.systematic(w, u, out)
+    cores.use()
+    return _merge.systematic_blocks(w, u, int(block), out)
 
 
 def distinct(ancestors: np.ndarray) -> int:

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 import zenoh
 
-from dtpf.entity import sources
+from dtpf.entity import cores, sources
 from dtpf.entity.answers import live_answers
 from dtpf.entity.cloud import FIELDS, POINT_STRIDE, cloud_points
 from dtpf.entity.filter import ParticleFilter, PendingStep, Preprocessed
@@ -133,6 +133,7 @@ def main(config: RunConfig, zenoh_config: zenoh.Config, args: argparse.Namespace
     stream, ``--steps`` are done or the service is stopped. With ``--twins``
     the process hosts several twins, all in one event loop.
     """
+    cores.set_threads(getattr(args, "threads", None))  # --threads: the process's, never the run's numbers
     models: dict[str, object] = {}  # one model object per reference, shared by the twins of this process
 
     def make(shell: ServiceShell, twin_config: RunConfig) -> TwinRun:
@@ -261,7 +262,7 @@ class TwinRun:
                                  resampler=config.resampler, resample_below=config.resample_below,
                                  seed=config.seed, twin=config.twin, innovation=data is None or data.truth is None,
                                  jitter=config.jitter, sensors=None if data is None else data.sensors,
-                                 drives=None if data is None else data.drives)
+                                 drives=None if data is None else data.drives, block=config.block_particles)
         self.pf.warm_up()
         self.shell.running()
         if self.live is not None:

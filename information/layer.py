@@ -123,7 +123,8 @@ class InformationLayer:
 
     def __init__(self, model: StateSpaceModel, *, ps: float, threshold_rule: str | float = "neff",
                  weight_rule: str = "inherit", seed: int = 0, twin: str = "twin", move_rule: str = "paper",
-                 preprocess: bool = True, arm: str | None = None, arms: dict[str, Arm] | None = None):
+                 preprocess: bool = True, arm: str | None = None, arms: dict[str, Arm] | None = None,
+                 block: int | None = None):
         self.model = model
         #: The model's calls with a sensor (dtpf.entity.calls), read once when a driven step first needs them.
         self._calls = None
@@ -142,6 +143,8 @@ class InformationLayer:
         self.move_rule = MOVE_RULE_REGISTRY.check_name(move_rule)
         self.seed = seed
         self.twin = twin
+        #: B of the run (its block_particles): a larger set is worked on in blocks (dtpf.entity.cores).
+        self.block = block
         self._ahead: tuple[int, np.random.Generator] | None = None
         if arm is not None:
             self.set_ps(self.ps, 0, preprocess, arm)
@@ -161,7 +164,8 @@ class InformationLayer:
         """
         stream(self.seed, self.twin, 0, "information")  # the compiled SeedSequence (dtpf.messages._seedseq)
         size = rules.size_class(particles)
-        key = (self.threshold_rule if isinstance(self.threshold_rule, str) else "a value", size)
+        key = (self.threshold_rule if isinstance(self.threshold_rule, str) else "a value", size,
+               self.block is not None and particles > self.block)
         if key in _WARMED:
             return
         rng = np.random.default_rng(0)
@@ -169,8 +173,11 @@ class InformationLayer:
         w = rng.random(size)
         w /= w.sum()
         x.flags.writeable = w.flags.writeable = False
-        rules.preprocess(x, w, self.ps, rng, threshold_rule=self.threshold_rule, weight_rule="inherit")
-        summarise(x, w, self.threshold_rule, size)
+        # A run in blocks: its blocked kernels too, on two blocks of half the set.
+        for block in (None,) if self.block is None or particles <= self.block else (None, size // 2):
+            rules.preprocess(x, w, self.ps, rng, threshold_rule=self.threshold_rule, weight_rule="inherit",
+                             block=block)
+            summarise(x, w, self.threshold_rule, size, block=block)
         _WARMED.add(key)
 
     def set_ps(self, ps: float, applies_from_step: int, preprocess: bool = True, arm: str | None = None) -> None:
@@ -251,7 +258,8 @@ class InformationLayer:
                     return calls.log_likelihood(x, z, step, sensor=sensor)
         return rules.preprocess(particles, weights, ps, self._stream(step),
                                 threshold_rule=self.threshold_rule, weight_rule=weight_rule,
-                                log_likelihood=log_likelihood, checked=checked, move_rule=move_rule)
+                                log_likelihood=log_likelihood, checked=checked, move_rule=move_rule,
+                                block=self.block)
 
     def mirror(self, particles, weights, parents: int | None = None,
                threshold: float | None = None, *, checked: bool = False) -> WeightSummary:
@@ -260,7 +268,7 @@ class InformationLayer:
         ``threshold``: W if :meth:`preprocess` already found it (the same number).
         """
         return summarise(particles, weights, self.threshold_rule if threshold is None else threshold, parents,
-                         checked=checked)
+                         checked=checked, block=self.block)
 
     def process(self, step: int, particles, weights, observation, parents: int | None = None, *,
                 sensor: str | None = None) -> InformationOutput:

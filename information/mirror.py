@@ -14,11 +14,12 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
+from dtpf.entity import cores
 from dtpf.information.rules import threshold as threshold_of
 from dtpf.information.select import quantiles
 from dtpf.messages.arrays import check_set
 
-__all__ = ["WeightSummary", "summarise", "ess"]
+__all__ = ["WeightSummary", "summarise", "ess", "ess_entropy"]
 
 #: Weight quantiles reported, by field name.
 QUANTILES = {"q10": 0.10, "q50": 0.50, "q90": 0.90, "q99": 0.99}
@@ -84,20 +85,56 @@ def _entropy(weights):  # pragma: no cover - compiled
     return total
 
 
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _block_sums(weights, block):  # pragma: no cover - compiled
+    # (sum w^2, -sum w log w) of a set in blocks of ``block``: each block's sums on a thread, then added
+    # in block order (the same numbers for any thread count).
+    n = weights.shape[0]
+    count = (n + block - 1) // block
+    squares = np.empty(count)
+    entropies = np.empty(count)
+    for b in numba.prange(count):
+        square = 0.0
+        entropy = 0.0
+        for i in range(b * block, min(n, (b + 1) * block)):
+            w = weights[i]
+            square += w * w
+            if w > 0.0:
+                entropy -= w * np.log(w)
+        squares[b] = square
+        entropies[b] = entropy
+    square = 0.0
+    entropy = 0.0
+    for b in range(count):
+        square += squares[b]
+        entropy += entropies[b]
+    return square, entropy
+
+
+def ess_entropy(weights: np.ndarray, block: int | None = None) -> tuple[float, float]:
+    """ESS (Eq. 25) and the Shannon entropy of normalised weights; for more than ``block`` weights
+    (:mod:`dtpf.entity.cores`) summed per block on the process's threads, else as :func:`ess` and one pass."""
+    if cores.blocks(weights.size, block) == 1:
+        return ess(weights), float(_entropy(weights))
+    cores.use()
+    square, entropy = _block_sums(weights, int(block))
+    return 1.0 / square, float(entropy)
+
+
 def summarise(particles, weights, threshold_rule: str | float = "neff", parents: int | None = None, *,
-              checked: bool = False) -> WeightSummary:
+              checked: bool = False, block: int | None = None) -> WeightSummary:
     """The :class:`WeightSummary` of a particle set (N, d) with normalised weights (N,).
 
     ``parents``: the number of distinct particles the set descends from (the
     distinct ancestors of the resampling before the last propagation), which
     the entity knows in O(N). Without it, distinct states are counted by
     sorting, O(N log N); after a propagation with noise that is N.
-    ``checked``: as in :func:`dtpf.information.rules.preprocess`.
+    ``checked``: as in :func:`dtpf.information.rules.preprocess`. ``block``: B of the run
+    (:mod:`dtpf.entity.cores`); more weights than B are summed per block (:func:`ess_entropy`).
     """
     x, w = check_set(particles, weights, checked=checked)
     n = w.size
-    effective = ess(w)
-    entropy = float(_entropy(w))
+    effective, entropy = ess_entropy(w, block)
     limit = threshold_of(w, threshold_rule)
     if parents is not None:
         if not 1 <= int(parents) <= n:

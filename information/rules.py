@@ -67,6 +67,7 @@ from typing import Callable
 import numba
 import numpy as np
 
+from dtpf.entity import cores
 from dtpf.information.report import PreprocessReport
 from dtpf.information.select import RADIX_MIN, kth_largest
 from dtpf.messages.arrays import check_probability, check_set
@@ -167,6 +168,47 @@ def _split(weights, limit, particles, capacity):  # pragma: no cover - compiled
             small[i - n_large] = i
             n_large += weights[i] > limit
     return small[: n - n_large], rows[:n_large], out
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _split_parallel(weights, limit, particles, capacity, parts):  # pragma: no cover - compiled
+    # _split's arrays on ``parts`` threads, each a contiguous part of the particles: a part counts its
+    # large particles, then writes its rows and small indices after those of the parts before it. The
+    # arrays are _split's, element for element.
+    n, d = particles.shape
+    large_before = np.zeros(parts + 1, dtype=np.int64)
+    for p in numba.prange(parts):
+        count = 0
+        for i in range(n * p // parts, n * (p + 1) // parts):
+            count += weights[i] > limit
+        large_before[p + 1] = count
+    for p in range(parts):
+        large_before[p + 1] += large_before[p]
+    n_large = large_before[parts]
+    small = np.empty(n - n_large, dtype=np.int32)
+    rows = np.empty((n_large, d))
+    out = np.empty((n, d))
+    for p in numba.prange(parts):
+        start = n * p // parts
+        k = large_before[p]
+        for i in range(start, n * (p + 1) // parts):
+            for c in range(d):
+                out[i, c] = particles[i, c]
+            if weights[i] > limit:
+                for c in range(d):
+                    rows[k, c] = particles[i, c]
+                k += 1
+            else:
+                small[i - k] = i
+    return small, rows, out
+
+
+def split(weights, limit, particles, capacity):
+    """Eq. 28: (indices of the small particles, rows of the large ones in index order, a copy of the
+    particles); on the process's threads from PARALLEL_MIN particles on (the same arrays)."""
+    if cores.parallel(weights.shape[0]):
+        return _split_parallel(weights, limit, particles, capacity, cores.use())
+    return _split(weights, limit, particles, capacity)
 
 
 # --- the random stream of the rules --------------------------------------------
@@ -321,6 +363,72 @@ def _move_blocked(particles, small, rows, ps, state, out):  # pragma: no cover -
     return n_mixed
 
 
+#: xoshiro256**'s jump polynomial: the state 2**128 draws on (Blackman and Vigna 2018).
+_JUMP = np.array([0x180EC6D33CFD0ABA, 0xD5A61266F0C9392C, 0xA9582618E03FC9AA, 0x39ABDC4529B1661C],
+                 dtype=np.uint64)
+
+
+@numba.njit(cache=True, nogil=True)
+def _jumped(state, count):  # pragma: no cover - compiled
+    # (count, 4) states: row b is ``state`` jumped b times (b * 2**128 draws on); row 0 is ``state``.
+    states = np.empty((count, 4), dtype=np.uint64)
+    s0, s1, s2, s3 = state[0], state[1], state[2], state[3]
+    for b in range(count):
+        states[b, 0], states[b, 1], states[b, 2], states[b, 3] = s0, s1, s2, s3
+        t0, t1, t2, t3 = _U(0), _U(0), _U(0), _U(0)
+        for word in range(4):
+            for bit in range(64):
+                if (_JUMP[word] >> _U(bit)) & _U(1):
+                    t0 ^= s0
+                    t1 ^= s1
+                    t2 ^= s2
+                    t3 ^= s3
+                _, s0, s1, s2, s3 = _next(s0, s1, s2, s3)
+        s0, s1, s2, s3 = t0, t1, t2, t3
+    return states
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _move_blocks(particles, small, rows, ps, states, starts, out):  # pragma: no cover - compiled
+    # _move_blocked for a set in blocks: block b moves the small particles small[starts[b]:starts[b+1]]
+    # (those of its particles) with the draws of the stream states[b], in _move_blocked's order; the
+    # blocks run on the threads. Returns the number on the mixed branch, summed in block order.
+    n_large = rows.shape[0]
+    d = particles.shape[1]
+    mixed_below = _mixed_below(ps)
+    blocks = starts.shape[0] - 1
+    mixed_of = np.zeros(blocks, dtype=np.int64)
+    for b in numba.prange(blocks):
+        s0, s1, s2, s3 = states[b, 0], states[b, 1], states[b, 2], states[b, 3]
+        partners = np.empty(MOVE_BLOCK, dtype=np.uint64)
+        factors = np.empty(MOVE_BLOCK)
+        n_mixed = 0
+        for start in range(starts[b], starts[b + 1], MOVE_BLOCK):
+            count = min(MOVE_BLOCK, starts[b + 1] - start)
+            for j in range(count):
+                partners[j], factors[j], mixed, s0, s1, s2, s3 = _draw(s0, s1, s2, s3, n_large, mixed_below)
+                n_mixed += mixed
+            for j in range(count):
+                _put_moved(particles, rows, out, _U(small[start + j]), partners[j], factors[j], d)
+        mixed_of[b] = n_mixed
+    total = 0
+    for b in range(blocks):
+        total += mixed_of[b]
+    return total
+
+
+def move_blocks(particles, small, rows, ps, state, out, block):
+    """Eq. 29-30 for the small particles of a set in blocks of ``block`` particles: block b's small
+    particles draw, in index order, from the xoshiro256** stream ``state`` jumped b times (block 0 from
+    ``state`` itself, as one block would). Returns the number on the mixed branch."""
+    n = particles.shape[0]
+    count = cores.blocks(n, block)
+    starts = np.searchsorted(small, np.arange(count + 1, dtype=np.int64) * block).astype(np.int64)
+    starts[-1] = small.shape[0]
+    cores.use()
+    return _move_blocks(particles, small, rows, ps, _jumped(state, count), starts, out)
+
+
 @numba.njit(cache=True, nogil=True)
 def _rules(particles, weights, limit, rank, capacity, ps, state):  # pragma: no cover - compiled
     # Eq. 28-30 in one call, for small sets, where each call into compiled code costs more than
@@ -439,18 +547,24 @@ def _preprocess_small(x, w, threshold_rule, ps, rng):
     return out, float(limit), int(n_large), int(n_small), int(n_mixed)
 
 
-def move_paper(x: np.ndarray, w: np.ndarray, threshold_rule: str | float, ps: float, rng: np.random.Generator):
+def move_paper(x: np.ndarray, w: np.ndarray, threshold_rule: str | float, ps: float, rng: np.random.Generator,
+               *, block: int | None = None):
     """(new particles or None, W, M, N - M, mixed) of Eq. 29-30 as printed (the move rule "paper",
     :mod:`dtpf.information.move_rules`): one compiled call for a small set drawn from a PCG64, else the
-    split, then the moves in blocks (the same numbers)."""
+    split, then the moves in blocks of MOVE_BLOCK (the same numbers). ``block``: B of a run
+    (:mod:`dtpf.entity.cores`); a set of more than B particles moves in blocks of B, each drawing from its
+    own stream (:func:`move_blocks`), on the process's threads."""
     if w.size < SMALL_SET and type(rng.bit_generator) is np.random.PCG64:
         return _preprocess_small(x, w, threshold_rule, ps, rng)
     limit, capacity = _threshold(w, threshold_rule)
-    small_idx, large_rows, new_particles = _split(w, limit, x, capacity)
+    small_idx, large_rows, new_particles = split(w, limit, x, capacity)
     n_small, n_large = small_idx.size, large_rows.shape[0]
     if n_large == 0 or n_small == 0:
         return None, limit, n_large, 0, 0
-    n_mixed = int(_move_blocked(x, small_idx, large_rows, ps, _seed(rng), new_particles))
+    if cores.blocks(w.size, block) > 1:
+        n_mixed = int(move_blocks(x, small_idx, large_rows, ps, _seed(rng), new_particles, block))
+    else:
+        n_mixed = int(_move_blocked(x, small_idx, large_rows, ps, _seed(rng), new_particles))
     return new_particles, limit, n_large, n_small, n_mixed
 
 
@@ -481,6 +595,7 @@ def preprocess(
     log_likelihood: LogLikelihood | None = None,
     checked: bool = False,
     move_rule: str = "paper",
+    block: int | None = None,
 ) -> PreprocessResult:
     """Move small-weight particles towards large-weight ones (Eq. 28-30).
 
@@ -508,6 +623,9 @@ def preprocess(
         Eq. 29-30 as printed (default), or the translation-invariant rule
         of the module docstring (:mod:`dtpf.information.move_rules`); both use
         the same split and random numbers.
+    block : int, optional
+        B of the run (its ``block_particles``, :mod:`dtpf.entity.cores`): the paper's moves of a set of
+        more than B particles draw each block's numbers from its own stream; None: one block.
 
     Returns
     -------
@@ -523,7 +641,10 @@ def preprocess(
         raise ValueError(f"weight rule {weight_rule!r} needs the observation's log_likelihood")
     move = MOVE_RULE_REGISTRY.get(move_rule)
 
-    new_particles, limit, n_large, n_small, n_mixed = move(x, w, threshold_rule, ps, rng)
+    if move_rule == "paper" and cores.blocks(w.size, block) > 1:
+        new_particles, limit, n_large, n_small, n_mixed = move_paper(x, w, threshold_rule, ps, rng, block=block)
+    else:
+        new_particles, limit, n_large, n_small, n_mixed = move(x, w, threshold_rule, ps, rng)
     if new_particles is None:
         report = PreprocessReport(limit, n_large, 0, 0, 0, ps)
         return PreprocessResult(x.copy(), w.copy(), report)

@@ -6,12 +6,16 @@ the values' bit patterns, which order like the values for non-negative
 floats; a second collects the members of the buckets that hold a requested
 rank, and each order statistic is selected among those only (np.partition).
 Below 2**16 values ``np.partition`` on the whole array is faster and is used
-instead.
+instead. On more than one thread (:mod:`dtpf.entity.cores`) each thread counts
+and collects a contiguous part: the counts are integers and the members keep
+index order, so the values are those of one thread.
 """
 from __future__ import annotations
 
 import numba
 import numpy as np
+
+from dtpf.entity import cores
 
 __all__ = ["order_statistics", "kth_largest", "quantiles"]
 
@@ -19,16 +23,67 @@ __all__ = ["order_statistics", "kth_largest", "quantiles"]
 RADIX_MIN = 1 << 16
 
 
+@numba.njit(inline="always")
+def _part(n, parts, p):  # pragma: no cover - compiled
+    # [start, end) of part p of ``parts`` contiguous parts of n values.
+    return n * p // parts, n * (p + 1) // parts
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _counts_parallel(bits, parts):  # pragma: no cover - compiled
+    # The histogram of the top 16 bits, each part's on its thread, then summed (integers: exact).
+    shift = 48
+    partial = np.zeros((parts, 1 << 15), dtype=np.int64)
+    for p in numba.prange(parts):
+        start, end = _part(bits.shape[0], parts, p)
+        for i in range(start, end):
+            partial[p, bits[i] >> shift] += 1
+    counts = np.zeros(1 << 15, dtype=np.int64)
+    for p in range(parts):
+        for b in range(1 << 15):
+            counts[b] += partial[p, b]
+    return counts
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _collect_parallel(values, bits, needed, size, parts):  # pragma: no cover - compiled
+    # The values whose bucket is needed, in index order: each part counts its own, then writes them
+    # from the sum of the counts before it.
+    shift = 48
+    found = np.zeros(parts + 1, dtype=np.int64)
+    for p in numba.prange(parts):
+        start, end = _part(bits.shape[0], parts, p)
+        count = 0
+        for i in range(start, end):
+            count += needed[bits[i] >> shift]
+        found[p + 1] = count
+    for p in range(parts):
+        found[p + 1] += found[p]
+    members = np.empty(size)
+    for p in numba.prange(parts):
+        start, end = _part(bits.shape[0], parts, p)
+        j = found[p]
+        for i in range(start, end):
+            if needed[bits[i] >> shift]:
+                members[j] = values[i]
+                j += 1
+    return members
+
+
 @numba.njit(cache=True, nogil=True)
-def _order_statistics(values, ranks):  # pragma: no cover - compiled
+def _order_statistics(values, ranks, parts=1):  # pragma: no cover - compiled
     # ranks: sorted 0-based positions in ascending order. Pass 1: histogram of
     # the top 16 bits. Pass 2: collect the members of the buckets that hold a
     # requested rank; sorted, each bucket is a contiguous run of them.
+    # parts > 1: both passes on that many threads (the same numbers).
     bits = values.view(np.int64)
     shift = 48
-    counts = np.zeros(1 << 15, dtype=np.int64)
-    for i in range(bits.shape[0]):
-        counts[bits[i] >> shift] += 1
+    if parts > 1:
+        counts = _counts_parallel(bits, parts)
+    else:
+        counts = np.zeros(1 << 15, dtype=np.int64)
+        for i in range(bits.shape[0]):
+            counts[bits[i] >> shift] += 1
     needed = np.zeros(1 << 15, dtype=np.bool_)
     bucket_of = np.empty(ranks.shape[0], dtype=np.int64)
     below_of = np.empty(ranks.shape[0], dtype=np.int64)
@@ -45,12 +100,15 @@ def _order_statistics(values, ranks):  # pragma: no cover - compiled
     for b in range(counts.shape[0]):
         if needed[b]:
             size += counts[b]
-    members = np.empty(size)
-    j = 0
-    for i in range(bits.shape[0]):
-        if needed[bits[i] >> shift]:
-            members[j] = values[i]
-            j += 1
+    if parts > 1:
+        members = _collect_parallel(values, bits, needed, size, parts)
+    else:
+        members = np.empty(size)
+        j = 0
+        for i in range(bits.shape[0]):
+            if needed[bits[i] >> shift]:
+                members[j] = values[i]
+                j += 1
     # Position of each rank in sorted(members): the members of needed buckets
     # below its bucket, plus its rank inside the bucket. Ranks ascend, so do
     # their buckets: one pass over the buckets finds every start.
@@ -81,7 +139,8 @@ def order_statistics(values: np.ndarray, ranks) -> np.ndarray:
         return np.partition(values, ranks)[ranks]
     order = np.argsort(ranks, kind="stable")
     out = np.empty(ranks.size)
-    out[order] = _order_statistics(np.ascontiguousarray(values, dtype=np.float64), ranks[order])
+    parts = cores.use() if cores.parallel(values.size) else 1
+    out[order] = _order_statistics(np.ascontiguousarray(values, dtype=np.float64), ranks[order], parts)
     return out
 
 

@@ -16,7 +16,7 @@ import argparse
 
 import zenoh
 
-from dtpf.entity import sources
+from dtpf.entity import cores, sources
 from dtpf.information.layer import InformationLayer, arms_for
 from dtpf.messages import family, names
 from dtpf.messages.admission import RunShape
@@ -89,7 +89,7 @@ class TwinInformation:
                                       weight_rule=config.weight_rule, seed=config.seed, twin=config.twin,
                                       move_rule=config.move_rule,
                                       preprocess=family.POLICIES.trait(config.policy, "initial_preprocess", True),
-                                      arms=arms_for(config.jitter),
+                                      arms=arms_for(config.jitter), block=config.block_particles,
                                       arm=(config.choose_base or names.DEFAULT_CHOOSE_BASE)
                                       if family.POLICIES.trait(config.policy, "chooses_arms", False) else None)
         shell.expect(RunShape.of(config, model))
@@ -183,6 +183,7 @@ class TwinInformation:
 def main(config: RunConfig, zenoh_config: zenoh.Config, args: argparse.Namespace) -> int:
     """Serve preprocessing for the twin of ``config`` (or, with --twins, every twin under the pattern)
     until SIGINT/SIGTERM."""
+    cores.set_threads(getattr(args, "threads", None))  # --threads: the process's, never the run's numbers
     return serve_layer("information", config, zenoh_config, args, sources.load_model,
                        lambda shell, twin_config, model: TwinInformation(shell, twin_config, model, args.timeout))
 

@@ -26,6 +26,9 @@ __all__ = ["RunConfig", "RunInputError", "ID_PATTERN", "add_run_arguments", "con
 #: Run and twin ids: safe inside a Zenoh key expression and a file name.
 ID_PATTERN = r"^[A-Za-z0-9_.-]+$"
 
+#: B, the particles of one block of the kernels (dtpf.entity.cores): the block_particles of a new run.
+BLOCK_PARTICLES = 1 << 16
+
 
 def _problems(error: ValidationError, flags: bool = False) -> str:
     """A validation error in one line: each field (as its command-line flag when ``flags``) and what is wrong."""
@@ -66,6 +69,9 @@ class RunConfig(BaseModel):
             values["steps"] = None  # an observation file: every row, as dtpf run reads it
         if "steps" not in values and values.get("sensor_files"):
             values["steps"] = None  # every row of every sensor's file
+        # A new run records B; a config read back from a log written before blocks (model_validate_json,
+        # which does not come here) has none: one block, the numbers of that log.
+        values.setdefault("block_particles", BLOCK_PARTICLES)
         try:
             super().__init__(**values)
         except ValidationError as error:
@@ -158,6 +164,12 @@ class RunConfig(BaseModel):
     seed: int = Field(0, ge=0, description="Root seed of every random stream of the run.")
     twin: str = Field("ungm-1", pattern=ID_PATTERN, description="Twin id (key expressions dtpf/<twin>/...).")
     run_id: str = Field("run", pattern=ID_PATTERN, description="Run id carried by every message.")
+    block_particles: int | None = Field(None, ge=1, description="B: the kernels split a set of N > B "
+                                        "particles into blocks of B, sum each block's share of a sum and draw "
+                                        "each block's random numbers from its own stream, so that the numbers do "
+                                        "not depend on the threads that run them (dtpf.entity.cores). A new run "
+                                        f"takes {BLOCK_PARTICLES}; None (a log recorded before blocks): one "
+                                        "block, whatever N.")
 
     @field_validator("scenario")
     @classmethod
@@ -501,6 +513,19 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
                        help=f"PS of the fixed policy, initial PS of the others (default: {defaults.ps})")
     group.add_argument("--ps-rate", type=float, default=None, metavar="CHANGE",
                        help=f"largest change of PS per step of the adaptive policies (default: {defaults.ps_rate})")
+    group = parser.add_argument_group("process")
+    group.add_argument("--threads", type=_threads, default=None, metavar="COUNT",
+                       help="threads this process computes on: sets of more than block_particles particles are "
+                            "worked on in blocks shared among them, with the same numbers for any COUNT (not a "
+                            "setting of the run: it is not recorded) (default: every core this process may use)")
+
+
+def _threads(text: str) -> int:
+    """``--threads COUNT``: a positive whole number."""
+    value = int(text) if text.strip().isdigit() else 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"--threads takes a positive whole number, got {text!r}")
+    return value
 
 
 #: The RunConfig fields the run flags set (argparse dest = field name).

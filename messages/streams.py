@@ -59,14 +59,19 @@ def _uint32_words(values: list[int]) -> np.ndarray:
 
 
 class _PCG64Seed(ISeedSequence):
-    """The 4 uint64 words SeedSequence(entropy) hands a PCG64, computed by :mod:`dtpf.messages._seedseq`."""
+    """The 4 uint64 words SeedSequence(entropy, spawn_key) hands a PCG64, computed by :mod:`dtpf.messages._seedseq`."""
 
     __slots__ = ("state",)
 
-    def __init__(self, entropy: list[int]):
+    def __init__(self, entropy: list[int], spawn_key: tuple[int, ...] = ()):
         from dtpf.messages import _seedseq  # numba on first use: processes that draw nothing skip it
 
-        self.state = _seedseq.state_words(_uint32_words(entropy)).view(np.uint64)
+        # numpy assembles the entropy's words, then the spawn key's (the entropy has more than 4 words:
+        # no padding between them).
+        words = _uint32_words(entropy)
+        if spawn_key:
+            words = np.concatenate((words, _uint32_words(list(spawn_key))))
+        self.state = _seedseq.state_words(words).view(np.uint64)
 
     def generate_state(self, n_words, dtype=np.uint32):
         if n_words != 4 or np.dtype(dtype) != np.uint64:
@@ -78,3 +83,13 @@ def stream(seed: int, twin: str, step: int, layer: str) -> np.random.Generator:
     """A fresh Generator (PCG64) for one (seed, twin, step, layer): the generator
     ``Generator(PCG64(seed_sequence(seed, twin, step, layer)))``, the same numbers, built several times faster."""
     return np.random.Generator(np.random.PCG64(_PCG64Seed(_entropy(seed, twin, step, layer))))
+
+
+def block_stream(seed: int, twin: str, step: int, layer: str, block: int) -> np.random.Generator:
+    """The stream of block ``block`` >= 1 of a set worked on in blocks (:mod:`dtpf.entity.cores`):
+    ``Generator(PCG64(SeedSequence(entropy, spawn_key=(block,))))`` with the entropy of
+    ``stream(seed, twin, step, layer)``, the child ``block`` of the step's stream; block 0 draws from the
+    step's stream itself."""
+    if int(block) < 1:
+        raise ValueError(f"a block's own stream is for blocks 1, 2, ...; got {block!r}")
+    return np.random.Generator(np.random.PCG64(_PCG64Seed(_entropy(seed, twin, step, layer), (int(block),))))

@@ -57,8 +57,10 @@ def fit_simulation(config, args: argparse.Namespace):
 
 
 def cmd_run(args: argparse.Namespace) -> int:
+    from dtpf.entity import cores
     from dtpf.scripts.inprocess import run
 
+    cores.set_threads(args.threads)
     # run() reads the file once; T is its rows unless --steps is smaller
     config = fit_simulation(config_from_args(args), args)
     result = run(config, progress=None if args.quiet else ProgressBar(),
@@ -208,7 +210,7 @@ def cmd_launch(args: argparse.Namespace) -> int:
                         restarts=0 if args.no_restart else args.restarts, keep_estimates=False,
                         notify=lambda text: print(f"\ndtpf launch: {text}", file=sys.stderr, flush=True),
                         cloud_points=args.cloud_points, foxglove=args.foxglove, secure=args.secure,
-                        ros2=ros2_words, forecast=args.forecast)
+                        ros2=ros2_words, forecast=args.forecast, threads=args.threads)
     except LaunchError as error:
         print(f"dtpf launch: error: {error}", file=sys.stderr)
         return 1

@@ -177,12 +177,12 @@ def build(config: RunConfig, observations, model=None, innovation: bool = False,
                                        weight_rule=config.weight_rule, seed=config.seed, twin=config.twin,
                                        move_rule=config.move_rule, preprocess=system.policy.initial_preprocess,
                                        arm=getattr(system.policy, "initial_arm", None),
-                                       arms=arms_for(config.jitter))
+                                       arms=arms_for(config.jitter), block=config.block_particles)
         twin = InProcessTwin(information, system)
     return ParticleFilter(model, observations, config.particles, resampler=config.resampler,
                           resample_below=config.resample_below, seed=config.seed, twin=config.twin,
                           preprocessor=twin, innovation=innovation, jitter=config.jitter, sensors=sensors,
-                          drives=drives)
+                          drives=drives, block=config.block_particles)
 
 
 def run(config: RunConfig, progress=None, model=None, note=None) -> RunResult:

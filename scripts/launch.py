@@ -382,9 +382,11 @@ def default_log_path(config: RunConfig) -> Path:
 def service_command(layer: str, config: RunConfig, endpoint: str, *, timeout: float, log_path: Path,
                     log_level: str, rate: float | None = None,
                     observation_timeout: float | None = None, cloud_points: int | None = None,
-                    secure: Path | None = None, wait_for_recorder: bool = True, forecast: int = 0) -> list[str]:
+                    secure: Path | None = None, wait_for_recorder: bool = True, forecast: int = 0,
+                    threads: int | None = None) -> list[str]:
     """The command line of one child service (``secure``: the secure folder; its role is the layer;
-    ``wait_for_recorder``: the entity waits for its twin's recorder too)."""
+    ``wait_for_recorder``: the entity waits for its twin's recorder too; ``threads``: the layers'
+    ``--threads``, None: every core, their default)."""
     # -P: the child never imports from the working directory, where a user's own messages.py or
     # entity.py may sit beside their model.
     command = [sys.executable, "-P", "-m", MODULES[layer],
@@ -428,6 +430,8 @@ def service_command(layer: str, config: RunConfig, endpoint: str, *, timeout: fl
         command += ["--choose-base", config.choose_base]
     if not config.preprocess:
         command += ["--no-preprocess"]
+    if threads is not None and layer != "recorder":
+        command += ["--threads", str(threads)]
     if layer == "entity":
         wait = (["recorder"] if wait_for_recorder else []) + (["information", "system"] if config.preprocess else [])
         for other in wait:
@@ -511,7 +515,8 @@ def launch(config: RunConfig, *, log_path: Path | None = None, port: int | None 
            observation_timeout: float | None = None, restarts: int = DEFAULT_RESTARTS,
            keep_estimates: bool = True, notify=None, cloud_points: int | None = None,
            foxglove: tuple[str, int] | None = None, secure=None, record: bool = True,
-           ros2: list[str] | None = None, overwrite: bool = False, forecast: int = 0) -> LaunchResult:
+           ros2: list[str] | None = None, overwrite: bool = False, forecast: int = 0,
+           threads: int | None = None) -> LaunchResult:
     """Run ``config`` as four processes around an embedded Zenoh router.
 
     ``rate`` caps the entity's steps per second (None: as fast as it can).
@@ -535,7 +540,8 @@ def launch(config: RunConfig, *, log_path: Path | None = None, port: int | None 
     A log is never overwritten: when ``log_path`` or its segments (``run.1.mcap``, ...) exist, LaunchError
     before anything starts, unless ``overwrite``, which removes them (and says so through ``notify``).
     ``ros2``: options of the ROS 2 bridge (``dtpf ros2``), started beside the layers when the observations
-    are ``ros2:TOPIC`` (:func:`bridge_command`); it needs rclpy in this Python.
+    are ``ros2:TOPIC`` (:func:`bridge_command`); it needs rclpy in this Python. ``threads``: each layer's
+    ``--threads`` (None: every core; the layers run in lockstep, rarely at the same time).
     Raises LaunchError when the router cannot listen, a service fails to start
     or refuses its configuration; the entity's failure ends the run with
     :attr:`LaunchResult.failure` set.
@@ -566,7 +572,7 @@ def launch(config: RunConfig, *, log_path: Path | None = None, port: int | None 
             service_command(layer, config, endpoint, timeout=timeout, log_path=output, log_level=log_level,
                             rate=rate, observation_timeout=observation_timeout, cloud_points=cloud_points,
                             secure=secure.path if secure is not None else None, wait_for_recorder=record,
-                            forecast=forecast),
+                            forecast=forecast, threads=threads),
             stderr=child_output, start_new_session=True)
         layer_of_pid[children[layer].pid] = layer
         if layer == "recorder" and record:

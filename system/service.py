@@ -17,7 +17,7 @@ import time
 
 import zenoh
 
-from dtpf.entity import sources
+from dtpf.entity import cores, sources
 from dtpf.entity.timeline import Drive
 from dtpf.information.mirror import WeightSummary
 from dtpf.messages.admission import RunShape
@@ -143,6 +143,7 @@ class TwinSystem:
 def main(config: RunConfig, zenoh_config: zenoh.Config, args: argparse.Namespace) -> int:
     """Serve PS decisions for the twin of ``config`` (or, with --twins, every twin under the pattern)
     until SIGINT/SIGTERM."""
+    cores.set_threads(getattr(args, "threads", None))  # --threads: the process's, never the run's numbers
     return serve_layer("system", config, zenoh_config, args, sources.load_model,
                        lambda shell, twin_config, model: TwinSystem(shell, twin_config, model, args.timeout))
 

@@ -64,7 +64,7 @@ def rerun_entity(config: RunConfig, model, twin: str, propagated: dict[int, Part
 
     pf = ParticleFilter(model, None, config.particles, resampler=config.resampler,
                         resample_below=config.resample_below, seed=config.seed, twin=twin,
-                        preprocessor=answer, jitter=config.jitter)
+                        preprocessor=answer, jitter=config.jitter, block=config.block_particles)
     for step in steps:
         if step != pf.k + 1:
             result.skipped = f"step {pf.k + 1} is not in the log"

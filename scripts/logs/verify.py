@@ -203,7 +203,7 @@ def verify_twin(by_topic: dict[str, list], twin: str, problem: str | None = None
                                    weight_rule=config.weight_rule, seed=config.seed, twin=twin,
                                    move_rule=config.move_rule, preprocess=system.policy.initial_preprocess,
                                    arm=getattr(system.policy, "initial_arm", None),
-                                   arms=arms_for(config.jitter))
+                                   arms=arms_for(config.jitter), block=config.block_particles)
     for step in sorted(particle_sets):
         source: ParticleSet = particle_sets[step]
         out = information.process(step, source.particles, source.weights, source.observation, source.parents,

@@ -1,0 +1,160 @@
+"""The filter's passes over a set in blocks (:mod:`dtpf.entity.cores`): one job each, the same numbers for
+any thread count.
+
+A set of N > B particles (B the run's ``block_particles``) is cut into blocks of B; every sum adds the
+blocks' partial sums in block order, and block b >= 1 draws its propagation noise from its own stream
+(:func:`dtpf.messages.streams.block_stream`), block 0 from the step's. The filter calls these only for
+more than one block; one block is the filter's own code, so the numbers of N <= B do not change::
+
+    weights, log_total, top, ess = blocks.normalise(log_weights, 65_536, float(np.max(log_weights)))
+    mean, var = blocks.moments(particles, weights, 65_536)
+"""
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+from dtpf.entity import cores
+from dtpf.messages.streams import block_stream
+
+__all__ = ["normalise", "moments", "noise"]
+
+
+@numba.njit(inline="always")
+def _bounds(n, block, b):  # pragma: no cover - compiled
+    return b * block, min(n, (b + 1) * block)
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _exponentials(log_weights, top, block, out):  # pragma: no cover - compiled
+    # out = exp(log_weights - top), and the sum of out, each block's on a thread, added in block order.
+    n = log_weights.shape[0]
+    count = (n + block - 1) // block
+    sums = np.empty(count)
+    for b in numba.prange(count):
+        start, end = _bounds(n, block, b)
+        total = 0.0
+        for i in range(start, end):
+            value = np.exp(log_weights[i] - top)
+            out[i] = value
+            total += value
+        sums[b] = total
+    total = 0.0
+    for b in range(count):
+        total += sums[b]
+    return total
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _divide(weights, total, block):  # pragma: no cover - compiled
+    # weights /= total in place, and sum w^2 of the result (Eq. 25), per block, added in block order.
+    n = weights.shape[0]
+    count = (n + block - 1) // block
+    sums = np.empty(count)
+    for b in numba.prange(count):
+        start, end = _bounds(n, block, b)
+        square = 0.0
+        for i in range(start, end):
+            w = weights[i] / total
+            weights[i] = w
+            square += w * w
+        sums[b] = square
+    square = 0.0
+    for b in range(count):
+        square += sums[b]
+    return square
+
+
+def normalise(log_weights: np.ndarray, block: int, top: float) -> tuple[np.ndarray, float, float, float]:
+    """(normalised weights, log sum_i exp(log w_i), ``top``, ESS) of (N,) log-weights whose largest is
+    ``top``, finite (Eq. 23 normalised, shifted by the maximum; ESS of Eq. 25), the sums per block of
+    ``block``."""
+    cores.use()
+    weights = np.empty_like(log_weights)
+    total = _exponentials(log_weights, top, int(block), weights)
+    square = _divide(weights, total, int(block))
+    return weights, top + float(np.log(total)), top, 1.0 / square
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _moments(particles, weights, block):  # pragma: no cover - compiled
+    # The weighted mean, then the weighted variance about it, per component: per block, added in block order.
+    n, d = particles.shape
+    count = (n + block - 1) // block
+    sums = np.zeros((count, d))
+    for b in numba.prange(count):
+        start, end = _bounds(n, block, b)
+        for i in range(start, end):
+            for c in range(d):
+                sums[b, c] += weights[i] * particles[i, c]
+    mean = np.zeros(d)
+    for b in range(count):
+        for c in range(d):
+            mean[c] += sums[b, c]
+    squares = np.zeros((count, d))
+    for b in numba.prange(count):
+        start, end = _bounds(n, block, b)
+        for i in range(start, end):
+            for c in range(d):
+                centred = particles[i, c] - mean[c]
+                squares[b, c] += weights[i] * (centred * centred)
+    var = np.zeros(d)
+    for b in range(count):
+        for c in range(d):
+            var[c] += squares[b, c]
+    return mean, var
+
+
+def moments(particles: np.ndarray, weights: np.ndarray, block: int) -> tuple[np.ndarray, np.ndarray]:
+    """Weighted mean and variance per component, (d,), (d,), the sums per block of ``block``."""
+    cores.use()
+    return _moments(np.ascontiguousarray(particles, dtype=np.float64), weights, int(block))
+
+
+def noise(model, n: int, k: int, rng: np.random.Generator, block: int, key: tuple[int, str]) -> np.ndarray | None:
+    """The propagation noise of step k, (N, d), block by block: block 0's ``model.propagation_noise(B, k,
+    rng)`` from the step's stream, block b's from ``block_stream(seed, twin, k, "entity", b)`` (``key`` is
+    (seed, twin)); the blocks drawn on the process's threads (a compiled model's draws release the GIL).
+    None when the model draws no noise apart (``propagation_noise`` gives None): it then propagates on the
+    step's stream alone."""
+    first = model.propagation_noise(min(n, block), k, rng)
+    if first is None:
+        return None
+    first = np.asarray(first, dtype=np.float64)
+    count = cores.blocks(n, block)
+    out = np.empty((n,) + first.shape[1:])
+    out[:first.shape[0]] = first
+    seed, twin = key
+
+    def draw(b: int) -> None:
+        start, end = b * block, min(n, (b + 1) * block)
+        out[start:end] = model.propagation_noise(end - start, k, block_stream(seed, twin, k, "entity", b))
+
+    rest = range(1, count)
+    workers = min(cores.threads(), len(rest))
+    if workers <= 1:
+        for b in rest:
+            draw(b)
+        return out
+    shares = [rest[i::workers] for i in range(workers)]
+    pool = _pool(workers)
+    futures = [pool.submit(lambda share=share: [draw(b) for b in share]) for share in shares[1:]]
+    for b in shares[0]:
+        draw(b)
+    for future in futures:
+        future.result()
+    return out
+
+
+_POOLS: dict[int, object] = {}
+
+
+def _pool(workers: int):
+    """A thread pool of ``workers`` - 1 threads (the caller is the other), made once per size."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    pool = _POOLS.get(workers)
+    if pool is None:
+        pool = _POOLS[workers] = ThreadPoolExecutor(max_workers=max(1, workers - 1),
+                                                    thread_name_prefix="dtpf-blocks")
+    return pool

@@ -1,0 +1,77 @@
+"""The threads a process computes on, and the blocks its kernels share among them.
+
+A set of N particles is worked on in blocks of B (a run's ``block_particles``,
+:data:`dtpf.messages.config.BLOCK_PARTICLES` for a new run): threads take
+blocks, a sum adds the blocks' partial sums in block order, and block b draws
+its random numbers from a stream that depends on the step's stream and b only
+(block 0 from the step's stream itself). So the numbers do not depend on the
+thread count, and for N <= B (one block) they are those of one thread without
+blocks. Kernels whose numbers do not depend on how the set is cut (an
+element-wise pass, a histogram of integers, a copy) share any large set among
+the threads.
+
+The thread count is a setting of the process, never of the run::
+
+    from dtpf.entity import cores
+    cores.set_threads(2)        # None: every core this process may use
+    cores.blocks(1_000_000, 65_536)   # 16
+"""
+from __future__ import annotations
+
+import os
+
+import numba
+
+__all__ = ["available", "set_threads", "threads", "use", "blocks", "parallel", "PARALLEL_MIN"]
+
+#: From this many particles on, a kernel whose numbers do not depend on the cut shares the set among the
+#: threads; below it one thread is faster (waking the others costs about 10 us).
+PARALLEL_MIN = 1 << 16
+
+#: The process's thread count (None: not set, every core it may use).
+_THREADS: int | None = None
+
+
+def available() -> int:
+    """The cores this process may run on (its CPU affinity), at most numba's thread pool."""
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except AttributeError:  # no affinity on this platform
+        cores = os.cpu_count() or 1
+    return max(1, min(cores, numba.config.NUMBA_NUM_THREADS))
+
+
+def set_threads(count: int | None = None) -> int:
+    """Compute on ``count`` threads (None: :func:`available`), clipped to numba's pool; the count set."""
+    global _THREADS
+    if count is not None and int(count) < 1:
+        raise ValueError(f"threads must be at least 1, got {count!r}")
+    _THREADS = available() if count is None else max(1, min(int(count), numba.config.NUMBA_NUM_THREADS))
+    numba.set_num_threads(_THREADS)
+    return _THREADS
+
+
+def threads() -> int:
+    """The process's thread count."""
+    return available() if _THREADS is None else _THREADS
+
+
+def use() -> int:
+    """Apply the process's thread count on the calling thread (numba's setting is per thread); the count."""
+    count = threads()
+    if numba.get_num_threads() != count:
+        numba.set_num_threads(count)
+    return count
+
+
+def blocks(n: int, block: int | None) -> int:
+    """The blocks of B = ``block`` particles that N = ``n`` needs: 1 for N <= B or no B (a log recorded
+    before blocks), else ceil(N / B)."""
+    if block is None or n <= block:
+        return 1
+    return -(-int(n) // int(block))
+
+
+def parallel(n: int) -> bool:
+    """Whether a kernel whose numbers do not depend on the cut shares ``n`` particles among threads."""
+    return n >= PARALLEL_MIN and use() > 1

@@ -184,12 +184,15 @@ def run_floor(config: RunConfig, plan: dict[str, int]) -> float:
 # --- (b) three processes over Zenoh -------------------------------------------
 
 def run_launched(config: RunConfig, *, recorder: bool, timeout: float, folder: Path,
-                 cloud_points: int | None = None, secure: Path | None = None) -> tuple[float, float, int]:
-    """(seconds per step over the timed window, wall seconds of the whole launch, degraded steps)."""
+                 cloud_points: int | None = None, secure: Path | None = None,
+                 threads: int | None = None) -> tuple[float, float, int]:
+    """(seconds per step over the timed window, wall seconds of the whole launch, degraded steps);
+    ``threads``: each layer's thread count (None: every core)."""
     log_path = folder / f"bench-{config.particles}-{time.monotonic_ns()}.mcap"
     start = time.perf_counter()
     result = launch_module.launch(config, log_path=log_path, timeout=timeout, child_output=None, record=recorder,
-                                  cloud_points=cloud_points, notify=lambda text: None, secure=secure)
+                                  cloud_points=cloud_points, notify=lambda text: None, secure=secure,
+                                  threads=threads)
     wall = time.perf_counter() - start
     with contextlib.suppress(FileNotFoundError):
         log_path.unlink()

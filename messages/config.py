@@ -20,7 +20,8 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from dtpf.messages import family, names
 from dtpf.messages.errors import RunInputError
 
-__all__ = ["RunConfig", "RunInputError", "ID_PATTERN", "add_run_arguments", "config_from_args"]
+__all__ = ["RunConfig", "RunInputError", "ID_PATTERN", "BLOCK_PARTICLES", "add_run_arguments", "config_from_args",
+           "recorded_config"]
 
 
 #: Run and twin ids: safe inside a Zenoh key expression and a file name.
@@ -69,8 +70,8 @@ class RunConfig(BaseModel):
             values["steps"] = None  # an observation file: every row, as dtpf run reads it
         if "steps" not in values and values.get("sensor_files"):
             values["steps"] = None  # every row of every sensor's file
-        # A new run records B; a config read back from a log written before blocks (model_validate_json,
-        # which does not come here) has none: one block, the numbers of that log.
+        # A new run records B; a config read back from a log written before blocks has none, and
+        # recorded_config gives it one block, the numbers of that log.
         values.setdefault("block_particles", BLOCK_PARTICLES)
         try:
             super().__init__(**values)
@@ -568,6 +569,15 @@ def write_config_file(config: dict, path) -> None:
             text = json.dumps(str(value))  # a TOML basic string
         lines.append(f"{name} = {text}")
     Path(path).write_text("\n".join(lines) + "\n")
+
+
+def recorded_config(config_json: str) -> RunConfig:
+    """The RunConfig a log recorded (a status message's ``config_json``). A log recorded before
+    ``block_particles`` existed has none: its config takes None, one block, the numbers it was recorded with."""
+    config = RunConfig.model_validate_json(config_json)
+    if "block_particles" not in json.loads(config_json):
+        config = config.model_copy(update={"block_particles": None})
+    return config
 
 
 def config_from_args(args: argparse.Namespace) -> RunConfig:

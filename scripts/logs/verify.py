@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 
 from dtpf.entity.timeline import Drive
 from dtpf.information.layer import InformationLayer, arms_for
-from dtpf.messages.config import RunConfig
+from dtpf.messages.config import RunConfig, recorded_config
 from dtpf.messages.models import Missed, ParticleSet, Status
 from dtpf.recording.logfile import Log, LogError, in_step_order, read_logs
 from dtpf.recording.missed import lost_steps
@@ -103,7 +103,7 @@ def _config_of(statuses: list[Status], twin: str) -> RunConfig:
     for layer in ("information", "system", "entity"):
         for status in reversed(statuses):
             if status.layer.value == layer and status.config_json:
-                return RunConfig.model_validate_json(status.config_json)
+                return recorded_config(status.config_json)  # a log from before blocks: one block
     raise LogError(f"the log holds no run configuration for twin {twin!r} (no status message with config_json)")
 
 

@@ -41,12 +41,23 @@ with each other (up to the clipping). A copy whose particles all lose the
 observation (log-likelihood -inf everywhere) is copied again from the
 entity's set of that step. Every random number comes from the generator
 passed (the system layer's stream of step k).
+
+Cost: the copies are held as one (A, M, d) array. Each step scores all of them with one
+``log_likelihood`` call over the A x M particles and one over the A means, and propagates
+them with one ``propagate`` call, every copy with the same noise (a model's
+``propagation_noise``, which ``propagate`` takes instead of drawing; a model without it
+gets one call per copy from the same generator state). The model is vectorised over
+particles, so each copy's numbers are those one call per copy gave (tests/test_choose_cost.py
+holds runs recorded with one call per copy): the decisions, and any log a chooser recorded,
+do not change. The arms' moves stay one call each (the information layer's rules, the
+entity's jitters), the same code the layers run when the arm is in force.
 """
 from __future__ import annotations
 
 import math
 from collections import deque
 from dataclasses import dataclass
+from operator import itemgetter
 
 import numpy as np
 
@@ -119,6 +130,7 @@ class ArmEvidence:
         #: The run's own move after resampling, which the arm "own" makes.
         self.move = move
         self.arms: tuple[Arm, ...] = tuple(table[a] for a in dict.fromkeys(("plain", *arms)))
+        self._names = tuple(arm.name for arm in self.arms)
         self.n = int(n)
         self.threshold_rule = threshold_rule
         self.particles = int(particles)
@@ -134,7 +146,7 @@ class ArmEvidence:
 
     @property
     def names(self) -> tuple[str, ...]:
-        return tuple(arm.name for arm in self.arms)
+        return self._names
 
     @property
     def window(self) -> int:
@@ -155,11 +167,11 @@ class ArmEvidence:
 
     def totals(self) -> dict[str, float]:
         """Each arm's summed differences against plain (nats; plain's is 0)."""
-        return {arm.name: float(sum(d[arm.name] for d in self.differences)) for arm in self.arms}
+        return {name: float(sum(map(itemgetter(name), self.differences))) for name in self.names}
 
     def point_totals(self) -> dict[str, float]:
         """Each arm's summed differences of its predicted mean's log-likelihood against plain's (nats)."""
-        return {arm.name: float(sum(d[arm.name] for d in self.point_differences)) for arm in self.arms}
+        return {name: float(sum(map(itemgetter(name), self.point_differences))) for name in self.names}
 
     def observe(self, step: int, particles: np.ndarray, weights: np.ndarray, observation: np.ndarray,
                  rng: np.random.Generator) -> dict[str, float] | None:

@@ -514,11 +514,30 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
                        help=f"PS of the fixed policy, initial PS of the others (default: {defaults.ps})")
     group.add_argument("--ps-rate", type=float, default=None, metavar="CHANGE",
                        help=f"largest change of PS per step of the adaptive policies (default: {defaults.ps_rate})")
+    group.add_argument("--block-particles", type=_block_particles, default=None, metavar="B",
+                       help="the kernels work on more than B particles in blocks of B, each block's sums and "
+                            "random numbers its own, so that the numbers do not depend on --threads; 'none': one "
+                            "block, the numbers of a log recorded before blocks (default: "
+                            f"{BLOCK_PARTICLES})")
     group = parser.add_argument_group("process")
     group.add_argument("--threads", type=_threads, default=None, metavar="COUNT",
                        help="threads this process computes on: sets of more than block_particles particles are "
                             "worked on in blocks shared among them, with the same numbers for any COUNT (not a "
                             "setting of the run: it is not recorded) (default: every core this process may use)")
+
+
+#: --block-particles none: one block (RunConfig.block_particles None).
+ONE_BLOCK = "none"
+
+
+def _block_particles(text: str) -> int | str:
+    """``--block-particles B``: a positive whole number, or 'none'."""
+    if text.strip().lower() == ONE_BLOCK:
+        return ONE_BLOCK
+    value = int(text) if text.strip().isdigit() else 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"--block-particles takes a positive whole number or 'none', got {text!r}")
+    return value
 
 
 def _threads(text: str) -> int:
@@ -585,6 +604,9 @@ def config_from_args(args: argparse.Namespace) -> RunConfig:
     raises ValueError naming a bad option."""
     values = read_config_file(args.config) if getattr(args, "config", None) else {}
     values.update({name: getattr(args, name) for name in _FLAG_FIELDS if getattr(args, name, None) is not None})
+    block = getattr(args, "block_particles", None)
+    if block is not None:
+        values["block_particles"] = None if block == ONE_BLOCK else block
     if "steps" not in values and values.get("observations") is None and not values.get("sensor_files"):
         values["steps"] = RunConfig.model_fields["steps"].default
     elif "steps" not in values:

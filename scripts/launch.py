@@ -29,7 +29,7 @@ import numpy as np
 
 from dtpf.messages import keys
 from dtpf.messages.codec import MessageError, decode_for_key
-from dtpf.messages.config import RunConfig
+from dtpf.messages.config import BLOCK_PARTICLES, RunConfig
 from dtpf.messages.errors import DtpfError
 from dtpf.messages.models import Estimate, Layer, ServiceState, Status
 from dtpf.recording.logfile import what_it_holds
@@ -430,6 +430,8 @@ def service_command(layer: str, config: RunConfig, endpoint: str, *, timeout: fl
         command += ["--choose-base", config.choose_base]
     if not config.preprocess:
         command += ["--no-preprocess"]
+    if config.block_particles != BLOCK_PARTICLES:
+        command += ["--block-particles", "none" if config.block_particles is None else str(config.block_particles)]
     if threads is not None and layer != "recorder":
         command += ["--threads", str(threads)]
     if layer == "entity":

@@ -11,6 +11,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from dtpf.entity import sources
 from dtpf.messages import family
@@ -423,6 +424,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
+    # One BLAS thread, as every layer process has (dtpf.shell.service.run_service): OpenBLAS sums a dot
+    # product of more than 10,000 numbers on several threads, in another order, so a command that re-runs a
+    # layer (dtpf verify, replay, run) would otherwise differ from the layer in the last digit at large N.
+    threadpool_limits(limits=1, user_api="blas")
     return run_command(parser, parser.parse_args(argv))
 
 

@@ -125,10 +125,10 @@ def test_the_slot_files_of_a_killed_writer_are_removed_by_the_next_writer():
     (b"DTPFREF\x01not json", "not JSON"),
     (b"DTPFREF\x01[1, 2]", "exactly"),
     (b"DTPFREF\x01" + b" " * 2000, "not a slot reference"),
-    (b'DTPFREF\x01{"host":"h","file":"../../etc/passwd","slot":0,"seq":1,"length":1,"writer":"w"}', "not a slot file"),
-    (b'DTPFREF\x01{"host":"h","file":"dtpf-' + b"0" * 32 + b'","slot":-1,"seq":1,"length":1,"writer":"w"}', "out of range"),
-    (b'DTPFREF\x01{"host":"h","file":"dtpf-' + b"0" * 32 + b'","slot":0,"seq":1,"length":1e99,"writer":"w"}', "integer"),
-    (b'DTPFREF\x01{"host":"h","file":"dtpf-' + b"0" * 32 + b'","slot":0,"seq":1,"length":99999999999,"writer":"w"}', "out of range"),
+    (b'DTPFREF\x01{"host":"h","file":"../../etc/passwd","slot":0,"seq":1,"length":1,"writer":"ab"}', "not a slot file"),
+    (b'DTPFREF\x01{"host":"h","file":"dtpf-' + b"0" * 32 + b'","slot":-1,"seq":1,"length":1,"writer":"ab"}', "out of range"),
+    (b'DTPFREF\x01{"host":"h","file":"dtpf-' + b"0" * 32 + b'","slot":0,"seq":1,"length":1e99,"writer":"ab"}', "integer"),
+    (b'DTPFREF\x01{"host":"h","file":"dtpf-' + b"0" * 32 + b'","slot":0,"seq":1,"length":99999999999,"writer":"ab"}', "out of range"),
 ])
 def test_a_malformed_reference_is_refused_naming_what_is_wrong(payload, reason):
     with pytest.raises(SlotError, match=reason):
@@ -142,9 +142,9 @@ def test_a_reference_to_a_file_that_is_no_slot_file_or_to_a_slot_beyond_its_file
         with open(fake, "wb") as file:
             file.write(b"\xff" * 8192)
         with pytest.raises(SlotError, match="header"):
-            reader.resolve(Reference(slots.host_id(), os.path.basename(fake), 0, 1, 10, "w"))
+            reader.resolve(Reference(slots.host_id(), os.path.basename(fake), 0, 1, 10, "ab"))
         with pytest.raises(SlotError, match="cannot open"):
-            reader.resolve(Reference(slots.host_id(), "dtpf-" + "cd" * 16, 0, 1, 10, "w"))
+            reader.resolve(Reference(slots.host_id(), "dtpf-" + "cd" * 16, 0, 1, 10, "ab"))
         real = Reference.parse(writer.write([b"real"]))
         with pytest.raises(SlotError, match="beyond its file"):
             reader.resolve(Reference(real.host, real.file, 5, real.seq, real.length, real.writer))
@@ -176,7 +176,7 @@ def test_an_inbox_survives_references_it_cannot_read_and_takes_the_sets_that_fol
     plain = publisher(sending, key)
     sets = SetPublisher(sending, key, plain)
     try:
-        fake = Reference(slots.host_id(), "dtpf-" + "ef" * 16, 0, 1, 100, "nobody").encode()
+        fake = Reference(slots.host_id(), "dtpf-" + "ef" * 16, 0, 1, 100, "abcd").encode()
         plain.put(b"DTPFREF\x01{oops")
         plain.put(fake)
         particles, weights = _arrays(3)
@@ -191,11 +191,6 @@ def test_an_inbox_survives_references_it_cannot_read_and_takes_the_sets_that_fol
         sets.undeclare(drain=0)
 
 
-def _estimates(path: Path) -> list[tuple]:
-    return [(record.step, record.payload) for record in read_log(path).records
-            if record.key.endswith("entity/estimate") or record.key.endswith("information/weight_state")]
-
-
 def test_a_launch_whose_sets_go_by_reference_gives_the_numbers_of_one_whose_sets_go_as_bytes(tmp_path):
     args = ("launch", "-q", "-n", "20000", "-T", "12", "--seed", "5")
     by_reference = dtpf(*args, "-o", "shared.mcap", cwd=tmp_path)
@@ -203,11 +198,11 @@ def test_a_launch_whose_sets_go_by_reference_gives_the_numbers_of_one_whose_sets
     assert by_reference.returncode == 0, by_reference.stderr[-3000:]
     assert as_bytes.returncode == 0, as_bytes.stderr[-3000:]
     shared, plain = read_log(tmp_path / "shared.mcap"), read_log(tmp_path / "bytes.mcap")
-    sets = [record for record in shared.records if record.key.endswith("entity/particles")]
-    assert len(sets) == 12 and all(len(record.payload) > 256 << 10 for record in sets)  # sets of the size shared
+    sets = [record for record in shared.messages if record.topic.endswith("entity/particles")]
+    assert len(sets) == 12 and all(len(record.data) > 256 << 10 for record in sets)  # sets of the size shared
     for topic in ("entity/particles", "information/preprocessed", "information/weight_state", "entity/estimate"):
-        ours = [(r.step, _without_stamp(r.payload)) for r in shared.records if r.key.endswith(topic)]
-        theirs = [(r.step, _without_stamp(r.payload)) for r in plain.records if r.key.endswith(topic)]
+        ours = [_without_stamp(r.data) for r in shared.messages if r.topic.endswith(topic)]
+        theirs = [_without_stamp(r.data) for r in plain.messages if r.topic.endswith(topic)]
         assert len(ours) == 12 and ours == theirs, topic
     verified = dtpf("verify", "shared.mcap", cwd=tmp_path)
     assert verified.returncode == 0, verified.stdout[-3000:] + verified.stderr[-3000:]

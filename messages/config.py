@@ -568,14 +568,19 @@ def read_config_file(path) -> dict:
     if unknown:
         raise ValueError(f"--config: {path} has keys that are not run settings: {', '.join(unknown)} "
                          f"(known: {', '.join(RunConfig.model_fields)})")
+    if values.get("block_particles") == ONE_BLOCK:  # TOML has no None
+        values["block_particles"] = None
     return values
 
 
 def write_config_file(config: dict, path) -> None:
-    """``config`` (RunConfig fields) as a TOML file that ``--config`` reads back; None values are left out."""
+    """``config`` (RunConfig fields, as a log recorded them) as a TOML file that ``--config`` reads back; None
+    values are left out, but a missing or None block_particles is written "none" (one block, as recorded)."""
     lines = ["# dtpf run configuration: dtpf launch --config FILE (flags given override it)"]
     for name in RunConfig.model_fields:
         value = config.get(name)
+        if name == "block_particles" and value is None:  # one block (a log recorded before blocks has none)
+            value = ONE_BLOCK
         if value is None:
             continue
         if isinstance(value, bool):

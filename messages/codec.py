@@ -63,6 +63,8 @@ from dtpf.messages.models import Message, ParticleSet, ParticleSetHeader
 from dtpf.messages.schema import json_schema
 
 MAGIC = b"DTPF"
+#: How a reference to a set in shared memory starts (:mod:`dtpf.shell.slots`): not a message.
+SET_REFERENCE = b"DTPFREF\x01"
 VERSION = 1
 #: MCAP message encodings.
 JSON_ENCODING = "json"
@@ -223,6 +225,10 @@ def decode(payload: bytes | bytearray | memoryview, expected: type[Message] | No
         raise MessageError(f"payload must be bytes, bytearray or memoryview, got {type(payload).__name__}") from None
     if expected is not None and expected not in MESSAGE_CLASSES.values():
         raise TypeError(f"expected must be a dtpf message class, got {expected!r}")
+    if bytes(view[:len(SET_REFERENCE)]) == SET_REFERENCE:
+        raise MessageError("a reference to a particle set in a publisher's shared memory, not the set: read it "
+                           "with dtpf.shell.bus.Inbox, or have the publishers send sets as bytes "
+                           "(DTPF_SHARED_SETS=0; docs/guides/encoding.md)")
     envelope = bytes(view[:len(MAGIC)]) == MAGIC
     if expected is ParticleSet or (expected is None and envelope):
         return _decode_envelope(view)

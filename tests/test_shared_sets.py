@@ -272,3 +272,10 @@ def test_a_subscriber_on_another_host_gets_every_set_from_its_publisher(two_host
     finally:
         a.kill_all()
         b.kill_all()
+
+
+def test_decoding_a_reference_as_a_message_says_what_it_is():
+    from dtpf.messages.codec import MessageError, decode
+    reference = Reference(slots.host_id(), "dtpf-" + "ab" * 16, 0, 1, 10, "ab").encode()
+    with pytest.raises(MessageError, match=r"reference to a particle set .*\(DTPF_SHARED_SETS=0"):
+        decode(reference)

@@ -46,6 +46,7 @@ from functools import lru_cache
 
 import numpy as np
 
+from dtpf.messages.codec import SET_REFERENCE
 from dtpf.messages.errors import DtpfError
 
 __all__ = ["SlotError", "SlotMiss", "Reference", "Held", "SlotWriter", "SlotReader", "is_reference",
@@ -55,7 +56,7 @@ __all__ = ["SlotError", "SlotMiss", "Reference", "Held", "SlotWriter", "SlotRead
 SHM_FOLDER = "/dev/shm"
 MAGIC = b"DTPFSLOT"
 VERSION = 1
-REFERENCE_MAGIC = b"DTPFREF\x01"
+REFERENCE_MAGIC = SET_REFERENCE
 #: Most bytes a reference may have (a longer payload starting with the magic is not one).
 MAX_REFERENCE = 1024
 HEADER_BYTES = 4096

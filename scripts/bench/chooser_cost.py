@@ -17,6 +17,7 @@ at N = 100 and 1.5 x at N = 1000, in process and through launch::
     python -m dtpf.scripts.bench.chooser_cost                       # N = 100 and 1000, 3 repetitions
     python -m dtpf.scripts.bench.chooser_cost --repeats 5 --steps 400
     python -m dtpf.scripts.bench.chooser_cost --where inprocess     # in process only (seconds)
+    python -m dtpf.scripts.bench.chooser_cost --copies 250 100      # and choose with smaller copies (in process)
 """
 from __future__ import annotations
 
@@ -48,10 +49,24 @@ def config_of(mode: str, n: int, steps: int, seed: int) -> RunConfig:
     return RunConfig(particles=n, steps=steps, seed=seed, run_id="bench", twin=f"cost-{mode}-{n}", **MODES[mode])
 
 
-def inprocess_ms(config: RunConfig) -> float:
-    """Wall ms per step of the in-process pipeline over the timed window, after an untimed warm-up run."""
-    inprocess_times(config.model_copy(update={"steps": FIRST_TIMED + 2}))
-    return 1e3 * inprocess_times(config)[0]
+def inprocess_ms(config: RunConfig, copies: int | None = None) -> float:
+    """Wall ms per step of the in-process pipeline over the timed window, after an untimed warm-up run;
+    ``copies``: choose's copies of M particles each instead of its default (``ChoosePS(particles=M)``)."""
+    if copies is None:
+        inprocess_times(config.model_copy(update={"steps": FIRST_TIMED + 2}))
+        return 1e3 * inprocess_times(config)[0]
+    from dtpf.scripts.inprocess import build, simulate
+    from dtpf.system.layer import SystemLayer
+
+    for steps in (FIRST_TIMED + 2, config.steps):  # a warm-up run, then the timed one
+        run = config.model_copy(update={"steps": steps})
+        _, observations = simulate(run)
+        pf = build(run, observations)
+        pf.preprocessor.system = SystemLayer.from_config(run, policy_options={"particles": copies})
+        walls = []
+        for _ in pf:
+            walls.append(time.perf_counter())
+    return 1e3 * window_time(walls)
 
 
 def launched_ms(config: RunConfig, folder: Path, timeout: float = 10.0) -> float:
@@ -71,15 +86,23 @@ def launched_ms(config: RunConfig, folder: Path, timeout: float = 10.0) -> float
     return 1e3 * sum(cpu.get(kind, 0.0) for kind in LAYERS) / (config.steps - FIRST_TIMED)
 
 
-def measure(sizes, wheres, repeats: int, steps: int, seed: int, progress=print) -> dict:
-    """{(where, n, mode): [ms per step of each repetition]}, the runs interleaved in random order."""
+def measure(sizes, wheres, repeats: int, steps: int, seed: int, progress=print, copies=()) -> dict:
+    """{(where, n, mode): [ms per step of each repetition]}, the runs interleaved in random order; ``copies``:
+    in process, choose with copies of M particles as well (mode "choose, M = ...")."""
     order = random.Random(seed)
     figures: dict[tuple[str, int, str], list[float]] = {}
     with tempfile.TemporaryDirectory() as folder:
         for repeat in range(repeats):
             runs = [(where, n, mode) for where in wheres for n in sizes for mode in MODES]
+            runs += [("inprocess", n, f"choose, M = {m}") for n in sizes for m in copies if "inprocess" in wheres]
             order.shuffle(runs)
             for where, n, mode in runs:
+                if mode.startswith("choose, M = "):
+                    m = int(mode.rsplit(" ", 1)[1])
+                    ms = inprocess_ms(config_of("choose", n, steps, seed), copies=m)
+                    figures.setdefault((where, n, mode), []).append(ms)
+                    progress(f"repetition {repeat + 1}: {where} N = {n} {mode}: {ms:.3f} ms / step")
+                    continue
                 config = config_of(mode, n, steps, seed)
                 ms = inprocess_ms(config) if where == "inprocess" else launched_ms(config, Path(folder))
                 figures.setdefault((where, n, mode), []).append(ms)
@@ -106,6 +129,15 @@ def table(figures: dict, sizes, wheres) -> str:
                         f"{cost:.2f} | {ratio(figures, where, n, 'paper', 'plain'):.2f} | "
                         f"{ratio(figures, where, n, 'choose', 'paper'):.2f} | "
                         f"{'-' if target is None else f'<= {target:g}'} | {verdict} |")
+    extra = sorted({mode for (_, _, mode) in figures if mode not in MODES}, key=lambda m: int(m.rsplit(" ", 1)[1]))
+    if extra:
+        rows += ["", "| in process (wall), choose with copies of M particles | N | ms / step | / plain | / choose |",
+                 "|---|---|---|---|---|"]
+        for mode in extra:
+            for n in sizes:
+                rows.append(f"| {mode} | {n} | {statistics.median(figures['inprocess', n, mode]):.3f} | "
+                            f"{ratio(figures, 'inprocess', n, mode, 'plain'):.2f} | "
+                            f"{ratio(figures, 'inprocess', n, mode, 'choose'):.2f} |")
     return "\n".join(rows)
 
 
@@ -116,6 +148,8 @@ def main(argv=None) -> int:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--steps", type=int, default=300)
     parser.add_argument("--seed", type=int, default=2)
+    parser.add_argument("--copies", type=int, nargs="+", default=(), metavar="M",
+                        help="in process, also choose with copies of M particles each (default M: min(N, 1000))")
     parser.add_argument("--quiet", "-q", action="store_true", help="no line per run on stderr")
     args = parser.parse_args(argv)
     if args.steps <= FIRST_TIMED + 1:
@@ -126,7 +160,7 @@ def main(argv=None) -> int:
     progress = (lambda text: None) if args.quiet else (lambda text: print(text, file=sys.stderr, flush=True))
     start = time.perf_counter()
     with threadpool_limits(limits=1, user_api="blas"):
-        figures = measure(args.sizes, wheres, args.repeats, args.steps, args.seed, progress)
+        figures = measure(args.sizes, wheres, args.repeats, args.steps, args.seed, progress, args.copies)
     print(f"`python -m dtpf.scripts.bench.chooser_cost {' '.join(argv if argv is not None else sys.argv[1:])}`"
           f": ungm, T = {args.steps} (timed from step {FIRST_TIMED}), seed {args.seed}, median of {args.repeats} "
           f"interleaved repetitions; Python {platform.python_version()}, numpy {np.__version__}, "

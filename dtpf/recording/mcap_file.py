@@ -165,11 +165,17 @@ class McapWriter:
         self._add_record(record)
         return channel_id
 
+    @property
+    def chunk_size(self) -> int:
+        """Bytes of records above which a chunk is closed."""
+        return self._chunk_size
+
     def add_message(self, channel_id: int, log_time: int, data: bytes, publish_time: int, sequence: int) -> None:
         """One message on a registered channel, times in nanoseconds; a Message record (0x05) of the open chunk.
 
         ``data`` (bytes, or a bytearray or memoryview of bytes) is kept, not copied, until the chunk is
-        written: it must not change meanwhile.
+        written: it must not change meanwhile. A message larger than :attr:`chunk_size` closes its chunk
+        before this returns, so it is not kept.
         """
         size = len(data)
         head = _pack_message(MESSAGE, _MESSAGE_FIXED + size, channel_id, sequence, log_time, publish_time)
@@ -214,15 +220,24 @@ class McapWriter:
         index = self._index
         if not index:
             return
-        records = b"".join(self._records)
-        compressed = records if self._compress is None else self._compress(records)
+        if self._compress is None:  # the records as they are: no joined copy of them (a large set is written
+            parts = self._records   # from where it lies)
+            size = sum(len(part) for part in parts)
+            crc = 0
+            for part in parts:
+                crc = crc32(part, crc)
+            compressed_size = size
+        else:
+            records = b"".join(self._records)
+            parts = [self._compress(records)]
+            size, crc, compressed_size = len(records), crc32(records), len(parts[0])
         start_time = min(min(entries[0::2]) for entries in index.values())
         end_time = max(max(entries[0::2]) for entries in index.values())
         compression = _string(self._compression)
-        head = struct.pack(f"<BQQQQI{len(compression)}sQ", CHUNK, 36 + len(compression) + len(compressed),
-                           start_time, end_time, len(records), crc32(records), compression, len(compressed))
+        head = struct.pack(f"<BQQQQI{len(compression)}sQ", CHUNK, 36 + len(compression) + compressed_size,
+                           start_time, end_time, size, crc, compression, compressed_size)
         chunk_start = self._position
-        chunk_length = len(head) + len(compressed)
+        chunk_length = len(head) + compressed_size
         offset = index_start = chunk_start + chunk_length
         offsets, index_records = [], []
         counts = self._message_counts
@@ -235,13 +250,14 @@ class McapWriter:
             counts[channel_id] += len(entries) // 2
         indexes = b"".join(index_records)
         self._stream.write(head)
-        self._stream.write(compressed)
+        for part in parts:
+            self._stream.write(part)
         self._stream.write(indexes)
         self._position = offset
         self._chunk_indexes.append(_record(CHUNK_INDEX, struct.pack("<QQQQ", start_time, end_time, chunk_start,
                                                                     chunk_length)
                                            + _id_map(offsets) + _U64.pack(len(indexes)) + compression
-                                           + struct.pack("<QQ", len(compressed), len(records))))
+                                           + struct.pack("<QQ", compressed_size, size)))
         if self._start_time is None or start_time < self._start_time:
             self._start_time = start_time
         if self._end_time is None or end_time > self._end_time:

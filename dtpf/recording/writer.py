@@ -246,8 +246,11 @@ class McapRecording:
             channel = self._channel(key)
             sequence = self._sequence.get(channel, 0)
             self._sequence[channel] = sequence + 1
-            # bytes(): the writer keeps the payload until its chunk is written (a bytes object is not copied).
-            self._writer.add_message(channel, now, bytes(payload), now, sequence)
+            # bytes(): the writer keeps the payload until its chunk is written (a bytes object is not copied); a
+            # payload larger than a chunk (a large set, a view of a publisher's shared memory) is written from
+            # where it lies before add_message returns.
+            data = payload if len(payload) > self._writer.chunk_size else bytes(payload)
+            self._writer.add_message(channel, now, data, now, sequence)
         except OSError as error:
             raise self._fail(error) from None
         self.messages += 1

@@ -26,18 +26,16 @@ def _bounds(n, block, b):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
-def _exponentials(log_weights, top, block, out):  # pragma: no cover - compiled
-    # out = exp(log_weights - top), and the sum of out, each block's on a thread, added in block order.
-    n = log_weights.shape[0]
+def _total(values, block):  # pragma: no cover - compiled
+    # sum(values): each block's sum on a thread, added in block order.
+    n = values.shape[0]
     count = (n + block - 1) // block
     sums = np.empty(count)
     for b in numba.prange(count):
         start, end = _bounds(n, block, b)
         total = 0.0
         for i in range(start, end):
-            value = np.exp(log_weights[i] - top)
-            out[i] = value
-            total += value
+            total += values[i]
         sums[b] = total
     total = 0.0
     for b in range(count):
@@ -69,9 +67,16 @@ def normalise(log_weights: np.ndarray, block: int, top: float) -> tuple[np.ndarr
     """(normalised weights, log sum_i exp(log w_i), ``top``, ESS) of (N,) log-weights whose largest is
     ``top``, finite (Eq. 23 normalised, shifted by the maximum; ESS of Eq. 25), the sums per block of
     ``block``."""
-    cores.use()
     weights = np.empty_like(log_weights)
-    total = _exponentials(log_weights, top, int(block), weights)
+
+    def exponentials(start: int, end: int) -> None:  # numpy's exp, element by element: any cut
+        part = weights[start:end]
+        np.subtract(log_weights[start:end], top, out=part)
+        np.exp(part, out=part)
+
+    cores.in_parts(weights.size, exponentials)
+    cores.use()
+    total = _total(weights, int(block))
     square = _divide(weights, total, int(block))
     return weights, top + float(np.log(total)), top, 1.0 / square
 
@@ -130,31 +135,5 @@ def noise(model, n: int, k: int, rng: np.random.Generator, block: int, key: tupl
         start, end = b * block, min(n, (b + 1) * block)
         out[start:end] = model.propagation_noise(end - start, k, block_stream(seed, twin, k, "entity", b))
 
-    rest = range(1, count)
-    workers = min(cores.threads(), len(rest))
-    if workers <= 1:
-        for b in rest:
-            draw(b)
-        return out
-    shares = [rest[i::workers] for i in range(workers)]
-    pool = _pool(workers)
-    futures = [pool.submit(lambda share=share: [draw(b) for b in share]) for share in shares[1:]]
-    for b in shares[0]:
-        draw(b)
-    for future in futures:
-        future.result()
+    cores.in_parts(count - 1, lambda start, end: [draw(b) for b in range(1 + start, 1 + end)])
     return out
-
-
-_POOLS: dict[int, object] = {}
-
-
-def _pool(workers: int):
-    """A thread pool of ``workers`` - 1 threads (the caller is the other), made once per size."""
-    from concurrent.futures import ThreadPoolExecutor
-
-    pool = _POOLS.get(workers)
-    if pool is None:
-        pool = _POOLS[workers] = ThreadPoolExecutor(max_workers=max(1, workers - 1),
-                                                    thread_name_prefix="dtpf-blocks")
-    return pool

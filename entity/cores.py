@@ -20,9 +20,15 @@ from __future__ import annotations
 
 import os
 
-import numba
+# Threads that wait for the next parallel region sleep instead of spinning: the layers of a twin share the
+# machine's cores and run in lockstep, and a thread spinning in one process takes the core another needs
+# (on 2 busy cores a spinning OpenMP pool made a radix select 10x slower). Read when numba first starts
+# its threads, after this import; a value the environment gives is kept.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
-__all__ = ["available", "set_threads", "threads", "use", "blocks", "parallel", "PARALLEL_MIN"]
+import numba  # noqa: E402 - after the wait policy
+
+__all__ = ["available", "set_threads", "threads", "use", "blocks", "parallel", "in_parts", "PARALLEL_MIN"]
 
 #: From this many particles on, a kernel whose numbers do not depend on the cut shares the set among the
 #: threads; below it one thread is faster (waking the others costs about 10 us).
@@ -75,3 +81,34 @@ def blocks(n: int, block: int | None) -> int:
 def parallel(n: int) -> bool:
     """Whether a kernel whose numbers do not depend on the cut shares ``n`` particles among threads."""
     return n >= PARALLEL_MIN and use() > 1
+
+
+def in_parts(n: int, work, parts: int | None = None) -> None:
+    """``work(start, end)`` over ``parts`` (default: the process's threads) contiguous parts of [0, n): the
+    first on the calling thread, the others on a pool of Python threads, for work that releases the GIL (numpy's
+    element-wise ufuncs, nogil kernels). Only for work whose result does not depend on the cut."""
+    count = max(1, min(threads() if parts is None else int(parts), n))
+    if count == 1:
+        work(0, n)
+        return
+    bounds = [n * p // count for p in range(count + 1)]
+    pool = _pool(count)
+    futures = [pool.submit(work, bounds[p], bounds[p + 1]) for p in range(1, count)]
+    try:
+        work(bounds[0], bounds[1])
+    finally:
+        for future in futures:
+            future.result()
+
+
+_POOLS: dict[int, object] = {}
+
+
+def _pool(count: int):
+    """A pool of ``count`` - 1 Python threads (the caller is the other), made once per count."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    pool = _POOLS.get(count)
+    if pool is None:
+        pool = _POOLS[count] = ThreadPoolExecutor(max_workers=count - 1, thread_name_prefix="dtpf-parts")
+    return pool

@@ -86,9 +86,9 @@ def _entropy(weights):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
-def _block_sums(weights, block):  # pragma: no cover - compiled
-    # (sum w^2, -sum w log w) of a set in blocks of ``block``: each block's sums on a thread, then added
-    # in block order (the same numbers for any thread count).
+def _block_sums(weights, logs, block):  # pragma: no cover - compiled
+    # (sum w^2, -sum w log w) of a set in blocks of ``block``, ``logs`` = log(weights): each block's sums
+    # on a thread, then added in block order (the same numbers for any thread count).
     n = weights.shape[0]
     count = (n + block - 1) // block
     squares = np.empty(count)
@@ -100,7 +100,7 @@ def _block_sums(weights, block):  # pragma: no cover - compiled
             w = weights[i]
             square += w * w
             if w > 0.0:
-                entropy -= w * np.log(w)
+                entropy -= w * logs[i]
         squares[b] = square
         entropies[b] = entropy
     square = 0.0
@@ -116,8 +116,15 @@ def ess_entropy(weights: np.ndarray, block: int | None = None) -> tuple[float, f
     (:mod:`dtpf.entity.cores`) summed per block on the process's threads, else as :func:`ess` and one pass."""
     if cores.blocks(weights.size, block) == 1:
         return ess(weights), float(_entropy(weights))
+    logs = np.empty(weights.size)
+
+    def logarithms(start: int, end: int) -> None:  # numpy's log, element by element: any cut
+        with np.errstate(divide="ignore"):  # log 0 = -inf, never read
+            np.log(weights[start:end], out=logs[start:end])
+
+    cores.in_parts(weights.size, logarithms)
     cores.use()
-    square, entropy = _block_sums(weights, int(block))
+    square, entropy = _block_sums(weights, logs, int(block))
     return 1.0 / square, float(entropy)
 
 

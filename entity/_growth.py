@@ -48,19 +48,22 @@ def _propagate(particles, noise, scale, growth, drift):  # pragma: no cover - co
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
-def _propagate_parallel(particles, noise, scale, growth, drift):  # pragma: no cover - compiled
-    # _propagate on the threads: each element's operations are the same, so are the numbers.
-    for i in numba.prange(particles.shape[0]):
-        for c in range(particles.shape[1]):
-            noise[i, c] = noise[i, c] * scale + _mean(particles[i, c], growth, drift)
+def _propagate_parallel(particles, noise, scale, growth, drift, chunk):  # pragma: no cover - compiled
+    # _propagate on the threads, chunk by chunk: each element's operations are the same, so are the numbers.
+    n = particles.shape[0]
+    for b in numba.prange((n + chunk - 1) // chunk):
+        for i in range(b * chunk, min(n, (b + 1) * chunk)):
+            for c in range(particles.shape[1]):
+                noise[i, c] = noise[i, c] * scale + _mean(particles[i, c], growth, drift)
     return noise
 
 
 def propagate(particles, noise, scale, growth, drift):
     """noise <- noise * sqrt(Q) + mean(x) in place (Eq. 35), the propagated particles; on the process's
     threads from PARALLEL_MIN particles on (the same numbers)."""
-    kernel = _propagate_parallel if cores.parallel(particles.shape[0]) else _propagate
-    return kernel(particles, noise, scale, growth, drift)
+    if cores.parallel(particles.shape[0]):
+        return _propagate_parallel(particles, noise, scale, growth, drift, cores.CHUNK)
+    return _propagate(particles, noise, scale, growth, drift)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -89,15 +92,18 @@ def _log_likelihood(particles, z, variance, constant):  # pragma: no cover - com
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
-def _log_likelihood_parallel(particles, z, variance, constant):  # pragma: no cover - compiled
-    out = np.empty(particles.shape[0])
-    for i in numba.prange(particles.shape[0]):
-        out[i] = _log_density(particles[i, 0], z, variance, constant)
+def _log_likelihood_parallel(particles, z, variance, constant, chunk):  # pragma: no cover - compiled
+    n = particles.shape[0]
+    out = np.empty(n)
+    for b in numba.prange((n + chunk - 1) // chunk):
+        for i in range(b * chunk, min(n, (b + 1) * chunk)):
+            out[i] = _log_density(particles[i, 0], z, variance, constant)
     return out
 
 
 def log_likelihood(particles, z, variance, constant):
     """log N(z; x^2 / 20, R) per particle (Eq. 36), (N,); on the process's threads from PARALLEL_MIN
     particles on (the same numbers)."""
-    kernel = _log_likelihood_parallel if cores.parallel(particles.shape[0]) else _log_likelihood
-    return kernel(particles, z, variance, constant)
+    if cores.parallel(particles.shape[0]):
+        return _log_likelihood_parallel(particles, z, variance, constant, cores.CHUNK)
+    return _log_likelihood(particles, z, variance, constant)

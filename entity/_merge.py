@@ -561,10 +561,16 @@ def distinct(ancestors):  # pragma: no cover - compiled
 
 
 
+#: Rows of one chunk of the parallel gather (threads take chunks one at a time).
+GATHER_CHUNK = 1 << 13
+
+
 @numba.njit(cache=True, nogil=True, parallel=True)
 def gather_parallel(particles, ancestors, out):  # pragma: no cover - compiled
-    # out[i] = particles[ancestors[i]] on numba's threads: the same array whatever their number.
-    for i in numba.prange(ancestors.shape[0]):
-        for c in range(particles.shape[1]):
-            out[i, c] = particles[ancestors[i], c]
+    # out[i] = particles[ancestors[i]] on numba's threads, chunk by chunk: the same array whatever their number.
+    n = ancestors.shape[0]
+    for b in numba.prange((n + GATHER_CHUNK - 1) // GATHER_CHUNK):
+        for i in range(b * GATHER_CHUNK, min(n, (b + 1) * GATHER_CHUNK)):
+            for c in range(particles.shape[1]):
+                out[i, c] = particles[ancestors[i], c]
     return out

@@ -84,30 +84,39 @@ def normalise(log_weights: np.ndarray, block: int, top: float) -> tuple[np.ndarr
 @numba.njit(cache=True, nogil=True, parallel=True)
 def _moments(particles, weights, block):  # pragma: no cover - compiled
     # The weighted mean, then the weighted variance about it, per component: per block, added in block order.
+    # No np.zeros here: in a parallel function it is a parallel loop, which threads taking one iteration at
+    # a time (dtpf.entity.cores) would run element by element.
     n, d = particles.shape
     count = (n + block - 1) // block
-    sums = np.zeros((count, d))
+    sums = np.empty((count, d))
     for b in numba.prange(count):
         start, end = _bounds(n, block, b)
+        for c in range(d):
+            sums[b, c] = 0.0
         for i in range(start, end):
             for c in range(d):
                 sums[b, c] += weights[i] * particles[i, c]
-    mean = np.zeros(d)
-    for b in range(count):
-        for c in range(d):
-            mean[c] += sums[b, c]
-    squares = np.zeros((count, d))
+    mean = _sum_rows(sums)
+    squares = np.empty((count, d))
     for b in numba.prange(count):
         start, end = _bounds(n, block, b)
+        for c in range(d):
+            squares[b, c] = 0.0
         for i in range(start, end):
             for c in range(d):
                 centred = particles[i, c] - mean[c]
                 squares[b, c] += weights[i] * (centred * centred)
-    var = np.zeros(d)
-    for b in range(count):
-        for c in range(d):
-            var[c] += squares[b, c]
-    return mean, var
+    return mean, _sum_rows(squares)
+
+
+@numba.njit(cache=True, nogil=True)
+def _sum_rows(partial):  # pragma: no cover - compiled
+    # The rows of (blocks, d) partial sums added in block order.
+    total = np.zeros(partial.shape[1])
+    for b in range(partial.shape[0]):
+        for c in range(partial.shape[1]):
+            total[c] += partial[b, c]
+    return total
 
 
 def moments(particles: np.ndarray, weights: np.ndarray, block: int) -> tuple[np.ndarray, np.ndarray]:

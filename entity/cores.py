@@ -28,11 +28,16 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import numba  # noqa: E402 - after the wait policy
 
-__all__ = ["available", "set_threads", "threads", "use", "blocks", "parallel", "in_parts", "PARALLEL_MIN"]
+__all__ = ["available", "set_threads", "threads", "use", "blocks", "parallel", "parts", "in_parts", "PARALLEL_MIN",
+           "CHUNK"]
 
 #: From this many particles on, a kernel whose numbers do not depend on the cut shares the set among the
 #: threads; below it one thread is faster (waking the others costs about 10 us).
 PARALLEL_MIN = 1 << 16
+
+#: Elements of one chunk of an element-wise parallel loop: threads take chunks (and blocks) one at a time, so
+#: that a thread slowed by another process's work takes fewer of them.
+CHUNK = 1 << 13
 
 #: The process's thread count (None: not set, every core it may use).
 _THREADS: int | None = None
@@ -63,11 +68,20 @@ def threads() -> int:
 
 
 def use() -> int:
-    """Apply the process's thread count on the calling thread (numba's setting is per thread); the count."""
+    """Apply the process's thread count on the calling thread (numba's settings are per thread), threads
+    taking the iterations of a parallel loop (blocks, parts or chunks) one at a time; the count."""
     count = threads()
     if numba.get_num_threads() != count:
         numba.set_num_threads(count)
+    numba.set_parallel_chunksize(1)
     return count
+
+
+def parts(n: int, most: int | None = None) -> int:
+    """Parts of PARALLEL_MIN particles that a set of ``n`` is cut into for a kernel whose numbers do not depend
+    on the cut (at least one a thread, at most ``most``)."""
+    count = max(threads(), -(-int(n) // PARALLEL_MIN))
+    return count if most is None else max(1, min(count, int(most)))
 
 
 def blocks(n: int, block: int | None) -> int:

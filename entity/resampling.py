@@ -100,6 +100,7 @@ def gather(particles: np.ndarray, ancestors: np.ndarray, out: np.ndarray | None 
         return np.take(x, a, axis=0, out=out)
     previous = numba.get_num_threads()
     numba.set_num_threads(min(count, numba.config.NUMBA_NUM_THREADS))
+    numba.set_parallel_chunksize(1)  # threads take chunks one at a time
     try:
         return _merge.gather_parallel(x, a, out)
     finally:

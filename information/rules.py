@@ -176,7 +176,8 @@ def _split_parallel(weights, limit, particles, capacity, parts):  # pragma: no c
     # large particles, then writes its rows and small indices after those of the parts before it. The
     # arrays are _split's, element for element.
     n, d = particles.shape
-    large_before = np.zeros(parts + 1, dtype=np.int64)
+    large_before = np.empty(parts + 1, dtype=np.int64)  # not np.zeros: a parallel loop here (dtpf.entity.cores)
+    large_before[0] = 0
     for p in numba.prange(parts):
         count = 0
         for i in range(n * p // parts, n * (p + 1) // parts):
@@ -207,7 +208,8 @@ def split(weights, limit, particles, capacity):
     """Eq. 28: (indices of the small particles, rows of the large ones in index order, a copy of the
     particles); on the process's threads from PARALLEL_MIN particles on (the same arrays)."""
     if cores.parallel(weights.shape[0]):
-        return _split_parallel(weights, limit, particles, capacity, cores.use())
+        cores.use()
+        return _split_parallel(weights, limit, particles, capacity, cores.parts(weights.shape[0]))
     return _split(weights, limit, particles, capacity)
 
 
@@ -397,7 +399,7 @@ def _move_blocks(particles, small, rows, ps, states, starts, out):  # pragma: no
     d = particles.shape[1]
     mixed_below = _mixed_below(ps)
     blocks = starts.shape[0] - 1
-    mixed_of = np.zeros(blocks, dtype=np.int64)
+    mixed_of = np.empty(blocks, dtype=np.int64)  # each block writes its own
     for b in numba.prange(blocks):
         s0, s1, s2, s3 = states[b, 0], states[b, 1], states[b, 2], states[b, 3]
         partners = np.empty(MOVE_BLOCK, dtype=np.uint64)

@@ -32,15 +32,25 @@ def _part(n, parts, p):  # pragma: no cover - compiled
 @numba.njit(cache=True, nogil=True, parallel=True)
 def _counts_parallel(bits, parts):  # pragma: no cover - compiled
     # The histogram of the top 16 bits, each part's on its thread, then summed (integers: exact).
+    # No np.zeros here: in a parallel function it is a parallel loop, which threads taking one iteration at
+    # a time (dtpf.entity.cores) would run element by element.
     shift = 48
-    partial = np.zeros((parts, 1 << 15), dtype=np.int64)
+    partial = np.empty((parts, 1 << 15), dtype=np.int64)
     for p in numba.prange(parts):
+        for b in range(1 << 15):
+            partial[p, b] = 0
         start, end = _part(bits.shape[0], parts, p)
         for i in range(start, end):
             partial[p, bits[i] >> shift] += 1
-    counts = np.zeros(1 << 15, dtype=np.int64)
-    for p in range(parts):
-        for b in range(1 << 15):
+    counts = _sum_rows(partial)
+    return counts
+
+
+@numba.njit(cache=True, nogil=True)
+def _sum_rows(partial):  # pragma: no cover - compiled
+    counts = np.zeros(partial.shape[1], dtype=np.int64)
+    for p in range(partial.shape[0]):
+        for b in range(partial.shape[1]):
             counts[b] += partial[p, b]
     return counts
 
@@ -50,7 +60,8 @@ def _collect_parallel(values, bits, needed, size, parts):  # pragma: no cover - 
     # The values whose bucket is needed, in index order: each part counts its own, then writes them
     # from the sum of the counts before it.
     shift = 48
-    found = np.zeros(parts + 1, dtype=np.int64)
+    found = np.empty(parts + 1, dtype=np.int64)
+    found[0] = 0
     for p in numba.prange(parts):
         start, end = _part(bits.shape[0], parts, p)
         count = 0
@@ -71,19 +82,10 @@ def _collect_parallel(values, bits, needed, size, parts):  # pragma: no cover - 
 
 
 @numba.njit(cache=True, nogil=True)
-def _order_statistics(values, ranks, parts=1):  # pragma: no cover - compiled
-    # ranks: sorted 0-based positions in ascending order. Pass 1: histogram of
-    # the top 16 bits. Pass 2: collect the members of the buckets that hold a
-    # requested rank; sorted, each bucket is a contiguous run of them.
-    # parts > 1: both passes on that many threads (the same numbers).
-    bits = values.view(np.int64)
-    shift = 48
-    if parts > 1:
-        counts = _counts_parallel(bits, parts)
-    else:
-        counts = np.zeros(1 << 15, dtype=np.int64)
-        for i in range(bits.shape[0]):
-            counts[bits[i] >> shift] += 1
+def _plan(counts, ranks):  # pragma: no cover - compiled
+    # From the histogram: the buckets that hold a requested rank (needed), their members' number (size),
+    # and each rank's position in sorted(members) (local): the members of needed buckets below its
+    # bucket, plus its rank inside the bucket. Ranks ascend, so do their buckets.
     needed = np.zeros(1 << 15, dtype=np.bool_)
     bucket_of = np.empty(ranks.shape[0], dtype=np.int64)
     below_of = np.empty(ranks.shape[0], dtype=np.int64)
@@ -100,18 +102,6 @@ def _order_statistics(values, ranks, parts=1):  # pragma: no cover - compiled
     for b in range(counts.shape[0]):
         if needed[b]:
             size += counts[b]
-    if parts > 1:
-        members = _collect_parallel(values, bits, needed, size, parts)
-    else:
-        members = np.empty(size)
-        j = 0
-        for i in range(bits.shape[0]):
-            if needed[bits[i] >> shift]:
-                members[j] = values[i]
-                j += 1
-    # Position of each rank in sorted(members): the members of needed buckets
-    # below its bucket, plus its rank inside the bucket. Ranks ascend, so do
-    # their buckets: one pass over the buckets finds every start.
     local = np.empty(ranks.shape[0], dtype=np.int64)
     start = 0
     b = 0
@@ -121,13 +111,47 @@ def _order_statistics(values, ranks, parts=1):  # pragma: no cover - compiled
                 start += counts[b]
             b += 1
         local[q] = start + ranks[q] - below_of[q]
+    return needed, size, local
+
+
+@numba.njit(cache=True, nogil=True)
+def _pick(members, local):  # pragma: no cover - compiled
     # Select, not sort: near-uniform weights put most of N in one bucket, and
     # sorting it costs O(size log size) (np.partition is O(size) per rank).
     members = np.partition(members, local)
-    out = np.empty(ranks.shape[0])
-    for q in range(ranks.shape[0]):
+    out = np.empty(local.shape[0])
+    for q in range(local.shape[0]):
         out[q] = members[local[q]]
     return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _order_statistics(values, ranks):  # pragma: no cover - compiled
+    # ranks: sorted 0-based positions in ascending order. Pass 1: histogram of
+    # the top 16 bits. Pass 2: collect the members of the buckets that hold a
+    # requested rank; sorted, each bucket is a contiguous run of them.
+    bits = values.view(np.int64)
+    shift = 48
+    counts = np.zeros(1 << 15, dtype=np.int64)
+    for i in range(bits.shape[0]):
+        counts[bits[i] >> shift] += 1
+    needed, size, local = _plan(counts, ranks)
+    members = np.empty(size)
+    j = 0
+    for i in range(bits.shape[0]):
+        if needed[bits[i] >> shift]:
+            members[j] = values[i]
+            j += 1
+    return _pick(members, local)
+
+
+def _order_statistics_parallel(values, ranks, parts):
+    """_order_statistics with both passes on the threads, each of ``parts`` parts counted and collected on one:
+    the counts are integers and the members keep index order, so the numbers are the same."""
+    bits = values.view(np.int64)
+    counts = _counts_parallel(bits, parts)
+    needed, size, local = _plan(counts, ranks)
+    return _pick(_collect_parallel(values, bits, needed, size, parts), local)
 
 
 def order_statistics(values: np.ndarray, ranks) -> np.ndarray:
@@ -139,8 +163,12 @@ def order_statistics(values: np.ndarray, ranks) -> np.ndarray:
         return np.partition(values, ranks)[ranks]
     order = np.argsort(ranks, kind="stable")
     out = np.empty(ranks.size)
-    parts = cores.use() if cores.parallel(values.size) else 1
-    out[order] = _order_statistics(np.ascontiguousarray(values, dtype=np.float64), ranks[order], parts)
+    values = np.ascontiguousarray(values, dtype=np.float64)
+    if cores.parallel(values.size):
+        parts = cores.parts(values.size, 4 * cores.threads())  # a histogram of 256 KB a part
+        out[order] = _order_statistics_parallel(values, ranks[order], parts)
+    else:
+        out[order] = _order_statistics(values, ranks[order])
     return out
 
 

@@ -190,17 +190,21 @@ def _split_parallel(weights, limit, particles, capacity, parts):  # pragma: no c
     rows = np.empty((n_large, d))
     out = np.empty((n, d))
     for p in numba.prange(parts):
-        start = n * p // parts
+        # _split's branch-free stores, kept inside the part's own slots (the next part's are another
+        # thread's): a store for the wrong kind is overwritten by the next particle of the right kind.
+        start, end = n * p // parts, n * (p + 1) // parts
         k = large_before[p]
-        for i in range(start, n * (p + 1) // parts):
-            for c in range(d):
-                out[i, c] = particles[i, c]
-            if weights[i] > limit:
+        rows_end = large_before[p + 1]
+        small_end = end - rows_end
+        for i in range(start, end):
+            if k < rows_end:
                 for c in range(d):
                     rows[k, c] = particles[i, c]
-                k += 1
-            else:
+            if i - k < small_end:
                 small[i - k] = i
+            for c in range(d):
+                out[i, c] = particles[i, c]
+            k += weights[i] > limit
     return small, rows, out
 
 

@@ -2,7 +2,8 @@
 any thread count.
 
 A set of N > B particles (B the run's ``block_particles``) is cut into blocks of B; every sum adds the
-blocks' partial sums in block order, and block b >= 1 draws its propagation noise from its own stream
+blocks' partial sums in block order (a block's sum: four running sums over its elements i = 0, 1, 2, 3
+mod 4 from its start, then (s0 + s1) + (s2 + s3): four chains the processor runs side by side), and block b >= 1 draws its propagation noise from its own stream
 (:func:`dtpf.messages.streams.block_stream`), block 0 from the step's. The filter calls these only for
 more than one block; one block is the filter's own code, so the numbers of N <= B do not change::
 
@@ -33,10 +34,18 @@ def _total(values, block):  # pragma: no cover - compiled
     sums = np.empty(count)
     for b in numba.prange(count):
         start, end = _bounds(n, block, b)
-        total = 0.0
-        for i in range(start, end):
-            total += values[i]
-        sums[b] = total
+        s0 = s1 = s2 = s3 = 0.0
+        i = start
+        while i + 4 <= end:
+            s0 += values[i]
+            s1 += values[i + 1]
+            s2 += values[i + 2]
+            s3 += values[i + 3]
+            i += 4
+        while i < end:
+            s0 += values[i]
+            i += 1
+        sums[b] = (s0 + s1) + (s2 + s3)
     total = 0.0
     for b in range(count):
         total += sums[b]
@@ -51,12 +60,22 @@ def _divide(weights, total, block):  # pragma: no cover - compiled
     sums = np.empty(count)
     for b in numba.prange(count):
         start, end = _bounds(n, block, b)
-        square = 0.0
-        for i in range(start, end):
-            w = weights[i] / total
-            weights[i] = w
-            square += w * w
-        sums[b] = square
+        s0 = s1 = s2 = s3 = 0.0
+        i = start
+        while i + 4 <= end:
+            w0, w1, w2, w3 = weights[i] / total, weights[i + 1] / total, weights[i + 2] / total, weights[i + 3] / total
+            weights[i], weights[i + 1], weights[i + 2], weights[i + 3] = w0, w1, w2, w3
+            s0 += w0 * w0
+            s1 += w1 * w1
+            s2 += w2 * w2
+            s3 += w3 * w3
+            i += 4
+        while i < end:
+            w0 = weights[i] / total
+            weights[i] = w0
+            s0 += w0 * w0
+            i += 1
+        sums[b] = (s0 + s1) + (s2 + s3)
     square = 0.0
     for b in range(count):
         square += sums[b]
@@ -81,6 +100,43 @@ def normalise(log_weights: np.ndarray, block: int, top: float) -> tuple[np.ndarr
     return weights, top + float(np.log(total)), top, 1.0 / square
 
 
+@numba.njit(inline="always")
+def _weighted(particles, weights, c, start, end):  # pragma: no cover - compiled
+    # sum_i w_i x_ic over [start, end), in four running sums (the module's order).
+    s0 = s1 = s2 = s3 = 0.0
+    i = start
+    while i + 4 <= end:
+        s0 += weights[i] * particles[i, c]
+        s1 += weights[i + 1] * particles[i + 1, c]
+        s2 += weights[i + 2] * particles[i + 2, c]
+        s3 += weights[i + 3] * particles[i + 3, c]
+        i += 4
+    while i < end:
+        s0 += weights[i] * particles[i, c]
+        i += 1
+    return (s0 + s1) + (s2 + s3)
+
+
+@numba.njit(inline="always")
+def _weighted_squares(particles, weights, c, mean, start, end):  # pragma: no cover - compiled
+    # sum_i w_i (x_ic - mean)^2 over [start, end), in four running sums (the module's order).
+    s0 = s1 = s2 = s3 = 0.0
+    i = start
+    while i + 4 <= end:
+        e0, e1 = particles[i, c] - mean, particles[i + 1, c] - mean
+        e2, e3 = particles[i + 2, c] - mean, particles[i + 3, c] - mean
+        s0 += weights[i] * (e0 * e0)
+        s1 += weights[i + 1] * (e1 * e1)
+        s2 += weights[i + 2] * (e2 * e2)
+        s3 += weights[i + 3] * (e3 * e3)
+        i += 4
+    while i < end:
+        e0 = particles[i, c] - mean
+        s0 += weights[i] * (e0 * e0)
+        i += 1
+    return (s0 + s1) + (s2 + s3)
+
+
 @numba.njit(cache=True, nogil=True, parallel=True)
 def _moments(particles, weights, block):  # pragma: no cover - compiled
     # The weighted mean, then the weighted variance about it, per component: per block, added in block order.
@@ -92,20 +148,13 @@ def _moments(particles, weights, block):  # pragma: no cover - compiled
     for b in numba.prange(count):
         start, end = _bounds(n, block, b)
         for c in range(d):
-            sums[b, c] = 0.0
-        for i in range(start, end):
-            for c in range(d):
-                sums[b, c] += weights[i] * particles[i, c]
+            sums[b, c] = _weighted(particles, weights, c, start, end)
     mean = _sum_rows(sums)
     squares = np.empty((count, d))
     for b in numba.prange(count):
         start, end = _bounds(n, block, b)
         for c in range(d):
-            squares[b, c] = 0.0
-        for i in range(start, end):
-            for c in range(d):
-                centred = particles[i, c] - mean[c]
-                squares[b, c] += weights[i] * (centred * centred)
+            squares[b, c] = _weighted_squares(particles, weights, c, mean[c], start, end)
     return mean, _sum_rows(squares)
 
 

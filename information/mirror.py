@@ -94,15 +94,29 @@ def _block_sums(weights, logs, block):  # pragma: no cover - compiled
     squares = np.empty(count)
     entropies = np.empty(count)
     for b in numba.prange(count):
-        square = 0.0
-        entropy = 0.0
-        for i in range(b * block, min(n, (b + 1) * block)):
-            w = weights[i]
-            square += w * w
-            if w > 0.0:
-                entropy -= w * logs[i]
-        squares[b] = square
-        entropies[b] = entropy
+        # Four running sums of each (elements i = 0, 1, 2, 3 mod 4 from the block's start), then
+        # (s0 + s1) + (s2 + s3), as dtpf.entity.blocks sums: four chains side by side.
+        q0 = q1 = q2 = q3 = 0.0
+        e0 = e1 = e2 = e3 = 0.0
+        i, end = b * block, min(n, (b + 1) * block)
+        while i + 4 <= end:
+            w0, w1, w2, w3 = weights[i], weights[i + 1], weights[i + 2], weights[i + 3]
+            q0 += w0 * w0
+            q1 += w1 * w1
+            q2 += w2 * w2
+            q3 += w3 * w3
+            e0 -= w0 * logs[i] if w0 > 0.0 else 0.0
+            e1 -= w1 * logs[i + 1] if w1 > 0.0 else 0.0
+            e2 -= w2 * logs[i + 2] if w2 > 0.0 else 0.0
+            e3 -= w3 * logs[i + 3] if w3 > 0.0 else 0.0
+            i += 4
+        while i < end:
+            w0 = weights[i]
+            q0 += w0 * w0
+            e0 -= w0 * logs[i] if w0 > 0.0 else 0.0
+            i += 1
+        squares[b] = (q0 + q1) + (q2 + q3)
+        entropies[b] = (e0 + e1) + (e2 + e3)
     square = 0.0
     entropy = 0.0
     for b in range(count):

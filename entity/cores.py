@@ -20,14 +20,12 @@ from __future__ import annotations
 
 import os
 
-# Threads that wait for the next parallel region spin briefly (1,000 turns, a few tens of us), then sleep:
-# the layers of a twin share the machine's cores and run in lockstep, and a thread spinning in one process
-# takes the core another needs (on 2 busy cores OpenMP's default spin made a radix select 10x slower);
-# without the short spin, two parallel loops in a row cost 50 us more. Read when numba first starts its
-# threads, after this import; a wait policy the environment gives is kept.
-if "OMP_WAIT_POLICY" not in os.environ:
-    os.environ["OMP_WAIT_POLICY"] = "PASSIVE"
-    os.environ.setdefault("GOMP_SPINCOUNT", "1000")
+# Threads that wait for the next parallel region sleep instead of spinning: the layers of a twin share the
+# machine's cores with each other (and with other work), and a thread spinning in one process takes the
+# core another needs. On 2 cores with one busy, OpenMP's default spin made a radix select 10x slower, and
+# an empty parallel loop took 9 us passive, 57 us after 1,000 spins (GOMP_SPINCOUNT), 1 ms after 20,000.
+# Read when numba first starts its threads, after this import; a value the environment gives is kept.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import numba  # noqa: E402 - after the wait policy
 

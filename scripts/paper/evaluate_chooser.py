@@ -9,7 +9,9 @@ comparisons are paired by seed) the in-process pipeline runs:
   and the regularised kernel (h_opt), each after systematic resampling;
 - ``guard-observed`` with the relative rule (PS 0, likelihood weights);
 - ``choose``: every step the system layer runs the five arms on its copy of the entity's set and
-  puts in force the one the real observations favour (``--policy choose``, docs/guides/policies.md);
+  puts in force the one the real observations favour (``--policy choose``, docs/guides/policies.md;
+  its copies are scored and propagated in one call over all arms, with the numbers of one call per
+  copy, so the figures of a CSV written before that change stand, and ``--resume`` may go on from it);
 - the Kalman filter where it is exact (``drift``, ``drift+100``, ``switching``).
 
 Beside them, a reference that is not a method: per seed, the arm (plain, either DT rule, roughening,

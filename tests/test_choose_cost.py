@@ -42,6 +42,25 @@ class _NoNoise:
         return None
 
 
+def _model(name: str):
+    if name == "range-bearing":
+        from dtpf.scripts.paper import evaluate_guard
+        return evaluate_guard.scenario_model(name)[1]
+    return models.get(name)
+
+
+@pytest.mark.parametrize("name, m", [("ungm", 300), ("ungm", 2500), ("drift", 300), ("range-bearing", 200)])
+def test_one_propagation_call_gives_each_copy_the_numbers_of_its_own_call(name, m):
+    """2500 particles of ungm: its compiled draws (from 2048 numbers on) in both paths."""
+    model = _model(name)
+    d = np.asarray(model.initial_particles(2, np.random.default_rng(0))).shape[1]
+    stacked = np.random.default_rng(1).standard_normal((5, m, d)) * 3.0
+    got = ArmEvidence(model, n=m, particles=m)._propagate(7, stacked, np.random.default_rng(5))
+    for row, copy in zip(stacked, got):   # each copy alone, from the same generator state
+        assert np.array_equal(copy, model.propagate(row, 7, np.random.default_rng(5)))
+    assert not np.array_equal(got[0] - stacked[0], got[1] - stacked[1]) or name == "drift"
+
+
 @pytest.mark.parametrize("name", ["ungm", "drift"])
 def test_the_batched_copies_have_the_numbers_of_one_call_per_copy(name):
     model = models.get(name)

@@ -97,9 +97,11 @@ def test_the_scores_are_each_copys_predictive_and_point_log_likelihood():
     assert len(set(expected.values())) > 2
 
 
-def _digest(model_name: str, n: int, steps: int, seed: int) -> str:
-    model = models.get(model_name)
-    config = RunConfig(scenario=model_name, particles=n, steps=steps, seed=seed, policy="choose", twin="t-cost")
+def _digest(scenario: str, n: int, steps: int, seed: int) -> str:
+    from dtpf.scripts.paper import evaluate_guard
+
+    options, model = evaluate_guard.scenario_model(scenario)
+    config = RunConfig(**options, particles=n, steps=steps, seed=seed, policy="choose", twin="t-cost")
     _, z = simulate(config, model)
     pf = build(config, z, model)
     steps_run = list(pf)
@@ -118,8 +120,10 @@ def _digest(model_name: str, n: int, steps: int, seed: int) -> str:
 
 #: Digests of choose runs (estimates, every arm's evidence, every decision) recorded with the per-arm copies
 #: of commit 303051b (one likelihood call and one propagation per arm): a log of that chooser still verifies.
+#: drift+100 puts the relative rule in force; range-bearing has four state dimensions; N = 1,500 copies M = 1,000.
 RECORDED = {("ungm", 100, 60, 3): "d8c4a2f6818adf2f", ("moving", 100, 60, 4): "c1063f9ad27c577c",
-            ("ungm", 1500, 12, 7): "f25dc4ae56e1eef5"}
+            ("ungm", 1500, 12, 7): "f25dc4ae56e1eef5", ("drift+100", 100, 40, 2): "adf36bd34079277c",
+            ("range-bearing", 100, 40, 5): "b00950edd548a100"}
 
 
 @pytest.mark.parametrize("case", sorted(RECORDED))

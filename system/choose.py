@@ -269,17 +269,22 @@ class ArmEvidence:
         """The (A, M, d) copies propagated to k, every copy with the same numbers (common random numbers).
 
         A model that draws its noise on its own (``propagation_noise``, which ``propagate`` then uses instead
-        of drawing) propagates all copies in one call, each with the same noise; any other in one call per
-        copy, each from the same generator state. Both give the numbers of one call per copy.
+        of drawing) propagates all copies in one call, each with the same noise, when that call draws nothing
+        more; any other in one call per copy, each from the same generator state. Both give the numbers of
+        one call per copy.
         """
         model = self.model
         a, m, d = stacked.shape
         state = rng.bit_generator.state
         noise = model.propagation_noise(m, k, rng) if self.batched else None
         if noise is not None and np.ndim(noise) >= 1 and np.shape(noise)[0] == m:
-            noise = np.asarray(noise)
-            out = model.propagate(stacked.reshape(a * m, d), k, rng, noise=np.concatenate([noise] * a, axis=0))
-            return np.asarray(out, dtype=np.float64).reshape(a, m, -1)
+            drawn = rng.bit_generator.state
+            out = model.propagate(stacked.reshape(a * m, d), k, rng,
+                                  noise=np.concatenate([np.asarray(noise)] * a, axis=0))
+            if rng.bit_generator.state == drawn:
+                return np.asarray(out, dtype=np.float64).reshape(a, m, -1)
+            # It drew more than its noise (a driven step over several pieces of control, a model that draws
+            # after the noise): those numbers would differ from copy to copy, so one call per copy after all.
         out = []
         for row in stacked:
             rng.bit_generator.state = state

@@ -74,6 +74,29 @@ def test_the_batched_copies_have_the_numbers_of_one_call_per_copy(name):
     assert len({float(v) for d in a[0] for v in d.values()}) > 5   # the arms differ: a test that can fail
 
 
+class _DrawsMore:
+    """A model whose ``propagate`` draws one more number per particle after its noise (as a driven step over
+    two pieces of control does): one call over all copies would give each copy other numbers."""
+
+    def __init__(self, model):
+        self._model = model
+
+    def __getattr__(self, name):
+        return getattr(self._model, name)
+
+    def propagate(self, particles, k, rng, noise=None):
+        out = self._model.propagate(particles, k, rng, noise=noise)
+        return out + rng.standard_normal(out.shape)
+
+
+def test_a_model_that_draws_more_than_its_noise_gets_one_call_per_copy():
+    model = _DrawsMore(models.get("ungm"))
+    stacked = np.random.default_rng(1).standard_normal((5, 300, 1))
+    got = ArmEvidence(model, n=300, particles=300)._propagate(4, stacked, np.random.default_rng(5))
+    for row, copy in zip(stacked, got):
+        assert np.array_equal(copy, model.propagate(row, 4, np.random.default_rng(5)))
+
+
 def test_a_model_without_its_own_noise_gets_one_call_per_copy_with_the_same_numbers():
     model = models.get("ungm")
     plain = _run(ArmEvidence(model, n=200, particles=150), model)

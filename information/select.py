@@ -86,7 +86,7 @@ def _plan(counts, ranks):  # pragma: no cover - compiled
     # From the histogram: the buckets that hold a requested rank (needed), their members' number (size),
     # and each rank's position in sorted(members) (local): the members of needed buckets below its
     # bucket, plus its rank inside the bucket. Ranks ascend, so do their buckets.
-    needed = np.zeros(1 << 15, dtype=np.bool_)
+    needed = np.zeros(counts.shape[0], dtype=np.bool_)
     bucket_of = np.empty(ranks.shape[0], dtype=np.int64)
     below_of = np.empty(ranks.shape[0], dtype=np.int64)
     below = 0
@@ -145,13 +145,64 @@ def _order_statistics(values, ranks):  # pragma: no cover - compiled
     return _pick(members, local)
 
 
+#: The second level of the parallel select: the next 12 bits of the needed buckets' values.
+SUB_BITS = 12
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _sub_counts_parallel(bits, slot, width, parts):  # pragma: no cover - compiled
+    # The histogram of (slot of the top 16 bits' bucket, next SUB_BITS bits) over the values of the
+    # needed buckets (slot >= 0): each part's on its thread, then summed.
+    partial = np.empty((parts, width), dtype=np.int64)
+    for p in numba.prange(parts):
+        for b in range(width):
+            partial[p, b] = 0
+        start, end = _part(bits.shape[0], parts, p)
+        for i in range(start, end):
+            u = slot[bits[i] >> 48]
+            if u >= 0:
+                partial[p, (u << SUB_BITS) + ((bits[i] >> (48 - SUB_BITS)) & ((1 << SUB_BITS) - 1))] += 1
+    return _sum_rows(partial)
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _collect_sub_parallel(values, bits, slot, needed, size, parts):  # pragma: no cover - compiled
+    # The values whose (slot, next SUB_BITS bits) is needed, in index order (as _collect_parallel).
+    found = np.empty(parts + 1, dtype=np.int64)
+    found[0] = 0
+    for p in numba.prange(parts):
+        start, end = _part(bits.shape[0], parts, p)
+        count = 0
+        for i in range(start, end):
+            u = slot[bits[i] >> 48]
+            if u >= 0:
+                count += needed[(u << SUB_BITS) + ((bits[i] >> (48 - SUB_BITS)) & ((1 << SUB_BITS) - 1))]
+        found[p + 1] = count
+    for p in range(parts):
+        found[p + 1] += found[p]
+    members = np.empty(size)
+    for p in numba.prange(parts):
+        start, end = _part(bits.shape[0], parts, p)
+        j = found[p]
+        for i in range(start, end):
+            u = slot[bits[i] >> 48]
+            if u >= 0 and needed[(u << SUB_BITS) + ((bits[i] >> (48 - SUB_BITS)) & ((1 << SUB_BITS) - 1))]:
+                members[j] = values[i]
+                j += 1
+    return members
+
+
 def _order_statistics_parallel(values, ranks, parts):
-    """_order_statistics with both passes on the threads, each of ``parts`` parts counted and collected on one:
-    the counts are integers and the members keep index order, so the numbers are the same."""
+    """_order_statistics on the threads, each of ``parts`` parts counted and collected on one, in two levels:
+    the buckets of the top 16 bits that hold a rank, then inside them the buckets of the next SUB_BITS bits,
+    whose few members are selected among. Order statistics are values: the same numbers."""
     bits = values.view(np.int64)
-    counts = _counts_parallel(bits, parts)
-    needed, size, local = _plan(counts, ranks)
-    return _pick(_collect_parallel(values, bits, needed, size, parts), local)
+    needed, _, local = _plan(_counts_parallel(bits, parts), ranks)
+    slot = np.full(needed.size, -1, dtype=np.int64)
+    buckets = np.flatnonzero(needed)
+    slot[buckets] = np.arange(buckets.size)  # ascending buckets, ascending slots: the values' order
+    sub_needed, size, sub_local = _plan(_sub_counts_parallel(bits, slot, buckets.size << SUB_BITS, parts), local)
+    return _pick(_collect_sub_parallel(values, bits, slot, sub_needed, size, parts), sub_local)
 
 
 def order_statistics(values: np.ndarray, ranks) -> np.ndarray:

@@ -144,7 +144,8 @@ def test_the_kernels_shared_among_threads_give_the_one_thread_numbers(threads):
                                       np.sort(values)[ranks])
     threads(2)
     limit = float(np.quantile(w, 0.6))
-    for a, b in zip(rules.split(w, limit, x, N_BLOCKED), rules._split(w, limit, x, N_BLOCKED)):
-        np.testing.assert_array_equal(a, b)
+    for parts in (2, 7):
+        for a, b in zip(rules._split_parallel(w, limit, x, N_BLOCKED, parts), rules._split(w, limit, x, N_BLOCKED)):
+            np.testing.assert_array_equal(a, b)
     a = rng.integers(0, N_BLOCKED, N_BLOCKED)
     np.testing.assert_array_equal(_merge.gather_parallel(x, a, np.empty_like(x)), x[a])

@@ -151,8 +151,8 @@ SUB_BITS = 12
 
 @numba.njit(cache=True, nogil=True, parallel=True)
 def _sub_counts_parallel(bits, slot, width, parts):  # pragma: no cover - compiled
-    # The histogram of (slot of the top 16 bits' bucket, next SUB_BITS bits) over the values of the
-    # needed buckets (slot >= 0): each part's on its thread, then summed.
+    # The histograms, one a part, of (slot of the top 16 bits' bucket, next SUB_BITS bits) over the values
+    # of the needed buckets (slot >= 0): (parts, width).
     partial = np.empty((parts, width), dtype=np.int64)
     for p in numba.prange(parts):
         for b in range(width):
@@ -162,25 +162,14 @@ def _sub_counts_parallel(bits, slot, width, parts):  # pragma: no cover - compil
             u = slot[bits[i] >> 48]
             if u >= 0:
                 partial[p, (u << SUB_BITS) + ((bits[i] >> (48 - SUB_BITS)) & ((1 << SUB_BITS) - 1))] += 1
-    return _sum_rows(partial)
+    return partial
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
-def _collect_sub_parallel(values, bits, slot, needed, size, parts):  # pragma: no cover - compiled
-    # The values whose (slot, next SUB_BITS bits) is needed, in index order (as _collect_parallel).
-    found = np.empty(parts + 1, dtype=np.int64)
-    found[0] = 0
-    for p in numba.prange(parts):
-        start, end = _part(bits.shape[0], parts, p)
-        count = 0
-        for i in range(start, end):
-            u = slot[bits[i] >> 48]
-            if u >= 0:
-                count += needed[(u << SUB_BITS) + ((bits[i] >> (48 - SUB_BITS)) & ((1 << SUB_BITS) - 1))]
-        found[p + 1] = count
-    for p in range(parts):
-        found[p + 1] += found[p]
-    members = np.empty(size)
+def _collect_sub_parallel(values, bits, slot, needed, found, parts):  # pragma: no cover - compiled
+    # The values whose (slot, next SUB_BITS bits) is needed, in index order: part p's from found[p] (the
+    # needed members of the parts before it, from their histograms).
+    members = np.empty(found[parts])
     for p in numba.prange(parts):
         start, end = _part(bits.shape[0], parts, p)
         j = found[p]
@@ -201,8 +190,11 @@ def _order_statistics_parallel(values, ranks, parts):
     slot = np.full(needed.size, -1, dtype=np.int64)
     buckets = np.flatnonzero(needed)
     slot[buckets] = np.arange(buckets.size)  # ascending buckets, ascending slots: the values' order
-    sub_needed, size, sub_local = _plan(_sub_counts_parallel(bits, slot, buckets.size << SUB_BITS, parts), local)
-    return _pick(_collect_sub_parallel(values, bits, slot, sub_needed, size, parts), sub_local)
+    partial = _sub_counts_parallel(bits, slot, buckets.size << SUB_BITS, parts)
+    sub_needed, _, sub_local = _plan(_sum_rows(partial), local)
+    found = np.zeros(parts + 1, dtype=np.int64)
+    np.cumsum(partial[:, sub_needed].sum(axis=1), out=found[1:])
+    return _pick(_collect_sub_parallel(values, bits, slot, sub_needed, found, parts), sub_local)
 
 
 def order_statistics(values: np.ndarray, ranks) -> np.ndarray:

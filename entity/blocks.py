@@ -94,7 +94,7 @@ def normalise(log_weights: np.ndarray, block: int, top: float) -> tuple[np.ndarr
         np.exp(part, out=part)
 
     cores.in_parts(weights.size, exponentials)
-    cores.use()
+    cores.use(weights.size)
     total = _total(weights, int(block))
     square = _divide(weights, total, int(block))
     return weights, top + float(np.log(total)), top, 1.0 / square
@@ -170,7 +170,7 @@ def _sum_rows(partial):  # pragma: no cover - compiled
 
 def moments(particles: np.ndarray, weights: np.ndarray, block: int) -> tuple[np.ndarray, np.ndarray]:
     """Weighted mean and variance per component, (d,), (d,), the sums per block of ``block``."""
-    cores.use()
+    cores.use(particles.shape[0])
     return _moments(np.ascontiguousarray(particles, dtype=np.float64), weights, int(block))
 
 
@@ -193,5 +193,6 @@ def noise(model, n: int, k: int, rng: np.random.Generator, block: int, key: tupl
         start, end = b * block, min(n, (b + 1) * block)
         out[start:end] = model.propagation_noise(end - start, k, block_stream(seed, twin, k, "entity", b))
 
-    cores.in_parts(count - 1, lambda start, end: [draw(b) for b in range(1 + start, 1 + end)])
+    cores.in_parts(count - 1, lambda start, end: [draw(b) for b in range(1 + start, 1 + end)],
+                   None if n >= cores.PARALLEL_MIN else 1)
     return out

@@ -32,9 +32,11 @@ import numba  # noqa: E402 - after the wait policy
 __all__ = ["available", "set_threads", "threads", "use", "blocks", "parallel", "parts", "in_parts", "PARALLEL_MIN",
            "CHUNK"]
 
-#: From this many particles on, a kernel whose numbers do not depend on the cut shares the set among the
-#: threads; below it one thread is faster (waking the others costs about 10 us).
-PARALLEL_MIN = 1 << 16
+#: From this many particles on, a kernel shares the set among the threads; below it one thread is faster:
+#: waking a sleeping thread costs 10-60 us on a 2-core VM (dtpf.scripts.bench.cores), and a kernel at
+#: N = 1e5 takes 0.05-0.5 ms. A set in blocks of fewer particles runs its blocks on one thread: the same
+#: numbers.
+PARALLEL_MIN = 1 << 18
 
 #: Elements of one chunk of an element-wise parallel loop: threads take chunks (and blocks) one at a time, so
 #: that a thread slowed by another process's work takes fewer of them.
@@ -68,10 +70,11 @@ def threads() -> int:
     return available() if _THREADS is None else _THREADS
 
 
-def use() -> int:
-    """Apply the process's thread count on the calling thread (numba's settings are per thread), threads
-    taking the iterations of a parallel loop (blocks, parts or chunks) one at a time; the count."""
-    count = threads()
+def use(n: int | None = None) -> int:
+    """Apply the thread count for a kernel over ``n`` particles on the calling thread (numba's settings are
+    per thread): the process's, or 1 below PARALLEL_MIN; threads take the iterations of a parallel loop
+    (blocks, parts or chunks) one at a time. The count."""
+    count = threads() if n is None or n >= PARALLEL_MIN else 1
     if numba.get_num_threads() != count:
         numba.set_num_threads(count)
     numba.set_parallel_chunksize(1)
@@ -95,14 +98,17 @@ def blocks(n: int, block: int | None) -> int:
 
 def parallel(n: int) -> bool:
     """Whether a kernel whose numbers do not depend on the cut shares ``n`` particles among threads."""
-    return n >= PARALLEL_MIN and use() > 1
+    return use(n) > 1
 
 
 def in_parts(n: int, work, parts: int | None = None) -> None:
-    """``work(start, end)`` over ``parts`` (default: the process's threads) contiguous parts of [0, n): the
-    first on the calling thread, the others on a pool of Python threads, for work that releases the GIL (numpy's
-    element-wise ufuncs, nogil kernels). Only for work whose result does not depend on the cut."""
-    count = max(1, min(threads() if parts is None else int(parts), n))
+    """``work(start, end)`` over ``parts`` (default: the process's threads, 1 below PARALLEL_MIN) contiguous
+    parts of [0, n): the first on the calling thread, the others on a pool of Python threads, for work that
+    releases the GIL (numpy's element-wise ufuncs, nogil kernels). Only for work whose result does not depend
+    on the cut."""
+    if parts is None:
+        parts = threads() if n >= PARALLEL_MIN else 1
+    count = max(1, min(int(parts), n))
     if count == 1:
         work(0, n)
         return

@@ -62,7 +62,7 @@ __all__ = [
 Resampler = Callable[..., np.ndarray]
 
 #: Below this many particles :func:`gather` stays on one thread: waking others costs more.
-PARALLEL_GATHER = 1 << 17
+PARALLEL_GATHER = cores.PARALLEL_MIN
 
 
 def inverse_cdf(points, weights) -> np.ndarray:
@@ -118,7 +118,7 @@ def systematic_blocks(weights: np.ndarray, rng: np.random.Generator, block: int,
     u = rng.random()
     if cores.blocks(w.size, block) == 1:
         return _merge.systematic(w, u, out)
-    cores.use()
+    cores.use(w.size)
     return _merge.systematic_blocks(w, u, int(block), out)
 
 

@@ -137,7 +137,7 @@ def ess_entropy(weights: np.ndarray, block: int | None = None) -> tuple[float, f
             np.log(weights[start:end], out=logs[start:end])
 
     cores.in_parts(weights.size, logarithms)
-    cores.use()
+    cores.use(weights.size)
     square, entropy = _block_sums(weights, logs, int(block))
     return 1.0 / square, float(entropy)
 

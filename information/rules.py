@@ -462,7 +462,7 @@ def move_blocks(particles, small, rows, ps, state, out, block):
     count = cores.blocks(n, block)
     starts = np.searchsorted(small, np.arange(count + 1, dtype=np.int64) * block).astype(np.int64)
     starts[-1] = small.shape[0]
-    cores.use()
+    cores.use(n)
     return _move_blocks(particles, small, rows, ps, _jumped(state, count), starts, out)
 
 

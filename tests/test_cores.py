@@ -25,8 +25,11 @@ BEFORE_BLOCKS = {1000: "94a59cd9e5926e4aa32d", B: "8dda508c91622784b944", N_BLOC
 
 
 @pytest.fixture()
-def threads():
-    """Set the process's thread count for a test, and put back every core after it."""
+def threads(monkeypatch):
+    """Set the process's thread count for a test, and put back every core after it; the kernels share sets
+    from 4,096 particles on (not PARALLEL_MIN), so that these sizes run on the threads."""
+    monkeypatch.setattr(cores, "PARALLEL_MIN", 1 << 12)
+    monkeypatch.setattr(resampling, "PARALLEL_GATHER", 1 << 12)
     yield cores.set_threads
     cores.set_threads(None)
 

@@ -67,7 +67,6 @@ from dtpf.entity.models import StateSpaceModel
 from dtpf.information import rules
 from dtpf.information.layer import ARMS, Arm, arms_for
 from dtpf.messages.names import OWN_ARM
-from dtpf.system.evidence import predictive_log_likelihood
 
 __all__ = ["ArmEvidence", "CLIP", "point_log_likelihood"]
 

@@ -26,6 +26,7 @@ import os
 import platform
 import random
 import statistics
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -116,8 +117,9 @@ def ratio(figures: dict, where: str, n: int, mode: str, against: str) -> float:
 
 
 def table(figures: dict, sizes, wheres) -> str:
-    rows = ["| measured | N | plain, ms / step | paper (PS 0.81), ms / step | choose, ms / step | choose / plain "
-            "| paper / plain | choose / paper | target | verdict |", "|---|---|---|---|---|---|---|---|---|---|"]
+    header = ("| measured | N | plain, ms / step | paper (PS 0.81), ms / step | choose, ms / step | choose / plain "
+              "| paper / plain | choose / paper | target | verdict |")
+    rows = [header, "|---|---|---|---|---|---|---|---|---|---|"]
     labels = {"inprocess": "in process (wall)", "launch": "dtpf launch (CPU of entity + information + system)"}
     for where in wheres:
         for n in sizes:
@@ -155,8 +157,6 @@ def main(argv=None) -> int:
     if args.steps <= FIRST_TIMED + 1:
         parser.error(f"--steps must exceed {FIRST_TIMED + 1}")
     wheres = ("inprocess", "launch") if args.where == "both" else (args.where,)
-    import sys
-
     progress = (lambda text: None) if args.quiet else (lambda text: print(text, file=sys.stderr, flush=True))
     start = time.perf_counter()
     with threadpool_limits(limits=1, user_api="blas"):

@@ -136,7 +136,12 @@ def verify(log: Log, twin: str | None = None, model_override: str | None = None)
         twin = twins[0]
     elif twin not in {m.twin_id for ms in by_topic.values() for m in ms}:
         raise LogError(f"twin {twin!r} is not in the log; it holds {twins}")
-    return verify_twin(by_topic, twin, log.problem, model_override)
+    # The layers sum with one BLAS thread (dtpf.shell.service); a threaded np.dot of more than 10,000 weights
+    # sums in another order, and a log of N > 10,000 recorded before blocks would not verify.
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(limits=1, user_api="blas"):
+        return verify_twin(by_topic, twin, log.problem, model_override)
 
 
 def decoded_by_topic(log: Log) -> dict[str, list]:

@@ -205,24 +205,25 @@ class ArmEvidence:
         model, names = self.model, self.names
         a, m, d = copies.shape
         log_w = np.asarray(model.log_likelihood(copies.reshape(a * m, d), z, k), dtype=np.float64).reshape(a, m)
-        top = np.max(log_w, axis=1)
+        top = log_w.max(axis=1)
         kept = np.isfinite(top)
         every = bool(kept.all())
         w = np.exp(log_w - top[:, None]) if every else np.exp(log_w[kept] - top[kept, None])
-        total = np.sum(w, axis=1)
+        total = w.sum(axis=1)
         values = top + np.log(total / m) if every else np.full(a, -np.inf)
         if not every:
             values[kept] = top[kept] + np.log(total / m)
         w /= total[:, None]
         for row, i in enumerate(range(a) if every else np.flatnonzero(kept)):
             weighted[names[i]] = (copies[i], w[row])
-        means = np.mean(copies, axis=1)
+        means = np.add.reduce(copies, axis=1) / m        # np.mean's numbers, without its wrapper
         finite = np.isfinite(means).all(axis=1)
-        points = np.full(a, -np.inf)
-        if finite.any():
-            at = np.asarray(model.log_likelihood(means if finite.all() else means[finite], z, k),
-                            dtype=np.float64).reshape(-1)
-            points[finite] = at
+        if finite.all():
+            points = np.asarray(model.log_likelihood(means, z, k), dtype=np.float64).reshape(-1)
+        else:
+            points = np.full(a, -np.inf)
+            if finite.any():
+                points[finite] = np.asarray(model.log_likelihood(means[finite], z, k), dtype=np.float64).reshape(-1)
         values, points = values.tolist(), points.tolist()
         plain, plain_point = values[0], points[0]              # plain is the first arm
         scored = {name: _difference(values[i], plain) for i, name in enumerate(names)}

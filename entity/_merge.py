@@ -561,6 +561,23 @@ def distinct(ancestors):  # pragma: no cover - compiled
 
 
 
+@numba.njit(cache=True, nogil=True, parallel=True)
+def distinct_parallel(ancestors, chunk):  # pragma: no cover - compiled
+    # distinct's count, chunk by chunk on the threads: the changes inside each chunk and at its start.
+    n = ancestors.shape[0]
+    count = (n + chunk - 1) // chunk
+    changes = np.empty(count, dtype=np.int64)
+    for b in numba.prange(count):
+        found = 0
+        for i in range(max(1, b * chunk), min(n, (b + 1) * chunk)):
+            found += ancestors[i] != ancestors[i - 1]
+        changes[b] = found
+    total = 1
+    for b in range(count):
+        total += changes[b]
+    return total
+
+
 #: Rows of one chunk of the parallel gather (threads take chunks one at a time).
 GATHER_CHUNK = 1 << 13
 

@@ -123,7 +123,10 @@ def systematic_blocks(weights: np.ndarray, rng: np.random.Generator, block: int,
 
 
 def distinct(ancestors: np.ndarray) -> int:
-    """Number of distinct values in sorted ``ancestors`` (the parents of the resampled set)."""
+    """Number of distinct values in sorted ``ancestors`` (the parents of the resampled set); on the process's
+    threads from PARALLEL_MIN on (an integer count: the same)."""
+    if cores.parallel(ancestors.shape[0]):
+        return int(_merge.distinct_parallel(ancestors, cores.CHUNK))
     return int(_merge.distinct(ancestors))
 
 

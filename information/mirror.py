@@ -19,7 +19,7 @@ from dtpf.information.rules import threshold as threshold_of
 from dtpf.information.select import quantiles
 from dtpf.messages.arrays import check_set
 
-__all__ = ["WeightSummary", "summarise", "ess", "ess_entropy"]
+__all__ = ["WeightSummary", "summarise", "ess", "weight_state"]
 
 #: Weight quantiles reported, by field name.
 QUANTILES = {"q10": 0.10, "q50": 0.50, "q90": 0.90, "q99": 0.99}
@@ -86,18 +86,22 @@ def _entropy(weights):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
-def _block_sums(weights, logs, block):  # pragma: no cover - compiled
-    # (sum w^2, -sum w log w) of a set in blocks of ``block``, ``logs`` = log(weights): each block's sums
-    # on a thread, then added in block order (the same numbers for any thread count).
+def _block_sums(weights, logs, block, limit):  # pragma: no cover - compiled
+    # (sum w^2, -sum w log w, max w, #{w > limit}) of a set in blocks of ``block``, ``logs`` = log(weights):
+    # each block's on a thread, the sums added in block order (the same numbers for any thread count).
     n = weights.shape[0]
     count = (n + block - 1) // block
     squares = np.empty(count)
     entropies = np.empty(count)
+    largest = np.empty(count)
+    above = np.empty(count, dtype=np.int64)
     for b in numba.prange(count):
         # Four running sums of each (elements i = 0, 1, 2, 3 mod 4 from the block's start), then
         # (s0 + s1) + (s2 + s3), as dtpf.entity.blocks sums: four chains side by side.
         q0 = q1 = q2 = q3 = 0.0
         e0 = e1 = e2 = e3 = 0.0
+        top = 0.0
+        over = 0
         i, end = b * block, min(n, (b + 1) * block)
         while i + 4 <= end:
             w0, w1, w2, w3 = weights[i], weights[i + 1], weights[i + 2], weights[i + 3]
@@ -109,27 +113,38 @@ def _block_sums(weights, logs, block):  # pragma: no cover - compiled
             e1 -= w1 * logs[i + 1] if w1 > 0.0 else 0.0
             e2 -= w2 * logs[i + 2] if w2 > 0.0 else 0.0
             e3 -= w3 * logs[i + 3] if w3 > 0.0 else 0.0
+            top = max(top, max(max(w0, w1), max(w2, w3)))
+            over += (w0 > limit) + (w1 > limit) + (w2 > limit) + (w3 > limit)
             i += 4
         while i < end:
             w0 = weights[i]
             q0 += w0 * w0
             e0 -= w0 * logs[i] if w0 > 0.0 else 0.0
+            top = max(top, w0)
+            over += w0 > limit
             i += 1
         squares[b] = (q0 + q1) + (q2 + q3)
         entropies[b] = (e0 + e1) + (e2 + e3)
+        largest[b] = top
+        above[b] = over
     square = 0.0
     entropy = 0.0
+    top = 0.0
+    over = 0
     for b in range(count):
         square += squares[b]
         entropy += entropies[b]
-    return square, entropy
+        top = max(top, largest[b])
+        over += above[b]
+    return square, entropy, top, over
 
 
-def ess_entropy(weights: np.ndarray, block: int | None = None) -> tuple[float, float]:
-    """ESS (Eq. 25) and the Shannon entropy of normalised weights; for more than ``block`` weights
-    (:mod:`dtpf.entity.cores`) summed per block on the process's threads, else as :func:`ess` and one pass."""
+def weight_state(weights: np.ndarray, limit: float, block: int | None = None) -> tuple[float, float, float, int]:
+    """(ESS of Eq. 25, Shannon entropy, largest weight, number of weights > ``limit``) of normalised weights;
+    for more than ``block`` weights (:mod:`dtpf.entity.cores`) in one pass of blocks on the process's threads,
+    the sums per block, else as :func:`ess` and one pass each."""
     if cores.blocks(weights.size, block) == 1:
-        return ess(weights), float(_entropy(weights))
+        return ess(weights), float(_entropy(weights)), float(weights.max()), int(np.count_nonzero(weights > limit))
     logs = np.empty(weights.size)
 
     def logarithms(start: int, end: int) -> None:  # numpy's log, element by element: any cut
@@ -138,8 +153,8 @@ def ess_entropy(weights: np.ndarray, block: int | None = None) -> tuple[float, f
 
     cores.in_parts(weights.size, logarithms)
     cores.use(weights.size)
-    square, entropy = _block_sums(weights, logs, int(block))
-    return 1.0 / square, float(entropy)
+    square, entropy, largest, above = _block_sums(weights, logs, int(block), float(limit))
+    return 1.0 / square, float(entropy), float(largest), int(above)
 
 
 def summarise(particles, weights, threshold_rule: str | float = "neff", parents: int | None = None, *,
@@ -151,12 +166,12 @@ def summarise(particles, weights, threshold_rule: str | float = "neff", parents:
     the entity knows in O(N). Without it, distinct states are counted by
     sorting, O(N log N); after a propagation with noise that is N.
     ``checked``: as in :func:`dtpf.information.rules.preprocess`. ``block``: B of the run
-    (:mod:`dtpf.entity.cores`); more weights than B are summed per block (:func:`ess_entropy`).
+    (:mod:`dtpf.entity.cores`); more weights than B are summed per block (:func:`weight_state`).
     """
     x, w = check_set(particles, weights, checked=checked)
     n = w.size
-    effective, entropy = ess_entropy(w, block)
     limit = threshold_of(w, threshold_rule)
+    effective, entropy, largest, above = weight_state(w, limit, block)
     if parents is not None:
         if not 1 <= int(parents) <= n:
             raise ValueError(f"parents must be in [1, {n}], got {parents!r}")
@@ -170,9 +185,9 @@ def summarise(particles, weights, threshold_rule: str | float = "neff", parents:
         ess_ratio=effective / n,
         entropy=entropy,
         entropy_ratio=entropy / np.log(n) if n > 1 else 1.0,
-        max_weight=float(w.max()),
+        max_weight=largest,
         threshold=limit,
-        n_above_threshold=int(np.count_nonzero(w > limit)),
+        n_above_threshold=above,
         distinct=int(distinct),
         **{name: float(q) for name, q in zip(QUANTILES, weight_quantiles)},
     )

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from dtpf.entity import _merge, cores, resampling, sources
-from dtpf.information import rules, select
+from dtpf.information import mirror, rules, select
 from dtpf.messages.config import BLOCK_PARTICLES, RunConfig, recorded_config
 from dtpf.messages.streams import block_stream, seed_sequence
 from dtpf.scripts.inprocess import build
@@ -152,3 +152,7 @@ def test_the_kernels_shared_among_threads_give_the_one_thread_numbers(threads):
             np.testing.assert_array_equal(a, b)
     a = rng.integers(0, N_BLOCKED, N_BLOCKED)
     np.testing.assert_array_equal(_merge.gather_parallel(x, a, np.empty_like(x)), x[a])
+    a.sort()
+    assert resampling.distinct(a) == _merge.distinct(a) == np.unique(a).size
+    summary = mirror.summarise(x, w, float(np.quantile(w, 0.7)), N_BLOCKED // 3, block=1000)
+    assert summary.max_weight == w.max() and summary.n_above_threshold == np.count_nonzero(w > summary.threshold)

@@ -18,7 +18,17 @@ import numpy as np
 from dtpf.entity import cores
 from dtpf.messages.streams import block_stream
 
-__all__ = ["normalise", "moments", "noise"]
+__all__ = ["normalise", "moments", "noise", "copy", "fill"]
+
+
+def copy(out: np.ndarray, values: np.ndarray) -> None:
+    """out[:] = values (1-D), in parts on the process's threads (a copy: the same for any cut)."""
+    cores.in_parts(out.shape[0], lambda start, end: np.copyto(out[start:end], values[start:end]))
+
+
+def fill(out: np.ndarray, value: float) -> None:
+    """out[:] = value (1-D), in parts on the process's threads."""
+    cores.in_parts(out.shape[0], lambda start, end: out[start:end].fill(value))
 
 
 @numba.njit(inline="always")

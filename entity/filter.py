@@ -588,7 +588,9 @@ class ParticleFilter:
             log_likelihood = self.calls.log_likelihood(self.particles, z, k, sensor=sensor)
         except Exception as exc:
             raise _model_failed(self.model, k, "log_likelihood", exc) from exc
-        if self._flat:  # 0 + l is l: no pass over zeros
+        if self._flat and self.blocked and np.shape(log_likelihood) == self.log_weights.shape:  # 0 + l is l
+            blocked.copy(self.log_weights, np.asarray(log_likelihood))
+        elif self._flat:  # 0 + l is l: no pass over zeros
             np.copyto(self.log_weights, log_likelihood)
         else:
             np.add(self.log_weights, log_likelihood, out=self.log_weights)
@@ -657,7 +659,10 @@ class ParticleFilter:
                 apply = self.move if move == self.jitter else jitters.get(move)
                 self.particles = apply(self.particles, target_particles, target_weights,
                                        stream(self.seed, self.twin, k, "jitter"))
-            self.log_weights.fill(0.0)
+            if self.blocked:
+                blocked.fill(self.log_weights, 0.0)
+            else:
+                self.log_weights.fill(0.0)
             self._log_total = float(np.log(self.n))
             self.parents = resampling.distinct(ancestors)
         return FilterStep(k, particles, weights, pending.ess, mean, var, mean - half, mean + half,

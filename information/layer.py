@@ -25,6 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from dtpf.entity import cores
 from dtpf.entity.calls import ModelCalls
 from dtpf.entity.models import StateSpaceModel
 from dtpf.information import rules
@@ -165,7 +166,7 @@ class InformationLayer:
         stream(self.seed, self.twin, 0, "information")  # the compiled SeedSequence (dtpf.messages._seedseq)
         size = rules.size_class(particles)
         key = (self.threshold_rule if isinstance(self.threshold_rule, str) else "a value", size,
-               self.block is not None and particles > self.block)
+               self.block is not None and particles > self.block, particles >= cores.PARALLEL_MIN)
         if key in _WARMED:
             return
         rng = np.random.default_rng(0)
@@ -178,6 +179,8 @@ class InformationLayer:
             rules.preprocess(x, w, self.ps, rng, threshold_rule=self.threshold_rule, weight_rule="inherit",
                              block=block)
             summarise(x, w, self.threshold_rule, size, block=block)
+        if particles >= cores.PARALLEL_MIN:  # the kernels that share a large set among the threads
+            rules.warm_up_threads(x, w)
         _WARMED.add(key)
 
     def set_ps(self, ps: float, applies_from_step: int, preprocess: bool = True, arm: str | None = None) -> None:

@@ -69,6 +69,7 @@ import numpy as np
 
 from dtpf.entity import cores
 from dtpf.information.report import PreprocessReport
+from dtpf.information import select
 from dtpf.information.select import RADIX_MIN, kth_largest
 from dtpf.messages.arrays import check_probability, check_set
 from dtpf.messages.family import THRESHOLDS
@@ -477,6 +478,14 @@ def _rules(particles, weights, limit, rank, capacity, ps, state):  # pragma: no 
     if rows.shape[0] == 0 or small.shape[0] == 0:
         return out, limit, rows.shape[0], 0, 0
     return out, limit, rows.shape[0], small.shape[0], _move(particles, small, rows, ps, state, out)
+
+
+def warm_up_threads(particles: np.ndarray, weights: np.ndarray) -> None:
+    """Compile (or load) the kernels a set of PARALLEL_MIN particles or more takes on the threads, on a small
+    set of the kinds given (read-only arrays compile apart), so that a layer's first such step does not."""
+    ranks = np.array([0, weights.size // 2, weights.size - 1])
+    select._order_statistics_parallel(np.ascontiguousarray(weights), ranks, 2)
+    _split_parallel(weights, float(np.median(weights)), particles, weights.size, 2)
 
 
 def draws(rng: np.random.Generator, n_small: int, n_large: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

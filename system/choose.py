@@ -48,8 +48,8 @@ them with one ``propagate`` call, every copy with the same noise (a model's
 ``propagation_noise``, which ``propagate`` takes instead of drawing; a model without it
 gets one call per copy from the same generator state). The model is vectorised over
 particles, so each copy's numbers are those one call per copy gave (tests/test_choose_cost.py
-holds runs recorded with one call per copy): the decisions, and any log a chooser recorded,
-do not change. The arms' moves stay one call each (the information layer's rules, the
+holds them to the per-arm calls): the decisions, and any log a chooser recorded, do not
+change. The arms' moves stay one call each (the information layer's rules, the
 entity's jitters), the same code the layers run when the arm is in force.
 """
 from __future__ import annotations

@@ -50,11 +50,11 @@ def _propagate(particles, noise, scale, growth, drift):  # pragma: no cover - co
 @numba.njit(cache=True, nogil=True, parallel=True)
 def _propagate_parallel(particles, noise, scale, growth, drift, chunk):  # pragma: no cover - compiled
     # _propagate on the threads, chunk by chunk: each element's operations are the same, so are the numbers.
+    # (Each chunk a call on slices: a loop written inline in a parallel loop ran 2x slower a thread.)
     n = particles.shape[0]
     for b in numba.prange((n + chunk - 1) // chunk):
-        for i in range(b * chunk, min(n, (b + 1) * chunk)):
-            for c in range(particles.shape[1]):
-                noise[i, c] = noise[i, c] * scale + _mean(particles[i, c], growth, drift)
+        start, end = b * chunk, min(n, (b + 1) * chunk)
+        _propagate(particles[start:end], noise[start:end], scale, growth, drift)
     return noise
 
 
@@ -91,13 +91,20 @@ def _log_likelihood(particles, z, variance, constant):  # pragma: no cover - com
     return out
 
 
+@numba.njit(cache=True, nogil=True)
+def _log_likelihood_into(particles, z, variance, constant, out):  # pragma: no cover - compiled
+    for i in range(particles.shape[0]):
+        out[i] = _log_density(particles[i, 0], z, variance, constant)
+
+
 @numba.njit(cache=True, nogil=True, parallel=True)
 def _log_likelihood_parallel(particles, z, variance, constant, chunk):  # pragma: no cover - compiled
+    # Each chunk a call on slices (a loop written inline in a parallel loop ran 2x slower a thread).
     n = particles.shape[0]
     out = np.empty(n)
     for b in numba.prange((n + chunk - 1) // chunk):
-        for i in range(b * chunk, min(n, (b + 1) * chunk)):
-            out[i] = _log_density(particles[i, 0], z, variance, constant)
+        start, end = b * chunk, min(n, (b + 1) * chunk)
+        _log_likelihood_into(particles[start:end], z, variance, constant, out[start:end])
     return out
 
 

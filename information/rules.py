@@ -461,7 +461,9 @@ def move_blocks(particles, small, rows, ps, state, out, block):
     ``state`` itself, as one block would). Returns the number on the mixed branch."""
     n = particles.shape[0]
     count = cores.blocks(n, block)
-    starts = np.searchsorted(small, np.arange(count + 1, dtype=np.int64) * block).astype(np.int64)
+    # The first particle of each block in small's own dtype: searchsorted would cast all of small otherwise.
+    edges = np.minimum(np.arange(count + 1, dtype=np.int64) * block, n).astype(small.dtype)
+    starts = np.searchsorted(small, edges).astype(np.int64)
     starts[-1] = small.shape[0]
     cores.use(n)
     return _move_blocks(particles, small, rows, ps, _jumped(state, count), starts, out)
@@ -484,7 +486,8 @@ def warm_up_threads(particles: np.ndarray, weights: np.ndarray) -> None:
     """Compile (or load) the kernels a set of PARALLEL_MIN particles or more takes on the threads, on a small
     set of the kinds given (read-only arrays compile apart), so that a layer's first such step does not."""
     ranks = np.array([0, weights.size // 2, weights.size - 1])
-    select._order_statistics_parallel(np.ascontiguousarray(weights), ranks, 2)
+    for few in (select.FEW_MEMBERS, -1):  # one level of buckets, and two
+        select._order_statistics_parallel(np.ascontiguousarray(weights), ranks, 2, few)
     _split_parallel(weights, float(np.median(weights)), particles, weights.size, 2)
 
 

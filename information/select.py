@@ -29,21 +29,25 @@ def _part(n, parts, p):  # pragma: no cover - compiled
     return n * p // parts, n * (p + 1) // parts
 
 
+# The parallel passes call a compiled function on each part's slices: a loop written inline in a parallel
+# loop ran 1.6-2x slower a thread.
+
+@numba.njit(cache=True, nogil=True)
+def _histogram_into(bits, counts):  # pragma: no cover - compiled
+    for b in range(counts.shape[0]):
+        counts[b] = 0
+    for i in range(bits.shape[0]):
+        counts[bits[i] >> 48] += 1
+
+
 @numba.njit(cache=True, nogil=True, parallel=True)
 def _counts_parallel(bits, parts):  # pragma: no cover - compiled
-    # The histogram of the top 16 bits, each part's on its thread, then summed (integers: exact).
-    # No np.zeros here: in a parallel function it is a parallel loop, which threads taking one iteration at
-    # a time (dtpf.entity.cores) would run element by element.
-    shift = 48
+    # The histograms of the top 16 bits, one a part, each on a thread: (parts, 2**15).
     partial = np.empty((parts, 1 << 15), dtype=np.int64)
     for p in numba.prange(parts):
-        for b in range(1 << 15):
-            partial[p, b] = 0
         start, end = _part(bits.shape[0], parts, p)
-        for i in range(start, end):
-            partial[p, bits[i] >> shift] += 1
-    counts = _sum_rows(partial)
-    return counts
+        _histogram_into(bits[start:end], partial[p])
+    return partial
 
 
 @numba.njit(cache=True, nogil=True)
@@ -55,29 +59,23 @@ def _sum_rows(partial):  # pragma: no cover - compiled
     return counts
 
 
+@numba.njit(cache=True, nogil=True)
+def _collect_into(values, bits, needed, members):  # pragma: no cover - compiled
+    j = 0
+    for i in range(bits.shape[0]):
+        if needed[bits[i] >> 48]:
+            members[j] = values[i]
+            j += 1
+
+
 @numba.njit(cache=True, nogil=True, parallel=True)
-def _collect_parallel(values, bits, needed, size, parts):  # pragma: no cover - compiled
-    # The values whose bucket is needed, in index order: each part counts its own, then writes them
-    # from the sum of the counts before it.
-    shift = 48
-    found = np.empty(parts + 1, dtype=np.int64)
-    found[0] = 0
+def _collect_parallel(values, bits, needed, found, parts):  # pragma: no cover - compiled
+    # The values whose bucket is needed, in index order: part p's from found[p] (the needed members of the
+    # parts before it, from their histograms).
+    members = np.empty(found[parts])
     for p in numba.prange(parts):
         start, end = _part(bits.shape[0], parts, p)
-        count = 0
-        for i in range(start, end):
-            count += needed[bits[i] >> shift]
-        found[p + 1] = count
-    for p in range(parts):
-        found[p + 1] += found[p]
-    members = np.empty(size)
-    for p in numba.prange(parts):
-        start, end = _part(bits.shape[0], parts, p)
-        j = found[p]
-        for i in range(start, end):
-            if needed[bits[i] >> shift]:
-                members[j] = values[i]
-                j += 1
+        _collect_into(values[start:end], bits[start:end], needed, members[found[p]:found[p + 1]])
     return members
 
 
@@ -149,52 +147,85 @@ def _order_statistics(values, ranks):  # pragma: no cover - compiled
 SUB_BITS = 12
 
 
+@numba.njit(inline="always")
+def _sub_key(bit, slot):  # pragma: no cover - compiled
+    # (slot of the top 16 bits' bucket, next SUB_BITS bits), or -1 outside the needed buckets.
+    u = slot[bit >> 48]
+    if u < 0:
+        return -1
+    return (u << SUB_BITS) + ((bit >> (48 - SUB_BITS)) & ((1 << SUB_BITS) - 1))
+
+
+@numba.njit(cache=True, nogil=True)
+def _sub_histogram_into(bits, slot, counts):  # pragma: no cover - compiled
+    for b in range(counts.shape[0]):
+        counts[b] = 0
+    for i in range(bits.shape[0]):
+        key = _sub_key(bits[i], slot)
+        if key >= 0:
+            counts[key] += 1
+
+
 @numba.njit(cache=True, nogil=True, parallel=True)
 def _sub_counts_parallel(bits, slot, width, parts):  # pragma: no cover - compiled
     # The histograms, one a part, of (slot of the top 16 bits' bucket, next SUB_BITS bits) over the values
     # of the needed buckets (slot >= 0): (parts, width).
     partial = np.empty((parts, width), dtype=np.int64)
     for p in numba.prange(parts):
-        for b in range(width):
-            partial[p, b] = 0
         start, end = _part(bits.shape[0], parts, p)
-        for i in range(start, end):
-            u = slot[bits[i] >> 48]
-            if u >= 0:
-                partial[p, (u << SUB_BITS) + ((bits[i] >> (48 - SUB_BITS)) & ((1 << SUB_BITS) - 1))] += 1
+        _sub_histogram_into(bits[start:end], slot, partial[p])
     return partial
+
+
+@numba.njit(cache=True, nogil=True)
+def _collect_sub_into(values, bits, slot, needed, members):  # pragma: no cover - compiled
+    j = 0
+    for i in range(bits.shape[0]):
+        key = _sub_key(bits[i], slot)
+        if key >= 0 and needed[key]:
+            members[j] = values[i]
+            j += 1
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
 def _collect_sub_parallel(values, bits, slot, needed, found, parts):  # pragma: no cover - compiled
-    # The values whose (slot, next SUB_BITS bits) is needed, in index order: part p's from found[p] (the
-    # needed members of the parts before it, from their histograms).
+    # The values whose (slot, next SUB_BITS bits) is needed, in index order: part p's from found[p].
     members = np.empty(found[parts])
     for p in numba.prange(parts):
         start, end = _part(bits.shape[0], parts, p)
-        j = found[p]
-        for i in range(start, end):
-            u = slot[bits[i] >> 48]
-            if u >= 0 and needed[(u << SUB_BITS) + ((bits[i] >> (48 - SUB_BITS)) & ((1 << SUB_BITS) - 1))]:
-                members[j] = values[i]
-                j += 1
+        _collect_sub_into(values[start:end], bits[start:end], slot, needed, members[found[p]:found[p + 1]])
     return members
 
 
-def _order_statistics_parallel(values, ranks, parts):
-    """_order_statistics on the threads, each of ``parts`` parts counted and collected on one, in two levels:
-    the buckets of the top 16 bits that hold a rank, then inside them the buckets of the next SUB_BITS bits,
-    whose few members are selected among. Order statistics are values: the same numbers."""
+#: Members of the needed buckets that the parallel select selects among on one thread; more go through a
+#: second level of buckets (np.partition of 160,000 members took 2 ms, a pass on 2 threads 0.4 ms).
+FEW_MEMBERS = 1 << 14
+
+
+def _found(partial, needed) -> np.ndarray:
+    """Where each part's members begin: the needed buckets' counts of the parts before it, (parts + 1,)."""
+    found = np.zeros(partial.shape[0] + 1, dtype=np.int64)
+    np.cumsum(partial[:, needed].sum(axis=1), out=found[1:])
+    return found
+
+
+def _order_statistics_parallel(values, ranks, parts, few: int = FEW_MEMBERS):
+    """_order_statistics on the threads, each of ``parts`` parts counted and collected on one: the buckets of
+    the top 16 bits that hold a rank, and when they hold more than FEW_MEMBERS values, inside them the buckets
+    of the next SUB_BITS bits (``few``: FEW_MEMBERS); the few members left are selected among. Order statistics
+    are values: the same numbers."""
     bits = values.view(np.int64)
-    needed, _, local = _plan(_counts_parallel(bits, parts), ranks)
+    partial = _counts_parallel(bits, parts)
+    needed, size, local = _plan(_sum_rows(partial), ranks)
+    if size <= few:
+        return _pick(_collect_parallel(values, bits, needed, _found(partial, needed), parts), local)
     slot = np.full(needed.size, -1, dtype=np.int64)
     buckets = np.flatnonzero(needed)
     slot[buckets] = np.arange(buckets.size)  # ascending buckets, ascending slots: the values' order
     partial = _sub_counts_parallel(bits, slot, buckets.size << SUB_BITS, parts)
     sub_needed, _, sub_local = _plan(_sum_rows(partial), local)
-    found = np.zeros(parts + 1, dtype=np.int64)
-    np.cumsum(partial[:, sub_needed].sum(axis=1), out=found[1:])
-    return _pick(_collect_sub_parallel(values, bits, slot, sub_needed, found, parts), sub_local)
+    return _pick(_collect_sub_parallel(values, bits, slot, sub_needed, _found(partial, sub_needed), parts),
+                 sub_local)
 
 
 def order_statistics(values: np.ndarray, ranks) -> np.ndarray:

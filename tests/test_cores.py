@@ -140,11 +140,13 @@ def test_the_kernels_shared_among_threads_give_the_one_thread_numbers(threads):
     w /= w.sum()
     x = rng.standard_normal((N_BLOCKED, 1))
     ranks = np.array([10, N_BLOCKED // 2, N_BLOCKED - 3])
-    np.testing.assert_array_equal(select._order_statistics_parallel(w, ranks, 5), select._order_statistics(w, ranks))
-    for values in (np.full(N_BLOCKED, 1.0 / N_BLOCKED), np.round(rng.random(N_BLOCKED) * 10) / 10,
-                   rng.exponential(size=N_BLOCKED)):  # ties, one bucket, many buckets
-        np.testing.assert_array_equal(select._order_statistics_parallel(values, ranks, 3),
-                                      np.sort(values)[ranks])
+    for few in (select.FEW_MEMBERS, -1):  # one level of buckets, and two
+        np.testing.assert_array_equal(select._order_statistics_parallel(w, ranks, 5, few),
+                                      select._order_statistics(w, ranks))
+        for values in (np.full(N_BLOCKED, 1.0 / N_BLOCKED), np.round(rng.random(N_BLOCKED) * 10) / 10,
+                       rng.exponential(size=N_BLOCKED)):  # ties, one bucket, many buckets
+            np.testing.assert_array_equal(select._order_statistics_parallel(values, ranks, 3, few),
+                                          np.sort(values)[ranks])
     threads(2)
     limit = float(np.quantile(w, 0.6))
     for parts in (2, 7):

@@ -1,7 +1,7 @@
 """The kernels and the in-process step on one thread and on every core (:mod:`dtpf.entity.cores`).
 
 Part 1, kernels, at each N, on the blocks of a new run (B = ``BLOCK_PARTICLES``), in this process with
-``cores.set_threads(t)``: the radix select (W of Eq. 28 and the mirror's quantiles), the mirror's summary
+``cores.set_threads(t)`` and glibc keeping large blocks (as the layers' processes do): the radix select (W of Eq. 28 and the mirror's quantiles), the mirror's summary
 (ESS, entropy, quantiles), DT preprocessing (Eq. 28-30), the propagation of the growth model (its noise block
 by block, Eq. 35), its likelihood (Eq. 36), the normalisation with the ESS (Eq. 23, 25), the moments,
 systematic resampling and the gather. A cell is the time per call (calls repeated to at least 3 ms a sample).
@@ -148,6 +148,9 @@ def main(argv=None) -> int:
         args.sizes, args.kernel_sizes, args.repeats = [1e5], [1e5], 2
     from dtpf.entity import cores
     from dtpf.messages.config import BLOCK_PARTICLES
+    from dtpf.shell.service import keep_large_blocks
+
+    keep_large_blocks()  # as a layer's process: freed arrays stay on the heap, no page faults on reuse
 
     most = cores.available()
     counts = sorted({1, most})

@@ -12,6 +12,9 @@ Modes, interleaved in random order in every repetition, at each N (the default s
 (f)  floor, by reference        the same hops with stand-ins that do no work
                                 (``dtpf.scripts.bench.fleet_floor``, one twin), sets by reference
 (f0) floor, as bytes            the same, sets as bytes
+(w)  the disk                   what the recorder writes each step (the two sets), written to a file in the
+                                logs' folder as the recorder does (buffered writes, no fsync), ms per step:
+                                the floor under (b) that no transport removes
 
 Targets (printed with PASS/FAIL; they decide no exit code): at N = 1e6 and 1e5, (f)/(a1) <= 0.1,
 (a)/(a1) <= 0.6 and (b)/(a1) <= 1.0; at N = 1e6, (b) at least 10 steps per second; at N = 1e3, (b) no
@@ -43,10 +46,10 @@ from dtpf.scripts.bench.pipeline import (FIRST_TIMED, default_steps, fmt_ms, fmt
                                          run_inprocess, run_launched)
 from dtpf.shell.service import keep_large_blocks
 
-MODES = ("a1", "a", "b", "b0", "c", "f", "f0")
+MODES = ("a1", "a", "b", "b0", "c", "f", "f0", "w")
 NAMES = {"a1": "(a1) in-process, 1 thread", "a": "(a) in-process, every core", "b": "(b) launch",
          "b0": "(b0) launch, before", "c": "(c) launch, no recorder", "f": "(f) floor, by reference",
-         "f0": "(f0) floor, as bytes"}
+         "f0": "(f0) floor, as bytes", "w": "(w) the disk"}
 #: Targets: (f)/(a1), (a)/(a1), (b)/(a1) at these N; (b) steps per second at 1e6; (b)/(b0) at 1e3.
 TARGET_SIZES = (100_000, 1_000_000)
 FLOOR_SHARE, CORES_SHARE, LAUNCH_SHARE = 0.1, 0.6, 1.0
@@ -69,6 +72,24 @@ def sets_as_bytes(enabled: bool):
             os.environ["DTPF_SHARED_SETS"] = before
 
 
+def write_floor(config: RunConfig, plan: dict[str, int], folder: Path) -> float:
+    """Seconds per step of writing a step's two particle sets (their sizes in ``plan``, else 16 bytes a
+    particle) to a new file in ``folder`` through a buffered file, over the timed window; the file is removed."""
+    size = sum(plan.get(topic, 16 * config.particles) for topic in ("entity/particles", "information/preprocessed"))
+    data = np.random.default_rng(0).bytes(size // 2)
+    path = folder / f"disk-{time.monotonic_ns()}.bin"
+    ends = []
+    try:
+        with open(path, "wb") as file:
+            for _ in range(config.steps):
+                file.write(data)
+                file.write(data)
+                ends.append(time.perf_counter())
+    finally:
+        path.unlink(missing_ok=True)
+    return (ends[-1] - ends[FIRST_TIMED - 1]) / (len(ends) - FIRST_TIMED)
+
+
 def run_mode(mode: str, config: RunConfig, plan: dict[str, int], folder: Path, timeout: float) -> float:
     """Seconds per step of ``mode`` over the timed window."""
     if mode in ("a1", "a"):
@@ -77,6 +98,8 @@ def run_mode(mode: str, config: RunConfig, plan: dict[str, int], folder: Path, t
             return run_inprocess(config)
         finally:
             cores.set_threads(None)
+    if mode == "w":
+        return write_floor(config, plan, folder)
     if mode in ("f", "f0"):
         with sets_as_bytes(mode == "f0"):
             return run_floor(config, plan)
@@ -113,7 +136,7 @@ def main(argv=None) -> int:
         for n, config in configs.items():
             print(f"warm-up and the floor's messages at N={n}", file=sys.stderr)
             run_inprocess(config.model_copy(update={"steps": FIRST_TIMED + 2}))
-            if {"f", "f0"} & set(args.modes):
+            if {"f", "f0", "w"} & set(args.modes):
                 plans[n] = fleet_floor.plan_of_launch(config, folder, steps=FIRST_TIMED + 2)
         for repeat in range(args.repeats):
             for n, config in configs.items():
@@ -139,7 +162,8 @@ def main(argv=None) -> int:
         ratios = [y / x for x, y in zip(times[n, bottom], times[n, top])]
         return statistics.median(ratios), min(ratios), max(ratios)
 
-    pairs = [("f", "a1"), ("f0", "a1"), ("a", "a1"), ("b", "a1"), ("b0", "a1"), ("b", "b0"), ("c", "a1")]
+    pairs = [("f", "a1"), ("f0", "a1"), ("a", "a1"), ("b", "a1"), ("b0", "a1"), ("b", "b0"), ("c", "a1"),
+             ("w", "a1")]
     shown = [(top, bottom) for top, bottom in pairs if top in args.modes and bottom in args.modes]
     print("\n| N | " + " | ".join(f"({t})/({b})" for t, b in shown) + " |")
     print("|---" * (1 + len(shown)) + "|")

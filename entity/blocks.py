@@ -205,19 +205,32 @@ def noise(model, n: int, k: int, rng: np.random.Generator, block: int, key: tupl
     (seed, twin)); the blocks drawn on the process's threads (a compiled model's draws release the GIL).
     None when the model draws no noise apart (``propagation_noise`` gives None): it then propagates on the
     step's stream alone."""
-    first = model.propagation_noise(min(n, block), k, rng)
-    if first is None:
-        return None
-    first = np.asarray(first, dtype=np.float64)
     count = cores.blocks(n, block)
-    out = np.empty((n,) + first.shape[1:])
-    out[:first.shape[0]] = first
+    dim = getattr(model, "dim", None)
+    out = np.empty((n, dim)) if isinstance(dim, int) else None
+    #: Per block: True (written into out), False (the model draws no noise apart), or its array (another shape).
+    results: list = [None] * count
     seed, twin = key
 
     def draw(b: int) -> None:
         start, end = b * block, min(n, (b + 1) * block)
-        out[start:end] = model.propagation_noise(end - start, k, block_stream(seed, twin, k, "entity", b))
+        values = model.propagation_noise(end - start, k, rng if b == 0 else block_stream(seed, twin, k, "entity", b))
+        if values is None:
+            results[b] = False
+            return
+        values = np.asarray(values, dtype=np.float64)
+        if out is not None and values.shape == (end - start, dim):
+            out[start:end] = values
+            results[b] = True
+        else:
+            results[b] = values
 
-    cores.in_parts(count - 1, lambda start, end: [draw(b) for b in range(1 + start, 1 + end)],
+    # Block 0 on the calling thread with the first blocks: the step's stream is drawn from nowhere else.
+    cores.in_parts(count, lambda first, last: [draw(b) for b in range(first, last)],
                    None if n >= cores.PARALLEL_MIN else 1)
-    return out
+    if any(result is False for result in results):
+        return None
+    if all(result is True for result in results):
+        return out
+    return np.concatenate([out[b * block:min(n, (b + 1) * block)] if result is True else result
+                           for b, result in enumerate(results)])

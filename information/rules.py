@@ -172,43 +172,44 @@ def _split(weights, limit, particles, capacity):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, nogil=True)
-def _count_large(weights, limit, start, end):  # pragma: no cover - compiled
+def _count_large(weights, limit):  # pragma: no cover - compiled
     count = 0
-    for i in range(start, end):
+    for i in range(weights.shape[0]):
         count += weights[i] > limit
     return count
 
 
 @numba.njit(cache=True, nogil=True)
-def _split_part(weights, limit, particles, start, end, k, rows_end, small, rows, out):  # pragma: no cover
-    # _split's branch-free stores for particles [start, end), whose large rows go from k and small indices
-    # from start - k. A store for the wrong kind is overwritten by the next particle of the right kind;
-    # past the part's last large (last small) particle it would land in the next part's slots, another
-    # thread's, so from there on the stores are checked.
-    d = particles.shape[1]
-    small_end = end - rows_end
-    last_large = end - 1
-    while last_large >= start and not weights[last_large] > limit:
+def _split_part(weights, limit, particles, small, rows, out):  # pragma: no cover - compiled
+    # _split's branch-free stores for one part's particles (slices: ``small`` and ``rows`` its own slots). A
+    # store for the wrong kind is overwritten by the next particle of the right kind; past the part's last
+    # large (last small) particle it would land past its slots, so from there on the stores are checked.
+    n, d = particles.shape
+    rows_end = rows.shape[0]
+    small_end = small.shape[0]
+    last_large = n - 1
+    while last_large >= 0 and not weights[last_large] > limit:
         last_large -= 1
-    last_small = end - 1
-    while last_small >= start and weights[last_small] > limit:
+    last_small = n - 1
+    while last_small >= 0 and weights[last_small] > limit:
         last_small -= 1
-    safe = max(start, min(last_large, last_small) + 1)
+    safe = max(0, min(last_large, last_small) + 1)
+    k = 0
     if d == 1:
-        for i in range(start, safe):
+        for i in range(safe):
             value = particles[i, 0]
             out[_U(i), 0] = value
             rows[_U(k), 0] = value
             small[_U(i - k)] = i
             k += weights[i] > limit
     else:
-        for i in range(start, safe):
+        for i in range(safe):
             for c in range(d):
                 out[i, c] = particles[i, c]
                 rows[k, c] = particles[i, c]
             small[i - k] = i
             k += weights[i] > limit
-    for i in range(safe, end):
+    for i in range(safe, n):
         for c in range(d):
             out[i, c] = particles[i, c]
             if k < rows_end:
@@ -221,13 +222,14 @@ def _split_part(weights, limit, particles, start, end, k, rows_end, small, rows,
 @numba.njit(cache=True, nogil=True, parallel=True)
 def _split_parallel(weights, limit, particles, capacity, parts):  # pragma: no cover - compiled
     # _split's arrays on ``parts`` threads, each a contiguous part of the particles: a part counts its
-    # large particles, then writes its rows and small indices after those of the parts before it. The
-    # arrays are _split's, element for element.
+    # large particles, then writes its rows and small indices after those of the parts before it (each part
+    # a call on its slices: a loop written inline in a parallel loop ran 2x slower a thread). The arrays are
+    # _split's, element for element (a part's small indices are local, then shifted by its start).
     n, d = particles.shape
     large_before = np.empty(parts + 1, dtype=np.int64)  # not np.zeros: a parallel loop here (dtpf.entity.cores)
     large_before[0] = 0
     for p in numba.prange(parts):
-        large_before[p + 1] = _count_large(weights, limit, n * p // parts, n * (p + 1) // parts)
+        large_before[p + 1] = _count_large(weights[n * p // parts:n * (p + 1) // parts], limit)
     for p in range(parts):
         large_before[p + 1] += large_before[p]
     n_large = large_before[parts]
@@ -235,16 +237,19 @@ def _split_parallel(weights, limit, particles, capacity, parts):  # pragma: no c
     rows = np.empty((n_large, d))
     out = np.empty((n, d))
     for p in numba.prange(parts):
-        _split_part(weights, limit, particles, n * p // parts, n * (p + 1) // parts, large_before[p],
-                    large_before[p + 1], small, rows, out)
+        start, end = n * p // parts, n * (p + 1) // parts
+        first, last = start - large_before[p], end - large_before[p + 1]
+        _split_part(weights[start:end], limit, particles[start:end], small[first:last],
+                    rows[large_before[p]:large_before[p + 1]], out[start:end])
+        for j in range(first, last):
+            small[j] += start
     return small, rows, out
 
 
 def split(weights, limit, particles, capacity):
     """Eq. 28: (indices of the small particles, rows of the large ones in index order, a copy of the
-    particles); on the process's threads from PARALLEL_MIN particles and 3 threads on (the same arrays)."""
-    if cores.parallel(weights.shape[0]) and cores.threads() > 2:
-        # Its count of each part's large particles is a pass of its own: on 2 threads no faster than _split.
+    particles); on the process's threads from PARALLEL_MIN particles on (the same arrays)."""
+    if cores.parallel(weights.shape[0]):
         return _split_parallel(weights, limit, particles, capacity, cores.parts(weights.shape[0]))
     return _split(weights, limit, particles, capacity)
 

@@ -18,12 +18,25 @@ import numpy as np
 from dtpf.entity import cores
 from dtpf.messages.streams import block_stream
 
-__all__ = ["normalise", "moments", "noise", "copy", "fill"]
+__all__ = ["normalise", "moments", "noise", "copy", "fill", "largest"]
 
 
 def copy(out: np.ndarray, values: np.ndarray) -> None:
     """out[:] = values (1-D), in parts on the process's threads (a copy: the same for any cut)."""
     cores.in_parts(out.shape[0], lambda start, end: np.copyto(out[start:end], values[start:end]))
+
+
+def largest(values: np.ndarray) -> float:
+    """max(values) (1-D; NaN if any is NaN), each part's on a thread (a maximum: the same for any cut)."""
+    n = values.size
+    count = max(1, min(cores.threads(), n)) if n >= cores.PARALLEL_MIN else 1
+    tops = np.empty(count)
+
+    def top(p: int) -> None:
+        tops[p] = np.max(values[n * p // count:n * (p + 1) // count])
+
+    cores.in_parts(count, lambda first, last: [top(p) for p in range(first, last)], count)
+    return float(np.max(tops))
 
 
 def fill(out: np.ndarray, value: float) -> None:

@@ -196,9 +196,9 @@ def _normalise(log_weights: np.ndarray) -> tuple[np.ndarray, float, float]:
     return weights, top + float(np.log(total)), top
 
 
-def _top_of(log_weights: np.ndarray) -> float:
-    """The largest log-weight; FilterError when it is NaN or infinite (no particle explains z_k)."""
-    top = float(np.max(log_weights))
+def _top_of(log_weights: np.ndarray, largest=np.max) -> float:
+    """The largest log-weight (by ``largest``); FilterError when it is NaN or infinite (no particle explains z_k)."""
+    top = float(largest(log_weights))
     if not np.isfinite(top):
         if np.isnan(top):
             raise FilterError("a log-weight is NaN (the model's log_likelihood gave NaN): no particle explains "
@@ -597,7 +597,7 @@ class ParticleFilter:
         try:
             if self.blocked:
                 weights, log_total, top, ess = blocked.normalise(self.log_weights, self.block,
-                                                                 _top_of(self.log_weights))
+                                                                 _top_of(self.log_weights, blocked.largest))
             else:
                 weights, log_total, top = _normalise(self.log_weights)
                 ess = 1.0 / float(np.dot(weights, weights))

@@ -4,7 +4,9 @@ Part 1, kernels, at each N, on the blocks of a new run (B = ``BLOCK_PARTICLES``)
 ``cores.set_threads(t)`` and glibc keeping large blocks (as the layers' processes do): the radix select (W of Eq. 28 and the mirror's quantiles), the mirror's summary
 (ESS, entropy, quantiles), DT preprocessing (Eq. 28-30), the propagation of the growth model (its noise block
 by block, Eq. 35), its likelihood (Eq. 36), the normalisation with the ESS (Eq. 23, 25), the moments,
-systematic resampling and the gather. A cell is the time per call (calls repeated to at least 3 ms a sample).
+systematic resampling and the gather. A cell is the time per call, calls repeated to at least 50 ms a sample:
+in samples of 10 ms the second thread of this 2-vCPU VM added nothing to most kernels (after it slept, it
+takes milliseconds to run at speed), in 50 ms samples it does.
 
 Part 2, the in-process step (``dtpf.scripts.inprocess.build``, scenario ``ungm``, preprocessing on, seed 0),
 each run in a fresh child process with the layers' settings (one BLAS thread, glibc keeping large blocks)
@@ -12,8 +14,8 @@ after a warm-up run: the time per step from step 10 to the last. ``--before PATH
 a checkout from before blocks (a ``git worktree``; its children run with ``PYTHONPATH=PATH`` and numba on
 one thread), so that N = 1e3 shows what the change costs where it does not apply.
 
-Method: the cells run interleaved, in a new random order in every repetition; cells are medians over
-repetitions, and a ratio is the median of per-repetition ratios (2 threads / 1 thread of the same
+Method: the cells run interleaved, in a new random order in every repetition (part 1: the thread counts in a
+random order, the kernels in a random order under each); cells are medians over repetitions, and a ratio is the median of per-repetition ratios (2 threads / 1 thread of the same
 repetition). Run from the repository root::
 
     python -m dtpf.scripts.bench.cores                          # N = 1e3, 1e5, 1e6
@@ -120,7 +122,7 @@ def kernels(n: int, block: int):
     ]
 
 
-def time_call(call, least: float = 3e-3) -> float:
+def time_call(call, least: float = 50e-3) -> float:
     """Seconds per call, calls repeated until one sample lasts ``least``."""
     calls, start = 0, time.perf_counter()
     while True:
@@ -169,11 +171,12 @@ def main(argv=None) -> int:
                 call()
         times = {(name, t): [] for name, _ in calls for t in counts}
         for _ in range(args.repeats):
-            cells = [(name, call, t) for name, call in calls for t in counts]
-            random.shuffle(cells)
-            for name, call, t in cells:
+            # The thread counts in a new order each repetition, the kernels in a new order under each: numba's
+            # thread count is switched once a phase (its first parallel loop after a switch is slow).
+            for t in random.sample(counts, len(counts)):
                 cores.set_threads(t)
-                times[name, t].append(1e3 * time_call(call))
+                for name, call in random.sample(calls, len(calls)):
+                    times[name, t].append(1e3 * time_call(call))
         for name, _ in calls:
             rows.append((name, n, times, counts))
     cores.set_threads(None)

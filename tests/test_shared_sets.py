@@ -13,6 +13,7 @@ import signal
 import subprocess
 import sys
 import threading
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -193,8 +194,10 @@ def test_an_inbox_survives_references_it_cannot_read_and_takes_the_sets_that_fol
 
 def test_a_launch_whose_sets_go_by_reference_gives_the_numbers_of_one_whose_sets_go_as_bytes(tmp_path):
     args = ("launch", "-q", "-n", "20000", "-T", "12", "--seed", "5")
-    by_reference = dtpf(*args, "-o", "shared.mcap", cwd=tmp_path)
-    as_bytes = dtpf(*args, "-o", "bytes.mcap", cwd=tmp_path, env={"DTPF_SHARED_SETS": "0"})
+    with ThreadPoolExecutor(2) as pool:  # side by side, each on a free port of its own
+        shared_run = pool.submit(dtpf, *args, "-o", "shared.mcap", cwd=tmp_path)
+        bytes_run = pool.submit(dtpf, *args, "-o", "bytes.mcap", cwd=tmp_path, env={"DTPF_SHARED_SETS": "0"})
+        by_reference, as_bytes = shared_run.result(), bytes_run.result()
     assert by_reference.returncode == 0, by_reference.stderr[-3000:]
     assert as_bytes.returncode == 0, as_bytes.stderr[-3000:]
     shared, plain = read_log(tmp_path / "shared.mcap"), read_log(tmp_path / "bytes.mcap")

@@ -63,6 +63,7 @@ __all__ = [
     "publisher_cache",
     "set_publisher_cache",
     "free_port",
+    "flush",
 ]
 
 MODES = ("peer", "client", "router")
@@ -296,6 +297,25 @@ def publisher(session: zenoh.Session, key: str, cache_samples: int = 0):
         sample_miss_detection=zenoh.ext.MissDetectionConfig(heartbeat=None,
                                                             sporadic_heartbeat=publisher_cache().heartbeat),
         publisher_detection=True)
+
+
+#: Seconds :func:`flush` waits, at most, for the router's answer.
+FLUSH_TIMEOUT = 1.0
+
+
+def flush(session: zenoh.Session, key: str, timeout: float = FLUSH_TIMEOUT) -> bool:
+    """Wait until what this session has put has reached its router: a query on ``key`` (which no queryable
+    answers) travels behind the puts on the same link and priority, and the router answers it once it has
+    taken them. A process that closes its session at once after its last put could otherwise lose the puts
+    still queued (seen under load: a sensor's last three observations). ``key`` must be one the session may
+    query (a twin's ``.../@adv/...`` key under access control). False if no answer came within ``timeout``."""
+    try:
+        replies = session.get(key, timeout=timeout)
+        for _ in replies:
+            pass
+        return True
+    except zenoh.ZError:
+        return False
 
 
 @dataclass(frozen=True)

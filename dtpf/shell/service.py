@@ -36,7 +36,7 @@ from dtpf.messages.config import RunConfig
 from dtpf.messages.errors import DtpfError
 from dtpf.messages.models import Component, Layer, Message, NamedCount, ParticleSet, ServiceState, Status
 from dtpf.shell.shared_sets import MIN_SHARED_BYTES, SetPublisher, shared_sets
-from dtpf.shell.bus import (DEFAULT_MAX_ITEMS, BusError, Inbox, Presence, PublisherCache, Received, claims_alive,
+from dtpf.shell.bus import (DEFAULT_MAX_ITEMS, BusError, Inbox, Presence, PublisherCache, Received, claims_alive, flush,
                             open_session, publisher, publisher_cache, set_publisher_cache)
 
 __all__ = ["ServiceShell", "TwinTaken", "refuse_taken_twins", "add_service_arguments", "run_service"]
@@ -340,6 +340,8 @@ class ServiceShell:
         self.watchdog.step = "letting readers on this host take the last sets"
         for sets in self._set_publishers.values():
             sets.undeclare(drain=SET_DRAIN)
+        self.watchdog.step = "flushing what this process published"
+        flush(self.session, f"{keys.PREFIX}/{self.config.twin}/{self.layer}/@adv/flush")
         self.watchdog.step = "closing the liveliness token"
         self.presence.close()
         self.watchdog.step = "closing the Zenoh session"

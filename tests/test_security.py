@@ -9,6 +9,7 @@ them, and the run's numbers are those of the in-process run, number for number.
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import stat
 import threading
@@ -365,21 +366,35 @@ def test_a_message_on_a_layers_key_must_name_that_layer_and_twin():
         decode_for_key("dtpf/t-own/entity/status", status("entity", twin="t-other"))
 
 
+@contextlib.contextmanager
+def secured_bus(path):
+    """A router enforcing the secure folder ``path``: yields ``client(role)`` (a session of that role) and a list
+    of declarations to undeclare; everything is closed at the end, pass or fail."""
+    deployment = open_secure_dir(path)
+    endpoint = deployment.endpoint("127.0.0.1", free_port())
+    router = open_session(zenoh_config(secure=deployment, role="router", listen=[endpoint]))
+    sessions, declared = [], []
+
+    def client(role):
+        sessions.append(open_session(zenoh_config(secure=deployment, role=role, connect=[endpoint])))
+        return sessions[-1]
+
+    try:
+        yield client, declared
+    finally:
+        for thing in reversed(declared):
+            thing.undeclare()
+        for session in sessions:
+            session.close()
+        router.close()
+
+
 @pytest.mark.parametrize("kind", ["tls", "usrpwd"])
 def test_a_recorder_recovers_from_a_layers_cache_and_no_other_role_can_answer_for_it(folder, kind):
     """Zenoh's advanced publishers and subscribers talk on <key>/@adv/..., which '**' does not match: the access
     rules let a recorder ask the entity's cache for what it missed, and refuse a viewer's queryable that offers
     forged messages under the entity's keys."""
-    deployment = open_secure_dir(folder / kind)
-    port = free_port()
-    endpoint = deployment.endpoint("127.0.0.1", port)
-    router = open_session(zenoh_config(secure=deployment, role="router", listen=[endpoint]))
-    sessions, declared = [], []
-    try:
-        def client(role):
-            sessions.append(open_session(zenoh_config(secure=deployment, role=role, connect=[endpoint])))
-            return sessions[-1]
-
+    with secured_bus(folder / kind) as (client, declared):
         key = "dtpf/t-cache/entity/estimate"
         entity = publisher(client("entity"), key, cache_samples=50)
         declared.append(entity)
@@ -401,12 +416,6 @@ def test_a_recorder_recovers_from_a_layers_cache_and_no_other_role_can_answer_fo
             heard.append(item.payload)
         assert heard == [f"step {step}".encode() for step in range(1, 21)]
         inbox.close()
-    finally:
-        for thing in reversed(declared):
-            thing.undeclare()
-        for session in sessions:
-            session.close()
-        router.close()
 
 
 @pytest.mark.parametrize("kind", ["tls", "usrpwd"])
@@ -416,15 +425,7 @@ def test_a_reader_on_another_host_gets_a_set_from_its_publisher_and_no_other_rol
     from dtpf.shell.shared_sets import SetPublisher, slot_key
     from dtpf.shell.slots import Reference
 
-    deployment = open_secure_dir(folder / kind)
-    endpoint = deployment.endpoint("127.0.0.1", free_port())
-    router = open_session(zenoh_config(secure=deployment, role="router", listen=[endpoint]))
-    sessions, declared = [], []
-    try:
-        def client(role):
-            sessions.append(open_session(zenoh_config(secure=deployment, role=role, connect=[endpoint])))
-            return sessions[-1]
-
+    with secured_bus(folder / kind) as (client, declared):
         key = "dtpf/t-slot/entity/particles"
         entity = client("entity")
         sets = SetPublisher(entity, key, publisher(entity, key))
@@ -442,9 +443,3 @@ def test_a_reader_on_another_host_gets_a_set_from_its_publisher_and_no_other_rol
         assert answers == [b"HEADER!!" + values.tobytes()]
         assert Reference.parse(sets.writer.write([b"x"])).seq == 2
         sets.undeclare(drain=0)
-    finally:
-        for thing in reversed(declared):
-            thing.undeclare()
-        for session in sessions:
-            session.close()
-        router.close()

@@ -282,3 +282,48 @@ def test_decoding_a_reference_as_a_message_says_what_it_is():
     reference = Reference(slots.host_id(), "dtpf-" + "ab" * 16, 0, 1, 10, "ab").encode()
     with pytest.raises(MessageError, match=r"reference to a particle set .*\(DTPF_SHARED_SETS=0"):
         decode(reference)
+
+
+def test_a_service_with_no_room_in_shared_memory_sends_its_sets_as_bytes(bus, monkeypatch):
+    """A full /dev/shm (a container's 64 MB) fails the ring's posix_fallocate: the service says so once and
+    sends that key's sets as bytes; a subscriber gets every set either way."""
+    from dtpf.messages.codec import decode
+    from dtpf.messages.config import RunConfig
+    from dtpf.messages.models import ParticleSet
+    from dtpf.shell.service import ServiceShell
+
+    sending, receiving = bus
+    key = "dtpf/room-1/entity/particles"
+    inbox = Inbox(receiving, key)
+    calls = []
+
+    def no_room(fd, offset, length):
+        calls.append(length)
+        raise OSError(28, "No space left on device")
+
+    shell = ServiceShell("entity", RunConfig(twin="room-1", run_id="run"), session=sending)
+    try:
+        sets = []
+        for step, room in ((1, True), (2, False), (3, False)):
+            if not room:
+                monkeypatch.setattr(slots.os, "posix_fallocate", no_room)
+            particles, weights = _arrays(step, n=20_000)
+            sets.append(ParticleSet(run_id="run", twin_id="room-1", step=step, kind="propagated",
+                                    particles=particles, weights=weights / weights.sum()))
+            if step == 2:  # the ring is full at 20,000 particles: a set four times as large needs a new one
+                particles, weights = _arrays(step, n=80_000)
+                sets[-1] = ParticleSet(run_id="run", twin_id="room-1", step=step, kind="propagated",
+                                       particles=particles, weights=weights / weights.sum())
+            shell.publish(sets[-1])
+        got = []
+        while len(got) < 3:
+            item = inbox.get(timeout=30)
+            assert item is not None, f"{len(got)} of 3 sets"
+            got.append(decode(item.payload))
+        assert [(m.step, m.particles.shape) for m in got] == [(m.step, m.particles.shape) for m in sets]
+        assert all(np.array_equal(a.particles, b.particles) for a, b in zip(got, sets))
+        assert len(calls) == 1 and key in shell._bytes_only  # tried once, then bytes
+    finally:
+        inbox.close()
+        shell.presence.close()
+        shell._close_publishers()

@@ -278,6 +278,8 @@ class ServiceShell:
         self._stop = threading.Event()
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._set_publishers: dict[str, SetPublisher] = {}
+        #: Keys whose sets go as bytes: their ring could not be made (no room in /dev/shm).
+        self._bytes_only: set[str] = set()
         self._inboxes: list[Inbox] = []
         self._lock = threading.Lock()
         self._config_json = config.model_dump_json()
@@ -474,7 +476,7 @@ class ServiceShell:
         bytes, made by a codec function such as :func:`~dtpf.messages.codec.encode_with_base64`), else
         ``encode(message)``."""
         key = keys.key_for(message)
-        if payload is None and isinstance(message, ParticleSet) and shared_sets() \
+        if payload is None and isinstance(message, ParticleSet) and shared_sets() and key not in self._bytes_only \
                 and message.particles.nbytes + message.weights.nbytes >= MIN_SHARED_BYTES:
             parts = encode_parts(message)
             length = sum(memoryview(part).nbytes for part in parts)
@@ -482,8 +484,14 @@ class ServiceShell:
             if sets is None:  # the references are small: the cache keeps as many as it would of JSON messages
                 sets = self._set_publishers[key] = SetPublisher(
                     self.session, key, self._publisher(key, REFERENCE_SIZE))
-            sets.put_parts(parts, length)
-            return
+            try:
+                sets.put_parts(parts, length)
+                return
+            except OSError as error:  # no room for the ring (a small /dev/shm): this key's sets go as bytes
+                self.log.warning("cannot keep the sets of %s in shared memory (%s): sending them as bytes", key,
+                                 error)
+                self._bytes_only.add(key)  # its ring stays until the end: the references sent still resolve
+                self._publishers.pop(key).undeclare()  # its cache was sized for references
         data = encode(message) if payload is None else payload
         self._publisher(key, len(data)).put(data)
 

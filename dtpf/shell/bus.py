@@ -445,8 +445,8 @@ class Inbox:
             if not full:
                 self._queued_bytes += size
         if full:
-            if size <= MAX_REFERENCE and is_reference(sample.payload.to_bytes()):
-                self._sets.skipped.append(sample.payload.to_bytes())  # the writer is told at the next get
+            if size <= MAX_REFERENCE and is_reference(payload := sample.payload.to_bytes()):
+                self._sets.skipped.append(payload)  # the writer is told at the next get
             self._drop(key, "inbox full", f"inbox of {self.key_expr} full ({self.max_items} samples or "
                                           f"{self.max_bytes} bytes waiting): dropped a sample on {key[:200]}")
             return

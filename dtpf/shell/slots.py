@@ -56,7 +56,6 @@ __all__ = ["SlotError", "SlotMiss", "Reference", "Held", "SlotWriter", "SlotRead
 SHM_FOLDER = "/dev/shm"
 MAGIC = b"DTPFSLOT"
 VERSION = 1
-REFERENCE_MAGIC = SET_REFERENCE
 #: Most bytes a reference may have (a longer payload starting with the magic is not one).
 MAX_REFERENCE = 1024
 HEADER_BYTES = 4096
@@ -120,7 +119,7 @@ class Reference:
     writer: str
 
     def encode(self) -> bytes:
-        return REFERENCE_MAGIC + json.dumps({"host": self.host, "file": self.file, "slot": self.slot,
+        return SET_REFERENCE + json.dumps({"host": self.host, "file": self.file, "slot": self.slot,
                                              "seq": self.seq, "length": self.length, "writer": self.writer},
                                             separators=(",", ":")).encode("ascii")
 
@@ -128,10 +127,10 @@ class Reference:
     def parse(cls, payload) -> "Reference":
         """The reference a payload holds; SlotError says what is wrong with one that is malformed."""
         data = bytes(payload[:MAX_REFERENCE + 1])
-        if len(data) > MAX_REFERENCE or not data.startswith(REFERENCE_MAGIC):
+        if len(data) > MAX_REFERENCE or not data.startswith(SET_REFERENCE):
             raise SlotError("not a slot reference")
         try:
-            fields = json.loads(data[len(REFERENCE_MAGIC):].decode("ascii"))
+            fields = json.loads(data[len(SET_REFERENCE):].decode("ascii"))
         except (UnicodeDecodeError, ValueError):
             raise SlotError("a slot reference that is not JSON") from None
         if not isinstance(fields, dict) or set(fields) != {"host", "file", "slot", "seq", "length", "writer"}:
@@ -155,7 +154,7 @@ class Reference:
 
 def is_reference(payload) -> bool:
     """Whether a payload is (claims to be) a slot reference rather than a message."""
-    return len(payload) <= MAX_REFERENCE and bytes(payload[:len(REFERENCE_MAGIC)]) == REFERENCE_MAGIC
+    return len(payload) <= MAX_REFERENCE and bytes(payload[:len(SET_REFERENCE)]) == SET_REFERENCE
 
 
 def _word(buffer, offset: int) -> int:

@@ -539,7 +539,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="dtpf entity layer: runs the particle filter on a scenario, an observation file or a "
                     "live sensor, publishes each step's particle set and estimate, and resamples the "
                     "preprocessed set the information layer sends back.")
-    add_run_arguments(parser)
+    add_run_arguments(parser, threads=True)
     parser.add_argument("--rate", type=float, default=None, metavar="STEPS_PER_SECOND",
                         help="run at most this many steps per second, like a sensor delivering "
                              "observations in real time (default: as fast as possible; live observations "

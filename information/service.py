@@ -194,7 +194,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="dtpf information layer: mirrors the entity's particle sets, moves small-weight "
                     "particles towards large-weight ones (Eq. 28-30) with the PS in force, and reports "
                     "the weight state to the system layer.")
-    add_run_arguments(parser)
+    add_run_arguments(parser, threads=True)
     add_service_arguments(parser)
     add_fleet_arguments(parser)
     add_zenoh_arguments(parser)

@@ -421,8 +421,9 @@ class _ObservationsAction(argparse.Action):
         setattr(namespace, self.dest, value)
 
 
-def add_run_arguments(parser: argparse.ArgumentParser) -> None:
-    """Options of one run, shared by every command that starts a run."""
+def add_run_arguments(parser: argparse.ArgumentParser, threads: bool = False) -> None:
+    """Options of one run, shared by every command that starts a run; ``threads``: and ``--threads``, for
+    a command that computes a run's filter (``dtpf run``, ``dtpf launch``, the layers' services)."""
     defaults = RunConfig()
     # Every run flag defaults to None, "not given", so that a --config file can set what no flag does.
     parser.add_argument("--config", type=Path, default=None, metavar="FILE",
@@ -519,6 +520,8 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
                             "random numbers its own, so that the numbers do not depend on --threads; 'none': one "
                             "block, the numbers of a log recorded before blocks (default: "
                             f"{BLOCK_PARTICLES})")
+    if not threads:
+        return
     group = parser.add_argument_group("process")
     group.add_argument("--threads", type=_threads, default=None, metavar="COUNT",
                        help="threads this process computes on: sets of more than block_particles particles are "

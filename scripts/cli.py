@@ -285,7 +285,7 @@ def _launch_fleet(config, args: argparse.Namespace, port: int) -> int:
                               progress=None if args.quiet else ProgressBar(), cloud_points=args.cloud_points,
                               secure=args.secure, entities=args.entities,
                               restarts=0 if args.no_restart else args.restarts,
-                              observation_timeout=args.observation_timeout,
+                              observation_timeout=args.observation_timeout, threads=args.threads,
                               notify=lambda text: print(f"\ndtpf launch: {text}", file=sys.stderr, flush=True))
     except (LaunchError, ValueError) as error:
         print(f"dtpf launch: error: {error}", file=sys.stderr)
@@ -330,7 +330,7 @@ def build_parser() -> argparse.ArgumentParser:
                                           "simulated scenario or an observation file (--observations) and "
                                           "print RMSE (or, without truth, the log predictive likelihood), "
                                           "ESS, PS and timing.")
-    add_run_arguments(run)
+    add_run_arguments(run, threads=True)
     run.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
     run.set_defaults(handler=cmd_run)
 
@@ -342,7 +342,7 @@ def build_parser() -> argparse.ArgumentParser:
                     "every service and leaves a readable log. Without --secure the router listens on loopback "
                     "only, unauthenticated: any process of this machine can read and publish on it; with "
                     "--secure DIR only the twin's own layers can steer it (docs/guides/security.md).")
-    add_run_arguments(launch)
+    add_run_arguments(launch, threads=True)
     group = launch.add_argument_group("launch")
     group.add_argument("--log", "-o", type=Path, default=None, metavar="PATH",
                        help="MCAP file to write, never an existing one (default: "

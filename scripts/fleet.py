@@ -143,9 +143,11 @@ def launch_fleet(config: RunConfig, count: int, *, log_path: Path | None = None,
                  rate: float | None = None, progress=None, child_output=None, cloud_points: int | None = None,
                  secure=None, notify=None, entities: int | None = None,
                  keep_estimates: bool = False, restarts: int = DEFAULT_RESTARTS,
-                 observation_timeout: float | None = None) -> FleetResult:
+                 observation_timeout: float | None = None, threads: int | None = None) -> FleetResult:
     """Run ``count`` twins of ``config`` around an embedded Zenoh router (see the module's text).
 
+    ``threads``: each process's ``--threads``; None: each entity process computes on its share of the
+    cores (cores // entity processes, at least 1), the shared services on every core.
     ``entities``: how many entity processes host the twins (default: one per CPU, at most one per twin).
     ``cloud_points``: the entities' ``--cloud-points``; None: :data:`FLEET_CLOUD_POINTS`.
     A live fleet (``--observations live``) has no deadline: each twin takes its observations from its own
@@ -179,11 +181,13 @@ def launch_fleet(config: RunConfig, count: int, *, log_path: Path | None = None,
     start = time.monotonic()
     first_estimate = last_estimate = None
 
-    def start_child(name: str, layer: str, run: RunConfig, *extra: str, output: Path | None = None) -> None:
+    def start_child(name: str, layer: str, run: RunConfig, *extra: str, output: Path | None = None,
+                    child_threads: int | None = threads) -> None:
         command = service_command(layer, run, endpoint, timeout=timeout, log_path=output or log_path,
                                   log_level=log_level, observation_timeout=observation_timeout,
                                   rate=rate, cloud_points=cloud_points,
-                                  secure=secure.path if secure is not None else None, wait_for_recorder=False)
+                                  secure=secure.path if secure is not None else None, wait_for_recorder=False,
+                                  threads=child_threads)
         children[name] = subprocess.Popen(command + list(extra), stderr=child_output, start_new_session=True)
         layer_of_pid[children[name].pid] = layer
         if layer == "recorder":
@@ -205,8 +209,9 @@ def launch_fleet(config: RunConfig, count: int, *, log_path: Path | None = None,
         start_child("system", "system", config, *shared)
         start_child("information", "information", config, *shared)
         groups = entity_groups([twin.twin for twin in twins], entities)
+        share = threads if threads is not None else max(1, len(os.sched_getaffinity(0)) // len(groups))
         for index, group in enumerate(groups, start=1):
-            start_child(f"entity-{index}", "entity", config, "--twins", ",".join(group))
+            start_child(f"entity-{index}", "entity", config, "--twins", ",".join(group), child_threads=share)
         per_step = timeout + (1.0 / rate if rate else 0.0)
         # A live fleet waits for its sensors as long as it takes; a file or simulation has T steps.
         deadline = float("inf") if config.live else (

@@ -103,9 +103,10 @@ def _record(shell: ServiceShell, recording: McapRecording, pattern: str, compres
     extra = [sensor] if sensor and not args.all_twins and not sensor.startswith(pattern[:-2]) else []
     # The recorder takes every message of the twin and must lose none: a burst it cannot write at once
     # (a busy machine, N = 1e5 at 120 steps/s is 390 MB/s of particle sets) waits in a deeper inbox than a
-    # layer's; 64 MiB dropped sets at N = 1e5 with the machine's 2 cores shared.
+    # layer's; 64 MiB dropped sets at N = 1e5 with the machine's 2 cores shared. A set by reference that
+    # finds it full stays in its slot and its writer waits for the recorder.
     inbox = shell.inbox_on(pattern, *extra, payloads=RECORDER_INBOX_PAYLOADS, min_bytes=RECORDER_INBOX_BYTES,
-                           max_items=RECORDER_INBOX_ITEMS, recover=True)
+                           max_items=RECORDER_INBOX_ITEMS, recover=True, back_pressure=True)
     silences = Silences(shell.log, args.gap_after)
     admission = Admission(shell, all_twins=args.all_twins, silences=silences)
     # dtpf ask TWIN history: answered from what the file holds (dtpf.scripts.serve).

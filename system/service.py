@@ -153,7 +153,7 @@ def build_parser() -> argparse.ArgumentParser:
         prog="python -m dtpf.system.service",
         description="dtpf system layer: predicts particle degradation from the mirrored weight state and "
                     "publishes the preprocessing degree PS for the next step, with its reason.")
-    add_run_arguments(parser)
+    add_run_arguments(parser, threads=True)
     add_service_arguments(parser)
     add_fleet_arguments(parser)
     add_zenoh_arguments(parser)

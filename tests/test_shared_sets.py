@@ -13,6 +13,7 @@ import signal
 import subprocess
 import sys
 import threading
+import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -187,6 +188,68 @@ def test_an_inbox_survives_references_it_cannot_read_and_takes_the_sets_that_fol
         assert np.array_equal(np.frombuffer(item.payload[8:8 + particles.nbytes]).reshape(particles.shape), particles)
         assert len(drops) == 2 and "not JSON" in drops[0] and "cannot open" in drops[1]
         assert inbox.dropped == 2
+    finally:
+        inbox.close()
+        sets.undeclare(drain=0)
+
+
+def _wait_for(condition, what: str, timeout: float = 60.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not condition():
+        assert time.monotonic() < deadline, f"gave up waiting for {what}"
+        time.sleep(0.01)
+
+
+def _publish_sets(sets: SetPublisher, count: int) -> list[bytes]:
+    payloads = []
+    for seed in range(count):
+        particles, weights = _arrays(seed)
+        parts = [b"SET%05d" % seed, particles, weights]
+        payloads.append(b"".join(bytes(memoryview(part)) for part in parts))
+        sets.put_parts(parts, len(payloads[-1]))
+    return payloads
+
+
+def test_a_reader_that_takes_none_of_its_sets_holds_its_writer_up_by_none_and_drops_what_finds_no_room(bus):
+    """Sets that wait in an inbox are copied out of their slots as the next arrives (three fit in its
+    bytes here), the rest dropped and counted: the writer goes on through its ring of four, waiting for
+    no reader (it would drop one that held it up for 20 s), and the newest set is still read in place."""
+    sending, receiving = bus
+    key = "dtpf/stuck-1/entity/particles"
+    length = 8 + _arrays(0)[0].nbytes + _arrays(0)[1].nbytes
+    drops = []
+    inbox = Inbox(receiving, key, max_bytes=int(3.5 * length), views=True,
+                  on_drop=lambda key, reason, detail: drops.append(reason))
+    sets = SetPublisher(sending, key, publisher(sending, key))
+    sets.writer = SlotWriter(slots=4, wait=20.0)
+    try:
+        payloads = _publish_sets(sets, 12)
+        _wait_for(lambda: len(inbox) >= 12, "12 sets to arrive")
+        assert sets.writer.dropped_readers == 0
+        got = []
+        while (item := inbox.get(timeout=0)) is not None:
+            got.append((bytes(item.payload[:8]), isinstance(item.payload, memoryview)))
+            assert item.payload.tobytes() == payloads[int(got[-1][0][3:])]
+        assert [name for name, _ in got] == [b"SET%05d" % seed for seed in (0, 1, 2, 11)]
+        assert inbox.dropped == 8 and drops == ["inbox full"] * 8
+    finally:
+        inbox.close()
+        sets.undeclare(drain=0)
+
+
+def test_a_recorders_inbox_keeps_the_sets_it_has_no_room_for_in_their_slots_and_its_writer_waits(bus):
+    """With back pressure, sets beyond the inbox's room stay in their slots: the writer, through its ring
+    of four, waits for the reader and, after its wait (2 s here), drops it; nothing is dropped unread."""
+    sending, receiving = bus
+    key = "dtpf/stuck-2/entity/particles"
+    length = 8 + _arrays(0)[0].nbytes + _arrays(0)[1].nbytes
+    inbox = Inbox(receiving, key, max_bytes=int(1.5 * length), views=True, back_pressure=True)
+    sets = SetPublisher(sending, key, publisher(sending, key))
+    sets.writer = SlotWriter(slots=4, wait=2.0)
+    try:
+        _publish_sets(sets, 6)
+        _wait_for(lambda: len(inbox) >= 6, "6 sets to arrive")
+        assert sets.writer.dropped_readers == 1 and inbox.dropped == 0
     finally:
         inbox.close()
         sets.undeclare(drain=0)

@@ -42,7 +42,7 @@ import zenoh
 import zenoh.ext
 
 from dtpf.messages.errors import DtpfError
-from dtpf.shell.shared_sets import SetLost, SetResolver
+from dtpf.shell.shared_sets import SetDropped, SetLost, SetResolver
 from dtpf.shell.slots import MAX_REFERENCE, SlotError, is_reference
 
 __all__ = [
@@ -389,14 +389,22 @@ class Inbox:
     gap of its sequence numbers (seen on its next sample or heartbeat) and queues, for what its cache no
     longer held, a :class:`Received` with ``missed`` set. Samples of one publisher are queued in the
     order it published them, recovered or not, with their sequence numbers.
+
+    A particle set by reference (:mod:`dtpf.shell.shared_sets`) of this host waits in its slot, to be
+    read where it lies, until the next set arrives; then it is copied out, so that a reader that falls
+    behind, or whose loop is stuck, holds its writer up by two sets at most, and drops sets once full.
+    With ``back_pressure`` (the recorder, which must lose nothing) a set that finds the inbox full stays
+    in its slot instead, and its writer waits.
     """
 
     def __init__(self, session: zenoh.Session, key_expr: str, *more_key_exprs: str,
                  max_payload: int = DEFAULT_MAX_PAYLOAD, max_items: int = DEFAULT_MAX_ITEMS,
                  max_bytes: int = DEFAULT_MAX_BYTES, on_drop=None, doorbell: Doorbell | None = None,
-                 name: str = "", history: int | None = None, recover: bool = False, views: bool = False):
+                 name: str = "", history: int | None = None, recover: bool = False, views: bool = False,
+                 back_pressure: bool = False):
         self.key_expr = key_expr
         self.views = views
+        self.back_pressure = back_pressure
         self._sets = SetResolver(session)
         self.doorbell = doorbell
         self.name = name
@@ -440,24 +448,39 @@ class Inbox:
             self._drop(key, "payload larger than the inbox takes",
                        f"a payload of {size} bytes on {key[:200]}, at most {self.max_payload} are taken")
             return
-        with self._lock:
-            full = self._queue.qsize() >= self.max_items or self._queued_bytes + size > self.max_bytes
-            if not full:
-                self._queued_bytes += size
-        if full:
-            if size <= MAX_REFERENCE and is_reference(payload := sample.payload.to_bytes()):
-                self._sets.skipped.append(payload)  # the writer is told at the next get
-            self._drop(key, "inbox full", f"inbox of {self.key_expr} full ({self.max_items} samples or "
-                                          f"{self.max_bytes} bytes waiting): dropped a sample on {key[:200]}")
+        payload = sample.payload.to_bytes()
+        reference = self._sets.local(payload) if size <= MAX_REFERENCE and is_reference(payload) else None
+        if not self._reserve(size):
+            if reference is not None:
+                self._sets.skip(reference)
+            self._drop_full(key)
             return
+        if reference is not None:
+            self._sets.arrive(reference, payload, self._room, self.back_pressure, lambda: self._drop_full(key))
         source = sn = None
         if self.recover:
             info = sample.source_info
             if info is not None:
                 source, sn = str(info.source_id), int(info.source_sn)
-        self._queue.put(Received(key, sample.payload.to_bytes(), source, 0, sn))
+        self._queue.put(Received(key, payload, source, 0, sn))
         if self.doorbell is not None:
             self.doorbell.ring(self.name)
+
+    def _reserve(self, size: int) -> bool:
+        """Room for one more item of ``size`` bytes (taken if there is)."""
+        with self._lock:
+            if self._queue.qsize() >= self.max_items or not self._room(size):
+                return False
+            self._queued_bytes += size
+            return True
+
+    def _room(self, size: int) -> bool:
+        """Whether ``size`` more bytes fit with what waits (sets copied out of their slots included)."""
+        return self._queued_bytes + self._sets.copied_bytes + size <= self.max_bytes
+
+    def _drop_full(self, key: str) -> None:
+        self._drop(key, "inbox full", f"inbox of {self.key_expr} full ({self.max_items} samples or "
+                                      f"{self.max_bytes} bytes waiting): dropped a sample on {key[:200]}")
 
     def _drop(self, key: str, reason: str, detail: str) -> None:
         with self._lock:
@@ -490,6 +513,8 @@ class Inbox:
                 return item
             try:
                 return replace(item, payload=self._sets.resolve(item.key, item.payload, self.views))
+            except SetDropped:
+                continue
             except (SlotError, SetLost) as error:
                 self._drop(item.key, "particle set by reference not had", f"on {item.key[:200]}: {error}")
                 if self.recover and isinstance(error, SetLost):

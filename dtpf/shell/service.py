@@ -396,15 +396,18 @@ class ServiceShell:
         return self.inbox_on(keys.key(self.config.twin, layer, topic))
 
     def inbox_on(self, key_expr: str, *more: str, payloads: int = _INBOX_PAYLOADS,
-                 min_bytes: int = MIN_INBOX_BYTES, max_items: int = DEFAULT_MAX_ITEMS, recover: bool = False) -> Inbox:
+                 min_bytes: int = MIN_INBOX_BYTES, max_items: int = DEFAULT_MAX_ITEMS, recover: bool = False,
+                 back_pressure: bool = False) -> Inbox:
         """An inbox on key expressions (closed with the shell), bounded to what this run's messages
         can weigh: what is bigger, or arrives while the inbox is full, is counted as rejected.
         It holds ``payloads`` of the run's largest payload, at least ``min_bytes``; ``recover``: it recovers
-        what it missed from the publishers' caches (:class:`~dtpf.shell.bus.Inbox`)."""
+        what it missed from the publishers' caches; ``back_pressure``: a set by reference that finds it full
+        waits in its slot, and its writer for it (:class:`~dtpf.shell.bus.Inbox`)."""
         largest = self.largest_payload()
         inbox = Inbox(self.session, key_expr, *more, max_payload=largest, max_items=max_items,
                       max_bytes=max(min_bytes, payloads * largest), on_drop=self._on_drop,
-                      doorbell=self.doorbell, name=self.config.twin, recover=recover, views=True)
+                      doorbell=self.doorbell, name=self.config.twin, recover=recover, views=True,
+                      back_pressure=back_pressure)
         self._inboxes.append(inbox)
         return inbox
 

@@ -24,7 +24,7 @@ import zenoh
 from dtpf.shell.slots import Held, Reference, SlotError, SlotMiss, SlotReader, SlotWriter, shm_folder
 
 __all__ = ["MIN_SHARED_BYTES", "SLOT_BUDGET", "shared_sets", "set_shared_sets", "SetPublisher", "SetResolver",
-           "SetLost", "slot_key"]
+           "SetLost", "SetDropped", "slot_key"]
 
 log = logging.getLogger("dtpf.shared_sets")
 
@@ -114,26 +114,106 @@ class SetLost(Exception):
     """A set whose reference came but whose payload could not be had; the message says why."""
 
 
+class SetDropped(Exception):
+    """A set the inbox dropped after it was queued (reported when it was dropped)."""
+
+
+_DROPPED = object()
+
+
 class SetResolver:
     """Turns references into payloads for one inbox: a view of the slot on this host (held until the next
-    :meth:`resolve` or :meth:`release`), the bytes asked of the publisher from another host."""
+    :meth:`resolve` or :meth:`release`), the bytes asked of the publisher from another host.
+
+    The inbox's subscriber thread calls :meth:`arrive` for each reference of this host it queues: the
+    newest set waits in its slot (read in place by its get), and one that still waits when the next
+    arrives is copied out then, so that a reader that falls behind, or whose loop is stuck, holds its
+    writer up by two sets at most (the one it reads and the newest). A set that finds no room to be copied
+    is dropped, counted, as bytes would be; with ``back_pressure`` it stays in its slot, and its writer
+    waits."""
 
     def __init__(self, session: zenoh.Session):
         self.session = session
         self.reader = SlotReader()
         self._held: Held | None = None
-        #: References dropped unread (the inbox was full), added by the subscriber's thread.
-        self.skipped: collections.deque = collections.deque(maxlen=1024)
+        #: References queued whose slots are held for their get, oldest first.
+        self._waiting: collections.deque[tuple[bytes, Reference]] = collections.deque()
+        #: Payloads copied out of their slots (or why not), by reference, until their get.
+        self._copied: dict[bytes, object] = {}
+        #: Bytes of the payloads copied out and not yet taken.
+        self.copied_bytes = 0
+        self._lock = threading.Lock()
 
-    def resolve(self, key: str, payload, views: bool):
+    def local(self, payload: bytes) -> Reference | None:
+        """The reference ``payload`` holds if it names a slot of this host; None for another host's or a
+        malformed one (:meth:`resolve` says what is wrong with it)."""
+        try:
+            reference = Reference.parse(payload)
+        except SlotError:
+            return None
+        return reference if self.reader.is_local(reference) else None
+
+    def arrive(self, reference: Reference, payload: bytes, room, back_pressure: bool, on_drop) -> None:
+        """``reference`` (received as ``payload``) is about to be queued: hold its slot, and copy out the
+        sets that were waiting in theirs if ``room(nbytes)`` says they fit; those that do not are dropped
+        (``on_drop()``), or, with ``back_pressure``, keep their slots."""
+        with self._lock:
+            keep = collections.deque()
+            while self._waiting:
+                older_payload, older = self._waiting.popleft()
+                if room(older.length):
+                    try:
+                        data = self.reader.copy(older)
+                    except (SlotError, SlotMiss) as error:
+                        self._copied[older_payload] = SetLost(str(error))
+                    else:
+                        self._copied[older_payload] = data
+                        self.copied_bytes += len(data)
+                    self.reader.unpin(older)
+                elif back_pressure:
+                    keep.append((older_payload, older))
+                else:
+                    self._copied[older_payload] = _DROPPED
+                    self.reader.unpin(older)
+                    on_drop()
+            self._waiting = keep
+            try:
+                self.reader.pin(reference)
+            except SlotError:
+                return  # its get says why
+            self._waiting.append((payload, reference))
+
+    def skip(self, reference: Reference) -> None:
+        """A reference dropped unread: its writer need not wait for this reader."""
+        self.reader.skip(reference)
+
+    def resolve(self, key: str, payload: bytes, views: bool):
         """The payload of a reference received on ``key``: a read-only memoryview if ``views`` (valid until
-        the next call), else bytes. SetLost if it cannot be had, SlotError if the reference is malformed."""
+        the next call), else bytes. SetLost if it cannot be had, SlotError if the reference is malformed,
+        SetDropped if the inbox dropped it after it was queued."""
         self.release()
+        pinned = False
+        with self._lock:
+            copied = self._copied.pop(payload, None)
+            if isinstance(copied, bytes):
+                self.copied_bytes -= len(copied)
+            elif copied is None:
+                for index, (waiting, _) in enumerate(self._waiting):
+                    if waiting == payload:
+                        del self._waiting[index]
+                        pinned = True
+                        break
+        if copied is _DROPPED:
+            raise SetDropped()
+        if isinstance(copied, SetLost):
+            raise copied
+        if copied is not None:
+            return memoryview(copied).toreadonly() if views else copied
         reference = Reference.parse(payload)
         if not self.reader.is_local(reference):
             return self._fetch(key, reference)
         try:
-            held = self.reader.resolve(reference)
+            held = self.reader.resolve(reference, pinned=pinned)
         except SlotMiss as error:
             raise SetLost(str(error)) from None
         if views:
@@ -142,14 +222,6 @@ class SetResolver:
         data = bytes(held.view)
         self.reader.release(held)
         return data
-
-    def _skip(self) -> None:
-        """The references dropped unread: their writers need not wait for this reader."""
-        while self.skipped:
-            try:
-                self.reader.skip(Reference.parse(self.skipped.popleft()))
-            except (SlotError, IndexError):
-                pass
 
     def _fetch(self, key: str, reference: Reference) -> bytes:
         replies = self.session.get(f"{slot_key(key)}?writer={reference.writer};seq={reference.seq}",
@@ -167,12 +239,10 @@ class SetResolver:
                       f"publisher did not give it: {'; '.join(reasons) or 'no answer'}")
 
     def release(self) -> None:
-        """Done with the view last given (and with the references dropped unread since)."""
+        """Done with the view last given."""
         if self._held is not None:
             self.reader.release(self._held)
             self._held = None
-        if self.skipped:
-            self._skip()
 
     def close(self) -> None:
         self.release()

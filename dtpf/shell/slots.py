@@ -39,6 +39,7 @@ import os
 import re
 import secrets
 import struct
+import threading
 import time
 from collections import OrderedDict
 from dataclasses import dataclass
@@ -389,7 +390,8 @@ class _locked:
 
 @dataclass
 class Held:
-    """A payload a reader holds in a slot: ``view`` (read-only) stays valid until :meth:`SlotReader.release`."""
+    """A payload a reader holds in a slot: ``view`` (read-only) stays valid until :meth:`SlotReader.release`.
+    ``file`` is None for a payload copied at once (one its reader could not keep the writer from)."""
 
     view: memoryview
     reference: Reference
@@ -397,61 +399,143 @@ class Held:
     entry: int
 
 
+class _Reading:
+    """A slot file a reader maps: its entry in the file's reader table, the payloads it holds or has queued
+    (sequence number: count), and the last sequence number it has seen."""
+
+    def __init__(self, file: _File, entry: int, seen: int):
+        self.file = file
+        self.entry = entry
+        self.pins: dict[int, int] = {}
+        self.seen = seen
+
+    def done(self) -> int:
+        """What the writer may overwrite: everything before the oldest payload held, else all seen."""
+        return min(self.pins) - 1 if self.pins else self.seen
+
+
 class SlotReader:
     """The reading side: maps the slot files that references name (at most ``max_files`` at once, the least
-    recently used closed first), holds an entry in each one's reader table, and says when it is done."""
+    recently used closed first), holds an entry in each one's reader table, and says what it is done with:
+    everything before the oldest payload it holds or has pinned for later (:meth:`pin`). Thread-safe: a
+    subscriber's thread may pin, copy and skip while another resolves and releases."""
 
     def __init__(self, max_files: int = 16, folder: str | None = None):
         self.folder = folder or shm_folder()
         self.max_files = max_files
-        self._files: OrderedDict[str, tuple[_File, int]] = OrderedDict()
+        self._files: OrderedDict[str, _Reading] = OrderedDict()
         self._unreadable: OrderedDict[str, str] = OrderedDict()
+        self._lock = threading.RLock()
 
     def is_local(self, reference: Reference) -> bool:
         return self.folder is not None and reference.host == host_id()
 
-    def resolve(self, reference: Reference) -> Held:
-        """The payload ``reference`` names, held until :meth:`release`. SlotError: the file cannot be read
-        (gone, not a slot file, not this user's); SlotMiss: its slot holds another payload now."""
-        if not self.is_local(reference):
-            raise SlotError("a slot reference of another host")
-        file, entry = self._open(reference.file, reference.seq)
-        if reference.slot >= file.slots or reference.length > file.capacity:
-            raise SlotError(f"a slot reference beyond its file: slot {reference.slot} of {file.slots}, "
-                            f"{reference.length} bytes in slots of {file.capacity}")
-        start = file.slot_at(reference.slot)
-        if _word(file.map, file.entry_at(entry)) != os.getpid():  # dropped for holding a write up: back in
-            entry = self._register(file, reference.seq)
-            self._files[reference.file] = (file, entry)
-        if _word(file.map, start) != reference.seq or _word(file.map, start + 8) != reference.length:
-            self._mark_done(file, entry, reference.seq)
+    def pin(self, reference: Reference) -> None:
+        """Keep the writer from overwriting ``reference``'s slot until :meth:`resolve` (``pinned=True``) and
+        :meth:`release`, or :meth:`unpin`. SlotError as for :meth:`resolve`."""
+        with self._lock:
+            reading = self._reading(reference)
+            reading.pins[reference.seq] = reading.pins.get(reference.seq, 0) + 1
+            reading.seen = max(reading.seen, reference.seq)
+
+    def unpin(self, reference: Reference) -> None:
+        """Let go of a payload pinned and never resolved."""
+        with self._lock:
+            reading = self._files.get(reference.file)
+            if reading is not None:
+                self._let_go(reading, reference.seq)
+
+    def resolve(self, reference: Reference, pinned: bool = False) -> Held:
+        """The payload ``reference`` names, held until :meth:`release` (``pinned``: :meth:`pin` was called
+        for it, and this takes that pin over). SlotError: the file cannot be read (gone, not a slot file,
+        not this user's) or the reference does not fit it; SlotMiss: its slot holds another payload now."""
+        with self._lock:
+            try:
+                reading = self._reading(reference)
+            except SlotError:
+                if pinned:
+                    self.unpin(reference)
+                raise
+            if not pinned:
+                reading.pins[reference.seq] = reading.pins.get(reference.seq, 0) + 1
+                reading.seen = max(reading.seen, reference.seq)
+            file, start = reading.file, reading.file.slot_at(reference.slot)
+            if _word(file.map, start) != reference.seq or _word(file.map, start + 8) != reference.length:
+                self._let_go(reading, reference.seq)
+                raise SlotMiss(f"slot {reference.slot} of {reference.file} no longer holds payload {reference.seq}")
+            view = memoryview(file.map)[start + SLOT_HEADER:start + SLOT_HEADER + reference.length].toreadonly()
+            if reference.seq > _word(file.map, file.entry_at(reading.entry) + 8):
+                return Held(view, reference, file, reading.entry)
+        # The reader table says this reader was already done with it (a reference that came late, as one
+        # recovered from a publisher's cache): the writer may be rewriting the slot, so copy and check.
+        data = bytes(view)
+        view.release()
+        valid = _word(file.map, start) == reference.seq
+        self.unpin(reference)
+        if not valid:
             raise SlotMiss(f"slot {reference.slot} of {reference.file} no longer holds payload {reference.seq}")
-        view = memoryview(file.map)[start + SLOT_HEADER:start + SLOT_HEADER + reference.length].toreadonly()
-        return Held(view, reference, file, entry)
+        return Held(memoryview(data).toreadonly(), reference, None, reading.entry)
+
+    def copy(self, reference: Reference) -> bytes:
+        """The payload's bytes, its slot let go at once. SlotError and SlotMiss as for :meth:`resolve`."""
+        held = self.resolve(reference)
+        try:
+            return bytes(held.view)
+        finally:
+            self.release(held)
 
     def skip(self, reference: Reference) -> None:
         """Done with a payload never read (dropped unread): the writer need not wait for it."""
-        known = self._files.get(reference.file)
-        if known is not None:
-            self._mark_done(known[0], known[1], reference.seq)
+        with self._lock:
+            reading = self._files.get(reference.file)
+            if reading is not None:
+                reading.seen = max(reading.seen, reference.seq)
+                self._publish(reading)
 
     def release(self, held: Held) -> None:
         """Done with ``held``: its slot may be written again. Its view must not be used any more."""
         held.view.release()
         if held.file is not None:
-            self._mark_done(held.file, held.entry, held.reference.seq)
+            self.unpin(held.reference)
 
     def still_valid(self, held: Held) -> bool:
         """Whether ``held``'s slot still holds its payload (a reader dropped for holding a write up loses it)."""
-        return held.file is not None and _word(held.file.map, held.file.slot_at(held.reference.slot)) \
-            == held.reference.seq
+        if held.file is None:
+            return True
+        return _word(held.file.map, held.file.slot_at(held.reference.slot)) == held.reference.seq
 
-    def _mark_done(self, file: _File, entry: int, seq: int) -> None:
-        at = file.entry_at(entry)
-        if _word(file.map, at) == os.getpid() and _word(file.map, at + 8) < seq:
-            _put_word(file.map, at + 8, seq)
+    def _let_go(self, reading: _Reading, seq: int) -> None:
+        count = reading.pins.get(seq, 0)
+        if count > 1:
+            reading.pins[seq] = count - 1
+        elif count == 1:
+            del reading.pins[seq]
+        self._publish(reading)
 
-    def _open(self, name: str, seq: int) -> tuple[_File, int]:
+    def _publish(self, reading: _Reading) -> None:
+        """Tell the writer what this reader is done with (never less than before)."""
+        at = reading.file.entry_at(reading.entry)
+        done = reading.done()
+        if _word(reading.file.map, at) == os.getpid() and _word(reading.file.map, at + 8) < done:
+            _put_word(reading.file.map, at + 8, done)
+
+    def _reading(self, reference: Reference) -> _Reading:
+        """The mapped file of a local ``reference``, checked against it; its entry taken again if the writer
+        dropped this reader for holding a write up."""
+        if not self.is_local(reference):
+            raise SlotError("a slot reference of another host")
+        reading = self._open(reference.file, reference.seq)
+        file = reading.file
+        if reference.slot >= file.slots or reference.length > file.capacity:
+            raise SlotError(f"a slot reference beyond its file: slot {reference.slot} of {file.slots}, "
+                            f"{reference.length} bytes in slots of {file.capacity}")
+        if _word(file.map, file.entry_at(reading.entry)) != os.getpid():
+            # Dropped for holding a write up: back in, and what it held before is lost to it.
+            reading.pins = {seq: count for seq, count in reading.pins.items() if seq >= reference.seq}
+            reading.entry = self._register(file, reference.seq)
+        return reading
+
+    def _open(self, name: str, seq: int) -> _Reading:
         known = self._files.get(name)
         if known is not None:
             self._files.move_to_end(name)
@@ -470,12 +554,12 @@ class SlotReader:
         except SlotError:
             file.close()
             raise
-        self._files[name] = (file, entry)
+        reading = self._files[name] = _Reading(file, entry, seq - 1)
         while len(self._files) > self.max_files:
-            _, (old, old_entry) = self._files.popitem(last=False)
-            self._unregister(old, old_entry)
-            old.close()
-        return file, entry
+            _, old = self._files.popitem(last=False)
+            self._unregister(old.file, old.entry)
+            old.file.close()
+        return reading
 
     def _map(self, name: str) -> _File:
         path = os.path.join(self.folder, name)
@@ -518,7 +602,8 @@ class SlotReader:
 
     def close(self) -> None:
         """Leave every reader table (the writers stop waiting for this reader) and unmap the files."""
-        for file, entry in self._files.values():
-            self._unregister(file, entry)
-            file.close()
-        self._files.clear()
+        with self._lock:
+            for reading in self._files.values():
+                self._unregister(reading.file, reading.entry)
+                reading.file.close()
+            self._files.clear()

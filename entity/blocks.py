@@ -240,7 +240,7 @@ def noise(model, n: int, k: int, rng: np.random.Generator, block: int, key: tupl
 
     # Block 0 on the calling thread with the first blocks: the step's stream is drawn from nowhere else.
     cores.in_parts(count, lambda first, last: [draw(b) for b in range(first, last)],
-                   None if n >= cores.PARALLEL_MIN else 1)
+                   cores.threads() if n >= cores.PARALLEL_MIN else 1)
     if any(result is False for result in results):
         return None
     if all(result is True for result in results):

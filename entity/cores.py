@@ -29,6 +29,8 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import numba  # noqa: E402 - after the wait policy
 
+from dtpf.messages import arrays  # noqa: E402
+
 __all__ = ["available", "set_threads", "threads", "use", "blocks", "parallel", "parts", "in_parts", "PARALLEL_MIN",
            "CHUNK"]
 
@@ -62,6 +64,7 @@ def set_threads(count: int | None = None) -> int:
         raise ValueError(f"threads must be at least 1, got {count!r}")
     _THREADS = available() if count is None else max(1, min(int(count), numba.config.NUMBA_NUM_THREADS))
     numba.set_num_threads(_THREADS)
+    arrays.set_check_threads(_THREADS)
     return _THREADS
 
 

@@ -24,6 +24,40 @@ import numpy as np
 warnings.filterwarnings("ignore", r"(invalid value|overflow) encountered in reduce", RuntimeWarning,
                         re.escape(__name__))
 
+#: From this many values on, the checks' two reductions run in parts on :func:`set_check_threads` threads
+#: (numpy releases the GIL in them); below it, or on one thread, in one call.
+PARALLEL_CHECK = 1 << 18
+_CHECK_THREADS = [1]
+_POOLS: dict = {}
+
+
+def set_check_threads(count: int) -> None:
+    """Threads the checks of large arrays run on (:func:`dtpf.entity.cores.set_threads` sets the process's
+    count here too); 1, the default, checks in one call on the calling thread."""
+    _CHECK_THREADS[0] = max(1, int(count))
+
+
+def _reduced(values: np.ndarray, ufuncs) -> list[float]:
+    """Each of ``ufuncs``' reductions of all of ``values`` (cut along its first axis into parts on the check
+    threads for a large array; the parts' results reduced again: for the checks' decisions, not numbers)."""
+    count = min(_CHECK_THREADS[0], values.shape[0])
+    if count <= 1 or values.size < PARALLEL_CHECK:
+        return [float(ufunc.reduce(values, axis=None)) for ufunc in ufuncs]
+    pool = _POOLS.get(count)
+    if pool is None:
+        from concurrent.futures import ThreadPoolExecutor
+        pool = _POOLS[count] = ThreadPoolExecutor(max_workers=count - 1, thread_name_prefix="dtpf-checks")
+    bounds = [values.shape[0] * p // count for p in range(count + 1)]
+
+    def part(p: int) -> list:
+        chunk = values[bounds[p]:bounds[p + 1]]
+        return [ufunc.reduce(chunk, axis=None) for ufunc in ufuncs]
+
+    futures = [pool.submit(part, p) for p in range(1, count)]
+    results = [part(0)] + [future.result() for future in futures]
+    return [float(ufunc.reduce(np.array([result[i] for result in results]))) for i, ufunc in enumerate(ufuncs)]
+
+
 #: Relative tolerance on ``sum(weights) == 1`` for normalised weights.
 #: Summing N float64 values loses at most about N * 2**-53 relative, so 1e-6
 #: leaves room for N up to 1e9 while still catching unnormalised input.
@@ -57,7 +91,7 @@ def check_weights(weights, *, normalised: bool = True, name: str = "weights") ->
         raise ValueError(f"{name} is empty")
     # Two reductions decide the usual case: a NaN makes the minimum NaN, a negative value makes it
     # negative, an infinite value makes the sum infinite. Anything else takes the passes below.
-    smallest, total = float(np.minimum.reduce(w)), float(np.add.reduce(w))  # w.min(), w.sum(), called here
+    smallest, total = _reduced(w, (np.minimum, np.add))  # w.min(), w.sum(), called here
     if smallest >= 0.0 and np.isfinite(total):
         if total <= 0.0:
             raise ValueError(f"{name} are all zero (N={w.size})")
@@ -100,7 +134,7 @@ def check_particles(particles, *, n: int | None = None, name: str = "particles")
         raise ValueError(f"{name} is empty (shape {x.shape})")
     if n is not None and x.shape[0] != n:
         raise ValueError(f"{name} and weights differ in length: {x.shape[0]} particles, {n} weights")
-    if np.isfinite(np.add.reduce(x, axis=None)):  # a NaN or an infinity makes the sum non-finite
+    if np.isfinite(_reduced(x, (np.add,))[0]):  # a NaN or an infinity makes the sum non-finite
         return x
     finite = np.isfinite(x)
     if not finite.all():

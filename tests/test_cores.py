@@ -163,3 +163,57 @@ def test_the_kernels_shared_among_threads_give_the_one_thread_numbers(threads):
     assert resampling.distinct(a) == _merge.distinct(a) == np.unique(a).size
     summary = mirror.summarise(x, w, float(np.quantile(w, 0.7)), N_BLOCKED // 3, block=1000)
     assert summary.max_weight == w.max() and summary.n_above_threshold == np.count_nonzero(w > summary.threshold)
+
+
+def test_the_blocks_propagation_noise_is_drawn_on_every_thread(threads):
+    """From PARALLEL_MIN particles on, the blocks' draws share the threads (block 0 on the calling one)."""
+    import threading
+
+    from dtpf.entity import blocks
+
+    drawn_on = set()
+
+    class Model:
+        dim = 1
+
+        def propagation_noise(self, n, k, rng):
+            drawn_on.add(threading.get_ident())
+            return rng.standard_normal((n, 1))
+
+    threads(2)
+    n = 8 * 4096
+    noise = blocks.noise(Model(), n, 1, np.random.default_rng(0), 4096, (0, "t"))
+    assert noise.shape == (n, 1) and len(drawn_on) == 2
+    threads(1)
+    drawn_on.clear()
+    assert np.array_equal(blocks.noise(Model(), n, 1, np.random.default_rng(0), 4096, (0, "t")), noise)
+    assert len(drawn_on) == 1
+
+
+def test_the_checks_of_a_large_set_in_parts_find_what_one_pass_finds(monkeypatch):
+    """check_weights and check_particles cut a large array into parts on the check threads: a NaN, a
+    negative weight or a sum off 1 in the last part is named as in one pass."""
+    from dtpf.messages import arrays
+
+    monkeypatch.setattr(arrays, "PARALLEL_CHECK", 1 << 10)
+    arrays.set_check_threads(2)
+    try:
+        n = 1 << 12
+        weights = np.full(n, 1.0 / n)
+        assert arrays.check_weights(weights) is weights
+        bad = weights.copy()
+        bad[-1] = np.nan
+        with pytest.raises(ValueError, match=f"NaN values at index {n - 1}"):
+            arrays.check_weights(bad)
+        bad[-1] = -1e-9
+        with pytest.raises(ValueError, match=f"negative values at index {n - 1}"):
+            arrays.check_weights(bad)
+        bad[-1] = 0.5
+        with pytest.raises(ValueError, match="must sum to 1"):
+            arrays.check_weights(bad)
+        particles = np.ones((n, 2))
+        particles[-1, 1] = np.inf
+        with pytest.raises(ValueError, match=f"non-finite values at index {2 * n - 1}"):
+            arrays.check_particles(particles)
+    finally:
+        arrays.set_check_threads(1)

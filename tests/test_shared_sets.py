@@ -237,6 +237,30 @@ def test_a_reader_that_takes_none_of_its_sets_holds_its_writer_up_by_none_and_dr
         sets.undeclare(drain=0)
 
 
+def test_the_newest_set_of_each_publisher_waits_in_its_slot_and_the_one_before_is_copied_out(bus):
+    """Two publishers' sets interleaved (a step's particles and its preprocessed set): each one's newest
+    waits in its slot, read in place; the one before it is copied out when its publisher's next arrives."""
+    sending, receiving = bus
+    keys = ["dtpf/two-1/entity/particles", "dtpf/two-1/information/preprocessed"]
+    inbox = Inbox(receiving, "dtpf/two-1/**", views=True)
+    sets = [SetPublisher(sending, key, publisher(sending, key)) for key in keys]
+    length = 8 + _arrays(0)[0].nbytes + _arrays(0)[1].nbytes
+    try:
+        for count, copied in ((1, 0), (2, 2 * length)):
+            for publisher_of_key in sets:
+                _publish_sets(publisher_of_key, 1)
+            _wait_for(lambda: len(inbox) >= 2 * count, f"{2 * count} sets to arrive")
+            assert inbox._sets.copied_bytes == copied
+        got = [inbox.get(timeout=0) for _ in range(4)]
+        assert [type(item.payload) for item in got] == [memoryview] * 4
+        assert [item.key for item in got] == keys * 2
+        assert inbox._sets.copied_bytes == 0
+    finally:
+        inbox.close()
+        for publisher_of_key in sets:
+            publisher_of_key.undeclare(drain=0)
+
+
 def test_a_recorders_inbox_keeps_the_sets_it_has_no_room_for_in_their_slots_and_its_writer_waits(bus):
     """With back pressure, sets beyond the inbox's room stay in their slots: the writer, through its ring
     of four, waits for the reader and, after its wait (2 s here), drops it; nothing is dropped unread."""

@@ -391,8 +391,9 @@ class Inbox:
     order it published them, recovered or not, with their sequence numbers.
 
     A particle set by reference (:mod:`dtpf.shell.shared_sets`) of this host waits in its slot, to be
-    read where it lies, until the next set arrives; then it is copied out, so that a reader that falls
-    behind, or whose loop is stuck, holds its writer up by two sets at most, and drops sets once full.
+    read where it lies, until its publisher's next set arrives; then it is copied out, so that a reader
+    that falls behind, or whose loop is stuck, holds a publisher up by two sets at most, and drops sets
+    once full.
     With ``back_pressure`` (the recorder, which must lose nothing) a set that finds the inbox full stays
     in its slot instead, and its writer waits.
     """

@@ -35,6 +35,8 @@ SLOT_BUDGET = 64 << 20
 MIN_SLOTS, MAX_SLOTS = 4, 64
 #: Seconds a reader on another host waits for the bytes of a set.
 FETCH_TIMEOUT = 10.0
+#: Writers an inbox keeps track of (each the sets it holds in their slots); more, and those holding none go.
+MAX_WRITERS = 256
 #: Seconds a publisher that ends waits for the readers on its host to take its last set.
 DRAIN_TIMEOUT = 10.0
 
@@ -126,9 +128,9 @@ class SetResolver:
     :meth:`resolve` or :meth:`release`), the bytes asked of the publisher from another host.
 
     The inbox's subscriber thread calls :meth:`arrive` for each reference of this host it queues: the
-    newest set waits in its slot (read in place by its get), and one that still waits when the next
-    arrives is copied out then, so that a reader that falls behind, or whose loop is stuck, holds its
-    writer up by two sets at most (the one it reads and the newest). A set that finds no room to be copied
+    newest set of each writer waits in its slot (read in place by its get), and one that still waits when
+    its writer's next arrives is copied out then, so that a reader that falls behind, or whose loop is
+    stuck, holds a writer up by two sets at most (the one it reads and the newest). A set that finds no room to be copied
     is dropped, counted, as bytes would be; with ``back_pressure`` it stays in its slot, and its writer
     waits."""
 
@@ -136,8 +138,8 @@ class SetResolver:
         self.session = session
         self.reader = SlotReader()
         self._held: Held | None = None
-        #: References queued whose slots are held for their get, oldest first.
-        self._waiting: collections.deque[tuple[bytes, Reference]] = collections.deque()
+        #: By writer, the references queued whose slots are held for their get, oldest first.
+        self._waiting: dict[str, collections.deque[tuple[bytes, Reference]]] = {}
         #: Payloads copied out of their slots (or why not), by reference, until their get.
         self._copied: dict[bytes, object] = {}
         #: Bytes of the payloads copied out and not yet taken.
@@ -155,12 +157,13 @@ class SetResolver:
 
     def arrive(self, reference: Reference, payload: bytes, room, back_pressure: bool, on_drop) -> None:
         """``reference`` (received as ``payload``) is about to be queued: hold its slot, and copy out the
-        sets that were waiting in theirs if ``room(nbytes)`` says they fit; those that do not are dropped
-        (``on_drop()``), or, with ``back_pressure``, keep their slots."""
+        sets of its writer that were waiting in theirs if ``room(nbytes)`` says they fit; those that do not
+        are dropped (``on_drop()``), or, with ``back_pressure``, keep their slots."""
         with self._lock:
+            waiting = self._waiting.setdefault(reference.writer, collections.deque())
             keep = collections.deque()
-            while self._waiting:
-                older_payload, older = self._waiting.popleft()
+            while waiting:
+                older_payload, older = waiting.popleft()
                 if room(older.length):
                     try:
                         data = self.reader.copy(older)
@@ -176,12 +179,17 @@ class SetResolver:
                     self._copied[older_payload] = _DROPPED
                     self.reader.unpin(older)
                     on_drop()
-            self._waiting = keep
+            waiting.extend(keep)
             try:
                 self.reader.pin(reference)
             except SlotError:
                 return  # its get says why
-            self._waiting.append((payload, reference))
+            waiting.append((payload, reference))
+            while len(self._waiting) > MAX_WRITERS:  # writers long gone: their sets were taken or copied
+                oldest = next(iter(self._waiting))
+                if self._waiting[oldest]:
+                    break
+                del self._waiting[oldest]
 
     def skip(self, reference: Reference) -> None:
         """A reference dropped unread: its writer need not wait for this reader."""
@@ -193,14 +201,16 @@ class SetResolver:
         SetDropped if the inbox dropped it after it was queued."""
         self.release()
         pinned = False
+        reference = Reference.parse(payload)
         with self._lock:
             copied = self._copied.pop(payload, None)
             if isinstance(copied, bytes):
                 self.copied_bytes -= len(copied)
             elif copied is None:
-                for index, (waiting, _) in enumerate(self._waiting):
-                    if waiting == payload:
-                        del self._waiting[index]
+                waiting = self._waiting.get(reference.writer, ())
+                for index, (queued, _) in enumerate(waiting):
+                    if queued == payload:
+                        del waiting[index]
                         pinned = True
                         break
         if copied is _DROPPED:
@@ -209,7 +219,6 @@ class SetResolver:
             raise copied
         if copied is not None:
             return memoryview(copied).toreadonly() if views else copied
-        reference = Reference.parse(payload)
         if not self.reader.is_local(reference):
             return self._fetch(key, reference)
         try:

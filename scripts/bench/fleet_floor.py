@@ -185,9 +185,14 @@ def _serve(role: str, router: str, how: str, k: int, processes: int, process: in
     all_twins = [twin for p in range(processes) for twin in _twins_of(p, processes, k)]
     mine = [(topic, size) for topic, size in plan.items() if topic.split("/", 1)[0] == role]
     if role == "recorder":
-        inbox = Inbox(session, f"{PREFIX}/**")
-        while inbox.get(timeout=10) is not None:
-            pass
+        # Every message copied once into memory of its own, a buffer it reuses (as a writer's chunk buffer).
+        inbox = Inbox(session, f"{PREFIX}/**", views=True)
+        buffer = bytearray(0)
+        while (item := inbox.get(timeout=10)) is not None:
+            size = len(item.payload)
+            if size > len(buffer):
+                buffer = bytearray(size)
+            memoryview(buffer)[:size] = item.payload
         os._exit(0)
     if role == "system":
         weights = Receiver(session, "information/weight_state", all_twins, "*", how, doorbell)
@@ -248,10 +253,11 @@ def _kind(command: list[bytes]) -> str:
 
 
 def one_run(k: int, how: str, steps: int, processes: int, scale: float = 1.0,
-            plan: dict[str, int] | None = None, waits: bool = True) -> dict:
+            plan: dict[str, int] | None = None, waits: bool = True, recorder: bool = True) -> dict:
     """Twin-steps per second, seconds per step of one twin (``step_s``) and CPU ms per twin-step by kind of
     process, of one fleet of stand-ins sending ``plan`` (default: :func:`scaled_plan` of ``scale``);
-    ``waits``: the information stand-in waits for the PS decision of the step before."""
+    ``waits``: the information stand-in waits for the PS decision of the step before; ``recorder``: with
+    the recorder stand-in."""
     plan = plan or scaled_plan(scale)
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     router = open_session(zenoh_config(mode="router", listen=[endpoint]))
@@ -260,7 +266,7 @@ def one_run(k: int, how: str, steps: int, processes: int, scale: float = 1.0,
         session = open_session(zenoh_config(mode="client", connect=[endpoint]))
         estimates = Inbox(session, f"{PREFIX}/*/entity/estimate")
         with RssSampler(kind=_kind) as sampler:
-            for role in ROLES:
+            for role in (role for role in ROLES if recorder or role != "recorder"):
                 for process in range(processes if role == "entity" else 1):
                     children.append(subprocess.Popen(
                         [sys.executable, "-P", "-m", "dtpf.scripts.bench.fleet_floor", "--serve", role, endpoint, how, str(k),

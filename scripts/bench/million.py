@@ -12,9 +12,18 @@ Modes, interleaved in random order in every repetition, at each N (the default s
 (f)  floor, by reference        the same hops with stand-ins that do no work
                                 (``dtpf.scripts.bench.fleet_floor``, one twin), sets by reference
 (f0) floor, as bytes            the same, sets as bytes
+(fn) floor, no recorder         (f) without the recorder's stand-in (which copies every message out, on the
+                                same 2 cores)
 (w)  the disk                   what the recorder writes each step (the two sets), written to a file in the
                                 logs' folder as the recorder does (buffered writes, no fsync), ms per step:
                                 the floor under (b) that no transport removes
+(m)  the memory                 a step's two sets, each copied once into a ring of shared-memory slots as
+                                its publisher copies it (``dtpf.shell.slots.SlotWriter``, the product's ring
+                                size), one after the other as the lockstep does: with (f) at N = 1e3 (the
+                                step's small messages), the floor under (f) that no transport removes
+
+The floor's modes take at least 300 steps (a window of 290): at N = 1e6 its 30-step window varied 2x
+between runs.
 
 Targets (printed with PASS/FAIL; they decide no exit code): at N = 1e6 and 1e5, (f)/(a1) <= 0.1,
 (a)/(a1) <= 0.6 and (b)/(a1) <= 1.0; at N = 1e6, (b) at least 10 steps per second; at N = 1e3, (b) no
@@ -45,11 +54,16 @@ from dtpf.scripts.bench import fleet_floor
 from dtpf.scripts.bench.pipeline import (FIRST_TIMED, default_steps, fmt_ms, fmt_n, parse_size, run_floor,
                                          run_inprocess, run_launched)
 from dtpf.shell.service import keep_large_blocks
+from dtpf.shell.shared_sets import slots_for
+from dtpf.shell.slots import SlotWriter
 
-MODES = ("a1", "a", "b", "b0", "c", "f", "f0", "w")
+MODES = ("a1", "a", "b", "b0", "c", "f", "f0", "fn", "w", "m")
 NAMES = {"a1": "(a1) in-process, 1 thread", "a": "(a) in-process, every core", "b": "(b) launch",
          "b0": "(b0) launch, before", "c": "(c) launch, no recorder", "f": "(f) floor, by reference",
-         "f0": "(f0) floor, as bytes", "w": "(w) the disk"}
+         "f0": "(f0) floor, as bytes", "fn": "(fn) floor, no recorder", "w": "(w) the disk",
+         "m": "(m) the memory"}
+#: Fewest steps of the floor's modes (f, f0, m): they cost little, and a short window is noisy.
+FLOOR_STEPS = 300
 #: Targets: (f)/(a1), (a)/(a1), (b)/(a1) at these N; (b) steps per second at 1e6; (b)/(b0) at 1e3.
 TARGET_SIZES = (100_000, 1_000_000)
 FLOOR_SHARE, CORES_SHARE, LAUNCH_SHARE = 0.1, 0.6, 1.0
@@ -90,6 +104,24 @@ def write_floor(config: RunConfig, plan: dict[str, int], folder: Path) -> float:
     return (ends[-1] - ends[FIRST_TIMED - 1]) / (len(ends) - FIRST_TIMED)
 
 
+def memory_floor(config: RunConfig, plan: dict[str, int]) -> float:
+    """Seconds per step of copying a step's two particle sets (their sizes in ``plan``, else 16 bytes a
+    particle) once each into its own ring of shared-memory slots, as their publishers do, over the window."""
+    sizes = [plan.get(topic, 16 * config.particles) for topic in ("entity/particles", "information/preprocessed")]
+    rings = [SlotWriter(slots=slots_for(size)) for size in sizes]
+    parts = [[b"\0" * 1024, np.random.default_rng(0).random((size - 1024) // 8)] for size in sizes]
+    ends = []
+    try:
+        for _ in range(config.steps):
+            for ring, payload in zip(rings, parts):
+                ring.write(payload)
+            ends.append(time.perf_counter())
+    finally:
+        for ring in rings:
+            ring.close()
+    return (ends[-1] - ends[FIRST_TIMED - 1]) / (len(ends) - FIRST_TIMED)
+
+
 def run_mode(mode: str, config: RunConfig, plan: dict[str, int], folder: Path, timeout: float) -> float:
     """Seconds per step of ``mode`` over the timed window."""
     if mode in ("a1", "a"):
@@ -100,9 +132,13 @@ def run_mode(mode: str, config: RunConfig, plan: dict[str, int], folder: Path, t
             cores.set_threads(None)
     if mode == "w":
         return write_floor(config, plan, folder)
-    if mode in ("f", "f0"):
+    if mode in ("f", "f0", "fn", "m"):
+        config = config.model_copy(update={"steps": max(config.steps, FLOOR_STEPS)})
+    if mode == "m":
+        return memory_floor(config, plan)
+    if mode in ("f", "f0", "fn"):
         with sets_as_bytes(mode == "f0"):
-            return run_floor(config, plan)
+            return run_floor(config, plan, recorder=mode != "fn")
     with sets_as_bytes(mode == "b0"):
         seconds, _, _ = run_launched(config, recorder=mode != "c", timeout=timeout, folder=folder,
                                      threads=1 if mode == "b0" else None)
@@ -136,7 +172,7 @@ def main(argv=None) -> int:
         for n, config in configs.items():
             print(f"warm-up and the floor's messages at N={n}", file=sys.stderr)
             run_inprocess(config.model_copy(update={"steps": FIRST_TIMED + 2}))
-            if {"f", "f0", "w"} & set(args.modes):
+            if {"f", "f0", "fn", "w", "m"} & set(args.modes):
                 plans[n] = fleet_floor.plan_of_launch(config, folder, steps=FIRST_TIMED + 2)
         for repeat in range(args.repeats):
             for n, config in configs.items():
@@ -162,8 +198,8 @@ def main(argv=None) -> int:
         ratios = [y / x for x, y in zip(times[n, bottom], times[n, top])]
         return statistics.median(ratios), min(ratios), max(ratios)
 
-    pairs = [("f", "a1"), ("f0", "a1"), ("a", "a1"), ("b", "a1"), ("b0", "a1"), ("b", "b0"), ("c", "a1"),
-             ("w", "a1")]
+    pairs = [("f", "a1"), ("f0", "a1"), ("fn", "a1"), ("a", "a1"), ("b", "a1"), ("b0", "a1"), ("b", "b0"), ("c", "a1"),
+             ("w", "a1"), ("m", "a1")]
     shown = [(top, bottom) for top, bottom in pairs if top in args.modes and bottom in args.modes]
     print("\n| N | " + " | ".join(f"({t})/({b})" for t, b in shown) + " |")
     print("|---" * (1 + len(shown)) + "|")
@@ -174,6 +210,20 @@ def main(argv=None) -> int:
           f"end of step {FIRST_TIMED} to the end of the last (launches: the Estimate stamps; the floor: its "
           "estimates as this process receives them). Ratios: median (min-max) of per-repetition ratios.")
 
+    def floor_of(n: int, top: str) -> str:
+        """What bounds (f) and (b) from below at N, measured in this run: (m) + (f) at 1e3, and (w)."""
+        medians = {m: statistics.median(times[n, m]) for m in args.modes if (n, m) in times}
+        a1 = medians.get("a1")
+        if a1 is None:
+            return ""
+        if top == "f" and "m" in medians and (SMALL_N, "f") in times:
+            small = statistics.median(times[SMALL_N, "f"])
+            return (f" (its floor: (m) {fmt_ms(medians['m'])} ms + (f) at N = {fmt_n(SMALL_N)} {fmt_ms(small)} ms = "
+                    f"{(medians['m'] + small) / a1:.2f} of (a1))")
+        if top == "b" and "w" in medians:
+            return f" (its floor: (w) {medians['w'] / a1:.2f} of (a1))"
+        return ""
+
     print("\nTargets:")
     for n in TARGET_SIZES:
         for (top, bottom), share in ((("f", "a1"), FLOOR_SHARE), (("a", "a1"), CORES_SHARE),
@@ -181,7 +231,7 @@ def main(argv=None) -> int:
             r = ratio(n, top, bottom) if n in configs else None
             if r is not None:
                 print(f"- N = {fmt_n(n)}: ({top})/({bottom}) at most {share}: {r[0]:.2f}, "
-                      f"{'PASS' if r[0] <= share else 'FAIL'}")
+                      f"{'PASS' if r[0] <= share else 'FAIL'}" + floor_of(n, top))
     if RATE_N in configs and "b" in args.modes:
         rate = 1.0 / statistics.median(times[RATE_N, "b"])
         print(f"- N = {fmt_n(RATE_N)}: (b) at least {RATE:.0f} steps/s: {rate:.1f}, {'PASS' if rate >= RATE else 'FAIL'}")

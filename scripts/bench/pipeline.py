@@ -170,10 +170,11 @@ def _inprocess_child(n: int, steps: int, seed: int) -> int:
 
 # --- (f) the floor: the same hops, stand-ins that do no work -----------------
 
-def run_floor(config: RunConfig, plan: dict[str, int]) -> float:
-    """Seconds per step of one twin's stand-ins passing ``plan``'s messages (steps 10..T)."""
+def run_floor(config: RunConfig, plan: dict[str, int], recorder: bool = True) -> float:
+    """Seconds per step of one twin's stand-ins passing ``plan``'s messages (steps 10..T), with the recorder's
+    stand-in or without."""
     from dtpf.messages import family
-    result = fleet_floor.one_run(1, "inbox", config.steps, 1, plan=plan,
+    result = fleet_floor.one_run(1, "inbox", config.steps, 1, plan=plan, recorder=recorder,
                                  waits=not family.POLICIES.trait(config.policy, "constant", False))
     if "stalled" in result:
         raise RuntimeError(f"floor at N={config.particles} stalled after {result['stalled']} of {config.steps} "

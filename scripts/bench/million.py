@@ -62,6 +62,8 @@ NAMES = {"a1": "(a1) in-process, 1 thread", "a": "(a) in-process, every core", "
          "b0": "(b0) launch, before", "c": "(c) launch, no recorder", "f": "(f) floor, by reference",
          "f0": "(f0) floor, as bytes", "fn": "(fn) floor, no recorder", "w": "(w) the disk",
          "m": "(m) the memory"}
+#: (f)'s CPU seconds per step over all its processes, by N, one per repetition.
+FLOOR_CPU: dict[int, list[float]] = {}
 #: Fewest steps of the floor's modes (f, f0, m): they cost little, and a short window is noisy.
 FLOOR_STEPS = 300
 #: Targets: (f)/(a1), (a)/(a1), (b)/(a1) at these N; (b) steps per second at 1e6; (b)/(b0) at 1e3.
@@ -138,7 +140,8 @@ def run_mode(mode: str, config: RunConfig, plan: dict[str, int], folder: Path, t
         return memory_floor(config, plan)
     if mode in ("f", "f0", "fn"):
         with sets_as_bytes(mode == "f0"):
-            return run_floor(config, plan, recorder=mode != "fn")
+            return run_floor(config, plan, recorder=mode != "fn",
+                             cpu=FLOOR_CPU.setdefault(config.particles, []) if mode == "f" else None)
     with sets_as_bytes(mode == "b0"):
         seconds, _, _ = run_launched(config, recorder=mode != "c", timeout=timeout, folder=folder,
                                      threads=1 if mode == "b0" else None)
@@ -156,7 +159,14 @@ def main(argv=None) -> int:
     parser.add_argument("--timeout", type=float, default=10.0, metavar="SECONDS",
                         help="lockstep timeout of the services (default: %(default)s)")
     parser.add_argument("--seed", type=int, default=0, help="seed of every run and of the order")
+    parser.add_argument("--parallel-min", type=parse_size, default=None, metavar="N",
+                        help="the in-process modes' kernels share a set among the threads from N particles on "
+                             f"(default: {cores.PARALLEL_MIN}, dtpf.entity.cores.PARALLEL_MIN): what a lower "
+                             "threshold would give; the launched modes keep the default")
     args = parser.parse_args(argv)
+    if args.parallel_min is not None:
+        from dtpf.entity import resampling
+        cores.PARALLEL_MIN = resampling.PARALLEL_GATHER = args.parallel_min
     if args.repeats < 1:
         parser.error("--repeats must be at least 1")
     keep_large_blocks()
@@ -218,8 +228,13 @@ def main(argv=None) -> int:
             return ""
         if top == "f" and "m" in medians and (SMALL_N, "f") in times:
             small = statistics.median(times[SMALL_N, "f"])
+            spread = ""
+            if FLOOR_CPU.get(n):
+                per_core = statistics.median(FLOOR_CPU[n]) / cores.available()
+                spread = (f"; its processes' CPU, {fmt_ms(statistics.median(FLOOR_CPU[n]))} ms a step, over "
+                          f"{cores.available()} cores: {per_core / a1:.2f} of (a1)")
             return (f" (its floor: (m) {fmt_ms(medians['m'])} ms + (f) at N = {fmt_n(SMALL_N)} {fmt_ms(small)} ms = "
-                    f"{(medians['m'] + small) / a1:.2f} of (a1))")
+                    f"{(medians['m'] + small) / a1:.2f} of (a1){spread})")
         if top == "b" and "w" in medians:
             return f" (its floor: (w) {medians['w'] / a1:.2f} of (a1))"
         return ""

@@ -170,15 +170,17 @@ def _inprocess_child(n: int, steps: int, seed: int) -> int:
 
 # --- (f) the floor: the same hops, stand-ins that do no work -----------------
 
-def run_floor(config: RunConfig, plan: dict[str, int], recorder: bool = True) -> float:
+def run_floor(config: RunConfig, plan: dict[str, int], recorder: bool = True, cpu: list | None = None) -> float:
     """Seconds per step of one twin's stand-ins passing ``plan``'s messages (steps 10..T), with the recorder's
-    stand-in or without."""
+    stand-in or without; ``cpu``: a list to append the stand-ins' CPU seconds per step to (all processes)."""
     from dtpf.messages import family
     result = fleet_floor.one_run(1, "inbox", config.steps, 1, plan=plan, recorder=recorder,
                                  waits=not family.POLICIES.trait(config.policy, "constant", False))
     if "stalled" in result:
         raise RuntimeError(f"floor at N={config.particles} stalled after {result['stalled']} of {config.steps} "
                            "estimates")
+    if cpu is not None:
+        cpu.append(sum(result["cpu_ms"].values()) / 1e3)
     return result["step_s"]
 
 

@@ -42,7 +42,8 @@ def _reduced(values: np.ndarray, ufuncs) -> list[float]:
     threads for a large array; the parts' results reduced again: for the checks' decisions, not numbers)."""
     count = min(_CHECK_THREADS[0], values.shape[0])
     if count <= 1 or values.size < PARALLEL_CHECK:
-        return [float(ufunc.reduce(values, axis=None)) for ufunc in ufuncs]
+        with np.errstate(invalid="ignore", over="ignore"):
+            return [float(ufunc.reduce(values, axis=None)) for ufunc in ufuncs]
     pool = _POOLS.get(count)
     if pool is None:
         from concurrent.futures import ThreadPoolExecutor
@@ -51,11 +52,13 @@ def _reduced(values: np.ndarray, ufuncs) -> list[float]:
 
     def part(p: int) -> list:
         chunk = values[bounds[p]:bounds[p + 1]]
-        return [ufunc.reduce(chunk, axis=None) for ufunc in ufuncs]
+        with np.errstate(invalid="ignore", over="ignore"):
+            return [ufunc.reduce(chunk, axis=None) for ufunc in ufuncs]
 
     futures = [pool.submit(part, p) for p in range(1, count)]
     results = [part(0)] + [future.result() for future in futures]
-    return [float(ufunc.reduce(np.array([result[i] for result in results]))) for i, ufunc in enumerate(ufuncs)]
+    with np.errstate(invalid="ignore", over="ignore"):
+        return [float(ufunc.reduce(np.array([result[i] for result in results]))) for i, ufunc in enumerate(ufuncs)]
 
 
 #: Relative tolerance on ``sum(weights) == 1`` for normalised weights.

@@ -271,7 +271,10 @@ def test_a_recorders_inbox_keeps_the_sets_it_has_no_room_for_in_their_slots_and_
     sets = SetPublisher(sending, key, publisher(sending, key))
     sets.writer = SlotWriter(slots=4, wait=2.0)
     try:
-        _publish_sets(sets, 6)
+        _publish_sets(sets, 4)  # the first copied out (room for one), the others kept in their slots
+        _wait_for(lambda: len(inbox) >= 4, "4 sets to arrive")
+        assert sets.writer.dropped_readers == 0
+        _publish_sets(sets, 2)  # the fifth into the first's slot, the sixth waits for the second's
         _wait_for(lambda: len(inbox) >= 6, "6 sets to arrive")
         assert sets.writer.dropped_readers == 1 and inbox.dropped == 0
     finally:

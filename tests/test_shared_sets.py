@@ -261,6 +261,32 @@ def test_the_newest_set_of_each_publisher_waits_in_its_slot_and_the_one_before_i
             publisher_of_key.undeclare(drain=0)
 
 
+def test_a_reference_received_twice_is_counted_once_by_an_inbox_that_copies_it_out(bus):
+    """The same reference put twice (a replayed sample) and copied out when the next set arrives: the inbox
+    counts its bytes once, and has counted nothing once every item is taken."""
+    sending, receiving = bus
+    key = "dtpf/twice-1/entity/particles"
+    inbox = Inbox(receiving, key, views=True)
+    plain = publisher(sending, key)
+    sets = SetPublisher(sending, key, plain)
+    sets.writer = SlotWriter(slots=4)
+    try:
+        particles, weights = _arrays(1)
+        reference = sets.writer.write([b"SET00001", particles, weights])
+        plain.put(reference)
+        plain.put(reference)
+        _wait_for(lambda: len(inbox) >= 2, "the reference twice")
+        _publish_sets(sets, 1)
+        _wait_for(lambda: len(inbox) >= 3, "the next set")
+        assert inbox._sets.copied_bytes == 8 + particles.nbytes + weights.nbytes
+        while inbox.get(timeout=0) is not None:
+            pass
+        assert inbox._sets.copied_bytes == 0
+    finally:
+        inbox.close()
+        sets.undeclare(drain=0)
+
+
 def test_a_recorders_inbox_keeps_the_sets_it_has_no_room_for_in_their_slots_and_its_writer_waits(bus):
     """With back pressure, sets beyond the inbox's room stay in their slots: the writer, through its ring
     of four, waits for the reader and, after its wait (2 s here), drops it; nothing is dropped unread."""

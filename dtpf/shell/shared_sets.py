@@ -168,15 +168,14 @@ class SetResolver:
                     try:
                         data = self.reader.copy(older)
                     except (SlotError, SlotMiss) as error:
-                        self._copied[older_payload] = SetLost(str(error))
+                        self._keep(older_payload, SetLost(str(error)))
                     else:
-                        self._copied[older_payload] = data
-                        self.copied_bytes += len(data)
+                        self._keep(older_payload, data)
                     self.reader.unpin(older)
                 elif back_pressure:
                     keep.append((older_payload, older))
                 else:
-                    self._copied[older_payload] = _DROPPED
+                    self._keep(older_payload, _DROPPED)
                     self.reader.unpin(older)
                     on_drop()
             waiting.extend(keep)
@@ -190,6 +189,16 @@ class SetResolver:
                 if self._waiting[oldest]:
                     break
                 del self._waiting[oldest]
+
+    def _keep(self, payload: bytes, what) -> None:
+        """Keep what became of a waiting set (its bytes, SetLost or dropped) for its get; the same reference
+        received twice keeps the last, counted once."""
+        before = self._copied.get(payload)
+        if isinstance(before, bytes):
+            self.copied_bytes -= len(before)
+        self._copied[payload] = what
+        if isinstance(what, bytes):
+            self.copied_bytes += len(what)
 
     def skip(self, reference: Reference) -> None:
         """A reference dropped unread: its writer need not wait for this reader."""

@@ -408,6 +408,38 @@ def test_the_hindsight_reference_takes_per_seed_the_arm_whose_run_was_likeliest(
     assert ev.hindsight(by_seed) is None and ev.HINDSIGHT not in {r["variant"] for r in ev.cell_rows(by_seed)}
 
 
+def test_the_verdict_gives_the_share_of_the_gap_with_its_interval_and_the_paired_test_against_80_percent():
+    """The share of the best fixed method's gap a chooser closes, with its 95% (Fieller) interval: the shares r
+    whose paired difference (chooser - systematic) - r (best - systematic) has an interval that holds 0; 80% is
+    told apart exactly when that difference at r = 0.8 has an interval without 0."""
+    from dtpf.scripts.compare_stats import mean_interval
+    from dtpf.scripts.paper import evaluate_chooser as ev
+
+    rng = np.random.default_rng(7)
+    gap = -1.0 + rng.normal(0.0, 2.0, 400)              # the best fixed method against systematic, per seed
+    closed = 0.5 * gap + rng.normal(0.0, 1.0, 400)      # a chooser that closes about half of it
+    low, high = ev.share_interval(closed, gap)
+    assert low < closed.mean() / gap.mean() < high
+    for r in (low, high):                               # the ends: the paired test at r exactly at its edge
+        d, h = mean_interval(closed - r * gap, ev.Z95)
+        assert abs(d) == pytest.approx(h, rel=1e-9)
+    inside = ev.share_interval(gap + rng.normal(0.0, 0.01, 400), gap)
+    assert inside[0] < 1.0 < inside[1] and inside[1] - inside[0] < 0.05
+    assert ev.share_interval(closed, rng.normal(0.0, 2.0, 400) + 0.01) == (-math.inf, math.inf)  # no gap to share
+    rows = [dict(variant="systematic", significant=0, vs_systematic=0.0, vs_systematic_ci=0.0,
+                 per_seed=np.zeros(400)),
+            dict(variant="regularised", significant=-1, vs_systematic=float(gap.mean()), vs_systematic_ci=0.2,
+                 per_seed=gap),
+            dict(variant=ev.CHOOSE, significant=-1, vs_systematic=float(closed.mean()), vs_systematic_ci=0.1,
+                 per_seed=closed)]
+    words, met = ev.verdict("ungm", 100, rows)
+    d, h = mean_interval(closed - 0.8 * gap, ev.Z95)
+    assert not met["80% of the gap"] and f"The share's 95% interval: {100 * low:.0f}% to {100 * high:.0f}%" in words
+    assert f"{ev._num(d)} ± {ev._num(h)}, 80% outside the interval" in words and high < 0.8
+    rows[2]["per_seed"] = 0.8 * gap + rng.normal(0.0, 1.0, 400)
+    assert "80% inside the interval: not told apart" in ev.verdict("ungm", 100, rows)[0]
+
+
 def test_resuming_a_csv_written_before_the_likelihood_column_gives_it_today_s_header(tmp_path, capsys):
     """A file without the ``evidence`` column is rewritten with today's header before rows are appended, so
     every row sits under its own fields; a CSV of something else is a one-line error."""

@@ -299,8 +299,29 @@ def cell_rows(by_seed: dict[int, dict[str, dict]]) -> list[dict]:
                          ms=float(np.mean(ms)) if ms[0] is not None else math.nan,
                          off_plain=float(np.mean([by_seed[s].get(label, {}).get("off_plain", math.nan)
                                                   for s in seeds])),
-                         share=picked[1] if label == HINDSIGHT else None))
+                         share=picked[1] if label == HINDSIGHT else None,
+                         per_seed=error[label] - error["systematic"]))
     return rows
+
+
+def share_interval(closed: np.ndarray, gap: np.ndarray, z: float = Z95) -> tuple[float, float]:
+    """The 95% (Fieller) interval of the share mean(closed) / mean(gap) of two per-seed differences against
+    systematic (a chooser's and the best fixed method's), paired by seed: the shares r whose paired difference
+    closed - r gap has an interval that holds 0. (-inf, inf) where mean(gap) is not itself told apart from 0.
+    """
+    a, b = np.asarray(closed, dtype=np.float64), np.asarray(gap, dtype=np.float64)
+    n = a.size
+    if n < 2:
+        return -math.inf, math.inf
+    ma, mb = float(a.mean()), float(b.mean())
+    q = z * z / n
+    saa, sbb, sab = float(a.var(ddof=1)), float(b.var(ddof=1)), float(np.cov(a, b, ddof=1)[0, 1])
+    # (ma - r mb)^2 <= q (saa - 2 r sab + r^2 sbb): c2 r^2 - 2 c1 r + c0 <= 0
+    c2, c1, c0 = mb * mb - q * sbb, ma * mb - q * sab, ma * ma - q * saa
+    if c2 <= 0:
+        return -math.inf, math.inf
+    root = math.sqrt(max(c1 * c1 - c2 * c0, 0.0))
+    return (c1 - root) / c2, (c1 + root) / c2
 
 
 def significance(difference: float, half: float) -> int:
@@ -363,6 +384,14 @@ def verdict(scenario: str, n: int, rows: list[dict], chooser: str = CHOOSE) -> t
         words.append(f"Best fixed method significantly better than systematic: {best['variant']} "
                      f"({_num(best['vs_systematic'])}); it closes {100 * closed:.0f}% of that gap "
                      f"({'target met' if met['80% of the gap'] else 'short of 80%'}).")
+        if me.get("per_seed") is not None and best.get("per_seed") is not None:
+            low, high = share_interval(me["per_seed"], best["per_seed"])
+            d, dh = mean_interval(me["per_seed"] - 0.8 * best["per_seed"], Z95)
+            words.append(f"The share's 95% interval: {100 * low:.0f}% to {100 * high:.0f}% "
+                         f"({chooser} - systematic - 0.8 x ({best['variant']} - systematic): {_num(d)} ± {_num(dh)}, "
+                         + ("80% inside the interval: not told apart)." if low <= 0.8 <= high else
+                            "80% outside the interval).")
+                         )
         if HINDSIGHT in by and gap > 0:
             after = by[HINDSIGHT]["vs_systematic"]
             words.append(f"The arm chosen with hindsight by each run's likelihood closes {100 * -after / gap:.0f}%."

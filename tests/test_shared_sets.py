@@ -170,6 +170,21 @@ def bus():
             session.close()
 
 
+def _until_heard(plain, inbox: Inbox, timeout: float = 60.0) -> None:
+    """Put a probe until the inbox has it: its subscription has reached the router, and what follows is
+    heard (a put before that is lost)."""
+    deadline = time.monotonic() + timeout
+    while True:
+        plain.put(b"probe")
+        item = inbox.get(timeout=0.2)
+        if item is not None:
+            assert bytes(item.payload) == b"probe"
+            while inbox.get(timeout=0.2) is not None:  # the probes that were still on their way
+                pass
+            return
+        assert time.monotonic() < deadline, "the inbox never heard the publisher"
+
+
 def test_an_inbox_survives_references_it_cannot_read_and_takes_the_sets_that_follow(bus):
     sending, receiving = bus
     key = "dtpf/shared-1/entity/particles"
@@ -178,6 +193,7 @@ def test_an_inbox_survives_references_it_cannot_read_and_takes_the_sets_that_fol
     plain = publisher(sending, key)
     sets = SetPublisher(sending, key, plain)
     try:
+        _until_heard(plain, inbox)
         fake = Reference(slots.host_id(), "dtpf-" + "ef" * 16, 0, 1, 100, "abcd").encode()
         plain.put(b"DTPFREF\x01{oops")
         plain.put(fake)
@@ -223,6 +239,7 @@ def test_a_reader_that_takes_none_of_its_sets_holds_its_writer_up_by_none_and_dr
     sets = SetPublisher(sending, key, publisher(sending, key))
     sets.writer = SlotWriter(slots=4, wait=20.0)
     try:
+        _until_heard(sets.publisher, inbox)
         payloads = _publish_sets(sets, 12)
         _wait_for(lambda: len(inbox) >= 12, "12 sets to arrive")
         assert sets.writer.dropped_readers == 0
@@ -246,6 +263,8 @@ def test_the_newest_set_of_each_publisher_waits_in_its_slot_and_the_one_before_i
     sets = [SetPublisher(sending, key, publisher(sending, key)) for key in keys]
     length = 8 + _arrays(0)[0].nbytes + _arrays(0)[1].nbytes
     try:
+        for publisher_of_key in sets:
+            _until_heard(publisher_of_key.publisher, inbox)
         for count, copied in ((1, 0), (2, 2 * length)):
             for publisher_of_key in sets:
                 _publish_sets(publisher_of_key, 1)
@@ -271,6 +290,7 @@ def test_a_reference_received_twice_is_counted_once_by_an_inbox_that_copies_it_o
     sets = SetPublisher(sending, key, plain)
     sets.writer = SlotWriter(slots=4)
     try:
+        _until_heard(plain, inbox)
         particles, weights = _arrays(1)
         reference = sets.writer.write([b"SET00001", particles, weights])
         plain.put(reference)
@@ -297,6 +317,7 @@ def test_a_recorders_inbox_keeps_the_sets_it_has_no_room_for_in_their_slots_and_
     sets = SetPublisher(sending, key, publisher(sending, key))
     sets.writer = SlotWriter(slots=4, wait=2.0)
     try:
+        _until_heard(sets.publisher, inbox)
         _publish_sets(sets, 4)  # the first copied out (room for one), the others kept in their slots
         _wait_for(lambda: len(inbox) >= 4, "4 sets to arrive")
         assert sets.writer.dropped_readers == 0

@@ -245,6 +245,8 @@ class Outbound:
         self.wait_for_cloud = self.covariances and cloud_covariances(self.mapping, dim)
         self.published = 0
         self.samples = 0
+        #: The latest step of the twin's estimates taken (published or waiting for its cloud).
+        self.last_step = 0
         self.closed = False
         self.lock = threading.Lock()
         self.twin = config.twin
@@ -280,6 +282,7 @@ class Outbound:
             log.debug("an estimate of %d components, not the model's %d", len(message.mean), self.dim)
             return
         if isinstance(message, Estimate):
+            self.last_step = max(self.last_step, message.step)
             cloud = self.clouds.pop(message.step, None)
             if cloud is not None or self.no_clouds or not self.wait_for_cloud:
                 self._publish(message, cloud)
@@ -345,16 +348,21 @@ class Outbound:
         self.published += 1
         log.debug("published step %d (%s)", estimate.step, "with its cloud" if points is not None else "no cloud")
 
-    def close(self, progress, quiet: float = 0.3, acked: float = 10.0) -> None:
-        """Take what the twin still sends until ``quiet`` seconds pass without a sample, publish what waits,
-        then wait (at most ``acked`` s) until reliable subscribers have acknowledged everything;
-        ``progress()`` is called while this moves (the shell's exit watchdog)."""
+    def close(self, progress, quiet: float = 0.3, acked: float = 10.0, last_step: int | None = None,
+              patience: float = 5.0) -> None:
+        """Take what the twin still sends until ``quiet`` seconds pass without a sample (and, if the run's
+        ``last_step`` is known, until its estimate is in or ``patience`` seconds pass: on a loaded machine it
+        can come later than ``quiet``), publish what waits, then wait (at most ``acked`` s) until reliable
+        subscribers have acknowledged everything; ``progress()`` is called while this moves (the shell's exit
+        watchdog)."""
         from rclpy.duration import Duration
 
+        deadline = time.monotonic() + patience
         while True:
             seen = self.samples
             time.sleep(quiet)
-            if self.samples == seen:
+            behind = last_step is not None and self.last_step < last_step and time.monotonic() < deadline
+            if self.samples == seen and not behind:
                 break
             progress()
         with self.lock:
@@ -591,7 +599,7 @@ def main(config: RunConfig, zconf, args: argparse.Namespace) -> int:
                                          f"messages are not received")
             if outbound is not None:
                 shell.watchdog.step = "publishing the twin's last messages on ROS 2"
-                outbound.close(shell.watchdog.progress)
+                outbound.close(shell.watchdog.progress, last_step=config.steps)
             sent = sum(inbound.sent for _, _, inbound, _ in inputs if not inbound.control)
             shell.log.info("stopped: %s%s", f"{sent} observations sent" if inputs else "",
                            f", {outbound.published} estimates published" if outbound is not None else "")

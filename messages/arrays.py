@@ -25,7 +25,8 @@ warnings.filterwarnings("ignore", r"(invalid value|overflow) encountered in redu
                         re.escape(__name__))
 
 #: From this many values on, the checks' two reductions run in parts on :func:`set_check_threads` threads
-#: (numpy releases the GIL in them); below it, or on one thread, in one call.
+#: (numpy releases the GIL in them); below it, or on one thread, in one call. A pool of their own, not
+#: dtpf.entity.cores.in_parts: the messages import nothing of the layers.
 PARALLEL_CHECK = 1 << 18
 _CHECK_THREADS = [1]
 _POOLS: dict = {}

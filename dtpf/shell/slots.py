@@ -409,6 +409,11 @@ class _Reading:
         self.pins: dict[int, int] = {}
         self.seen = seen
 
+    def pin(self, seq: int) -> None:
+        """Hold payload ``seq`` (once more)."""
+        self.pins[seq] = self.pins.get(seq, 0) + 1
+        self.seen = max(self.seen, seq)
+
     def done(self) -> int:
         """What the writer may overwrite: everything before the oldest payload held, else all seen."""
         return min(self.pins) - 1 if self.pins else self.seen
@@ -434,9 +439,7 @@ class SlotReader:
         """Keep the writer from overwriting ``reference``'s slot until :meth:`resolve` (``pinned=True``) and
         :meth:`release`, or :meth:`unpin`. SlotError as for :meth:`resolve`."""
         with self._lock:
-            reading = self._reading(reference)
-            reading.pins[reference.seq] = reading.pins.get(reference.seq, 0) + 1
-            reading.seen = max(reading.seen, reference.seq)
+            self._reading(reference).pin(reference.seq)
 
     def unpin(self, reference: Reference) -> None:
         """Let go of a payload pinned and never resolved."""
@@ -457,8 +460,7 @@ class SlotReader:
                     self.unpin(reference)
                 raise
             if not pinned:
-                reading.pins[reference.seq] = reading.pins.get(reference.seq, 0) + 1
-                reading.seen = max(reading.seen, reference.seq)
+                reading.pin(reference.seq)
             file, start = reading.file, reading.file.slot_at(reference.slot)
             if _word(file.map, start) != reference.seq or _word(file.map, start + 8) != reference.length:
                 self._let_go(reading, reference.seq)

@@ -90,7 +90,8 @@ class TwinInformation:
                                       move_rule=config.move_rule,
                                       preprocess=family.POLICIES.trait(config.policy, "initial_preprocess", True),
                                       arms=arms_for(config.jitter), block=config.block_particles,
-                                      arm=(config.choose_base or names.DEFAULT_CHOOSE_BASE)
+                                      arm=(config.choose_base if config.choose_base not in (None, names.REHEARSE)
+                                           else names.DEFAULT_CHOOSE_BASE)
                                       if family.POLICIES.trait(config.policy, "chooses_arms", False) else None)
         shell.expect(RunShape.of(config, model))
         self.particle_sets = shell.inbox("entity", "particles")

@@ -155,10 +155,11 @@ class RunConfig(BaseModel):
                         "built-in (dtpf.system.policy.POLICIES; dtpf run --help lists them), a name registered in the "
                         "entry-point group 'dtpf.policies', or your own PSPolicy subclass as "
                         "'path/to/file.py:NAME'.")
-    choose_base: Literal[names.ARMS] | None = Field(None, description="The choosing policy's base arm: the move "
-                                                    "in force when no other has the evidence, and the one every "
-                                                    "other arm's evidence is against (only with policy 'choose'; "
-                                                    f"default {names.DEFAULT_CHOOSE_BASE}).")
+    choose_base: Literal[names.CHOOSE_BASES] | None = Field(
+        None, description="The choosing policy's base arm: the move in force when no other has the evidence, and "
+        "the one every other arm's evidence is against (only with policy 'choose'; default "
+        f"{names.DEFAULT_CHOOSE_BASE}); '{names.REHEARSE}': the arm that estimated best on simulated runs of the "
+        "model before the run (dtpf.system.rehearse).")
     ps: float = Field(0.81, ge=0.0, le=1.0, description="PS of the fixed policy, and the initial PS.")
     ps_rate: float = Field(0.25, gt=0.0, le=1.0, description="Largest change of PS per step that the "
                                                               "adaptive policies make.")
@@ -508,9 +509,11 @@ def add_run_arguments(parser: argparse.ArgumentParser, threads: bool = False) ->
     group.add_argument("--policy", default=None, metavar="NAME",
                        help="PS policy of the system layer (docs/guides/policies.md): " + family.POLICIES.help(
                            "your own PSPolicy subclass", defaults.policy))
-    group.add_argument("--choose-base", default=None, choices=names.ARMS, metavar="ARM",
+    group.add_argument("--choose-base", default=None, choices=names.CHOOSE_BASES, metavar="ARM",
                        help="with --policy choose: the arm in force when no other has the evidence, and the one the "
-                            f"others are scored against ({', '.join(names.ARMS)}; default: {names.DEFAULT_CHOOSE_BASE})")
+                            f"others are scored against ({', '.join(names.ARMS)}; default: {names.DEFAULT_CHOOSE_BASE}); "
+                            f"'{names.REHEARSE}': before the run, filter {400} simulated runs of the model with every "
+                            "arm and take the one that estimated best (roughening unless one is significantly better)")
     group.add_argument("--ps", type=float, default=None,
                        help=f"PS of the fixed policy, initial PS of the others (default: {defaults.ps})")
     group.add_argument("--ps-rate", type=float, default=None, metavar="CHANGE",

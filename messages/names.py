@@ -20,7 +20,7 @@ import sys
 from dtpf.messages.family import Family
 
 __all__ = ["SCENARIOS", "MODEL_ENTRY_POINTS", "CANNOT_SAMPLE", "BuiltinOnly", "WEIGHT_RULE_REGISTRY",
-           "MOVE_RULE_REGISTRY", "ARMS", "OWN_ARM", "scenario_names"]
+           "MOVE_RULE_REGISTRY", "ARMS", "OWN_ARM", "REHEARSE", "CHOOSE_BASES", "scenario_names"]
 
 #: Built-in scenarios (dtpf.entity.models): Eq. 35 with 25, Eq. 35 as printed (0.25), the tracking video, and a
 #: slowly drifting constant with precise observations (where particles impoverish; not in the paper), and the
@@ -71,6 +71,11 @@ OWN_ARM = "own"
 #: The choosing policy's base arm when none is given: over 1,000 seeds per cell roughening was never
 #: significantly worse than plain systematic resampling in any cell of its evaluation (docs/results/chooser.md).
 DEFAULT_CHOOSE_BASE = "roughening"
+#: The choosing policy's base "rehearse": before the run the system layer filters simulated runs of the model
+#: with every arm and takes the arm that estimated best (dtpf.system.rehearse).
+REHEARSE = "rehearse"
+#: What the choosing policy's base may be: an arm, or "rehearse".
+CHOOSE_BASES = (*ARMS, REHEARSE)
 
 
 def scenario_names() -> list[str]:

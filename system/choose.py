@@ -139,6 +139,9 @@ class ArmEvidence:
         #: Propagate all copies in one call when the model draws its noise on its own (False: one call per copy,
         #: the same numbers; the reference the batched call is tested against).
         self.batched = True
+        #: Each arm's estimate of the last step it moved, the weighted mean of the set its filter reports (a
+        #: DT arm's after its move), when set to a dict (:mod:`dtpf.system.rehearse` sets it); None: not kept.
+        self.estimates: dict[str, np.ndarray] | None = None
         #: (k + 1, the (A, M, d) copies propagated to k + 1, in the order of :attr:`arms`)
         self._copies: tuple[int, np.ndarray] | None = None
         self._z = np.empty(0)
@@ -239,10 +242,13 @@ class ArmEvidence:
         m = min(self.particles, min(w.size for _, w in weighted.values()))
         points = (rng.random() + np.arange(m)) / m          # the same points resample every copy
         resampled: dict[str, np.ndarray] = {}
+        estimates = None if self.estimates is None else {}
         state = rng.bit_generator.state
         for arm in self.arms:                                 # the DT arms: the same partners, r and u
             x, w = weighted[arm.name]
             if not arm.preprocess:
+                if estimates is not None:
+                    estimates[arm.name] = w @ x
                 resampled[arm.name] = x[resampling.inverse_cdf(points, w)]
                 continue
             rng.bit_generator.state = state
@@ -253,7 +259,11 @@ class ArmEvidence:
             moved = rules.preprocess(x, w, arm.ps, rng, threshold_rule=self.threshold_rule,
                                      weight_rule=arm.weight_rule, log_likelihood=log_likelihood,
                                      move_rule=arm.move_rule)
+            if estimates is not None:
+                estimates[arm.name] = moved.weights @ moved.particles
             resampled[arm.name] = moved.particles[resampling.inverse_cdf(points, moved.weights)]
+        if estimates is not None:
+            self.estimates = estimates
         state = rng.bit_generator.state
         for arm in self.arms:                                 # the jitters: the same standard normals
             if arm.jitter == "none":

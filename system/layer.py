@@ -29,11 +29,15 @@ from dataclasses import replace
 import numpy as np
 
 from dtpf.information.mirror import WeightSummary, summarise
+from dtpf.messages.names import DEFAULT_CHOOSE_BASE, REHEARSE
 from dtpf.messages.streams import stream
 from dtpf.system.policy import PSDecision, PSPolicy
 from dtpf.system.predict import Forecast, Predictor, Snapshot
 
 __all__ = ["SystemLayer"]
+
+#: The reasons a rehearsal could not run that this process has logged (each once).
+_SAID: set[str] = set()
 
 
 class SystemLayer:
@@ -78,12 +82,30 @@ class SystemLayer:
         from dtpf.system.evidence import Evidence
 
         cls_ = ps_policy.policy_class(config.policy)
-        base = {"base": config.choose_base} if cls_.chooses_arms and config.choose_base else {}
+        rehearsing = cls_.chooses_arms and config.choose_base == REHEARSE
+        base = {"base": config.choose_base} if cls_.chooses_arms and config.choose_base and not rehearsing else {}
         if cls_.chooses_arms:
             base["move"] = config.jitter
         policy = cls_(ps=config.ps, max_change=config.ps_rate, **base, **(policy_options or {}))
         if policy.simulates and model is None:
             model = model_ref.resolve(config.model_ref)
+        if rehearsing:
+            from dtpf.system.rehearse import why_not
+            reason = why_not(model)
+            if reason is not None:  # the default base, and the reason in the log (once a process)
+                if reason not in _SAID:
+                    _SAID.add(reason)
+                    logging.getLogger(__name__).warning("choose_base rehearse: %s; the base is %s", reason,
+                                                        DEFAULT_CHOOSE_BASE)
+                rehearsing = False
+        if rehearsing:  # the base the model's simulated runs favour; the layers start on the default base
+            from dtpf.system.rehearse import rehearse
+            rehearsal = rehearse(model, policy.arms, n=config.particles, steps=config.steps,
+                                 threshold_rule=config.threshold, move=config.jitter, particles=policy.particles)
+            policy = cls_(ps=config.ps, max_change=config.ps_rate, base=rehearsal.arm, move=config.jitter,
+                          **(policy_options or {}))
+            policy.arm = policy.initial_arm = DEFAULT_CHOOSE_BASE
+            policy.rehearsal = rehearsal
         view = None
         if model is not None:
             from dtpf.entity.calls import ModelCalls, StepModel

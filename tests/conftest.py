@@ -71,6 +71,7 @@ LONG = {
     "test_services.py::test_entity_survives_the_information_layer_being_killed_and_restarted",
     "test_real_twin.py::test_a_live_twin_follows_its_sensor_waits_when_it_dies_and_continues_when_it_is_back",
     "test_one_twin.py::test_a_competitor_of_one_twin_of_a_fleet_fails_the_fleet_and_is_named",
+    "test_rehearse.py::test_a_launched_rehearsal_decides_as_the_inprocess_one_and_its_log_verifies",
 }
 
 

@@ -76,15 +76,16 @@ TRADITIONAL = evaluate_guard.TRADITIONAL
 CURES: dict[str, Variant] = {label: evaluate_guard.VARIANTS[label] for label in
                              ("DT paper rule, PS 0.81", "DT relative rule, PS 0", "roughening", "regularised")}
 #: The chooser as --policy choose runs it (its base arm roughening), and the one on plain resampling.
-CHOOSE, CHOOSE_PLAIN = "choose", "choose, plain base"
-#: The choosers, and the base arm of each.
-CHOOSERS = {CHOOSE: "roughening", CHOOSE_PLAIN: "plain"}
+CHOOSE, CHOOSE_PLAIN, CHOOSE_REHEARSED = "choose", "choose, plain base", "choose, rehearsed base"
+#: The choosers, and the base arm of each ("rehearse": the arm its rehearsal of the model chose, per cell).
+CHOOSERS = {CHOOSE: "roughening", CHOOSE_PLAIN: "plain", CHOOSE_REHEARSED: "rehearse"}
 #: The variants, as ``dtpf compare --variant`` reads them (LABEL:FIELD=VALUE,...).
 VARIANT_SPECS = (
     *(spec for spec in evaluate_guard.VARIANT_SPECS if spec.split(":")[0] in (*TRADITIONAL, *CURES)),
     next(spec for spec in evaluate_guard.VARIANT_SPECS if spec.startswith("guard-observed, relative rule:")),
     f"{CHOOSE}:policy=choose",
     f"{CHOOSE_PLAIN}:policy=choose,choose_base=plain",
+    f"{CHOOSE_REHEARSED}:policy=choose,choose_base=rehearse",
 )
 #: Variants by label (the traditional resamplers, the cures, guard-observed, the choosers; and those the options
 #: add).
@@ -231,7 +232,8 @@ def run_variant(task: Task, label: str, model, options: dict, truth: np.ndarray,
     twin = pf.preprocessor
     if label in CHOOSERS and twin is not None:
         arms = [d.arm for d in twin.decisions[:-1]]  # the arm in force at steps 2 .. T
-        figures["off_plain"] = float(np.mean([a != CHOOSERS[label] for a in arms])) if arms else 0.0
+        base = getattr(twin.system.policy, "base", CHOOSERS[label])  # a rehearsed base: the rehearsal's arm
+        figures["off_plain"] = float(np.mean([a != base for a in arms])) if arms else 0.0
     return figures
 
 
@@ -355,7 +357,8 @@ def table(scenario: str, n: int, seeds: int, rows: list[dict]) -> str:
         ms = "-" if math.isnan(row["ms"]) else f"{row['ms']:.2f}"
         name = row["variant"]
         if name in CHOOSERS and not math.isnan(row["off_plain"]):
-            name += f" (not {CHOOSERS[name]} at {100 * row['off_plain']:.0f}% of steps)"
+            base = CHOOSERS[name] if CHOOSERS[name] != "rehearse" else "its base"
+            name += f" (not {base} at {100 * row['off_plain']:.0f}% of steps)"
         if name in FROM_STEP:
             name += f" ({CHOOSERS[CHOOSE]} before; not causal)"
         if row.get("share"):
@@ -399,6 +402,11 @@ def verdict(scenario: str, n: int, rows: list[dict], chooser: str = CHOOSE) -> t
                          f"systematic ({_num(after)}).")
     else:
         words.append("No fixed method is significantly better than systematic.")
+    worse_than = [label for label in ("roughening", "DT paper rule, PS 0.81")
+                  if label in by and label != chooser and by[label]["significant_vs"].get(chooser, 0) < 0]
+    met["not worse than roughening and the paper's DT"] = not worse_than
+    if worse_than:
+        words.append(f"Significantly worse than {', '.join(worse_than)}: target missed.")
     if scenario in CHANGING:
         not_beaten = [label for label in FIXED if label in by and by[label]["significant_vs"][chooser] <= 0]
         met["beats every fixed method"] = not not_beaten

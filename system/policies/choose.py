@@ -101,6 +101,9 @@ class ChoosePS(PSPolicy):
         self.move = move
         #: The arm in force (the latest decision's; the arm the entity applies at the step being decided).
         self.arm = self.initial_arm = base
+        #: The rehearsal that chose the base (:mod:`dtpf.system.rehearse`), or None. With one, the layers start on
+        #: the default base and the first decision puts the rehearsed base in force.
+        self.rehearsal = None
 
     @property
     def initial_ps(self) -> float:
@@ -127,6 +130,10 @@ class ChoosePS(PSPolicy):
         return spread == 0.0 or float(np.mean(d)) / (spread / math.sqrt(d.size)) > self.steady
 
     def decide(self, step: int, forecast: Forecast) -> PSDecision:
+        if self.arm == self.initial_arm != self.base and not forecast.evidence_steps:
+            # the rehearsed base, from the first decision on
+            return self._decision(step, self.base, f"choose: {self.rehearsal.summary()}"
+                                  if self.rehearsal is not None else f"choose: base {self.base}", {})
         if not forecast.arm_evidence:
             return self._decision(step, self.arm, f"choose: no evidence yet: {self.arm} kept", {})
         base = self.base

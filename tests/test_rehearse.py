@@ -1,0 +1,176 @@
+"""The rehearsal (``--choose-base rehearse``): every arm on simulated runs of the model, the best becomes the base."""
+from __future__ import annotations
+
+import logging
+import math
+
+import numpy as np
+import pytest
+
+from dtpf.entity import models
+from dtpf.entity.base import StateSpaceModel
+from dtpf.information.layer import ARMS
+from dtpf.messages import names
+from dtpf.messages.config import RunConfig
+from dtpf.scripts.inprocess import build, simulate
+from dtpf.scripts.paper.evaluate_guard import DRIFT_PLUS_100
+from dtpf.system import rehearse
+from dtpf.system.choose import ArmEvidence
+from dtpf.system.layer import SystemLayer
+
+FIVE = tuple(ARMS)  # plain, the two DT rules, roughening, the regularised kernel
+#: drift+100 through its model reference: the constant 100 away from the origin, where the paper's rule errs.
+SHIFTED = dict(model="dtpf.scripts.paper.evaluate_guard:DRIFT_PLUS_100")
+
+
+@pytest.fixture
+def few_runs(monkeypatch):
+    """60 simulated runs per rehearsal instead of 400, and nothing kept from another test."""
+    monkeypatch.setattr(rehearse, "RUNS", 60)
+    monkeypatch.setattr(rehearse, "_CACHE", {})
+
+
+def test_the_best_arm_on_the_model_becomes_the_base_and_the_paper_rule_is_measured_worse():
+    """drift+100: the relative rule's estimate is better than roughening's by more than 2.5 standard errors
+    and best of all; the paper's rule, which moves particles by their distance from the origin, is worse."""
+    result = rehearse.rehearse(DRIFT_PLUS_100, FIVE, n=100, steps=20, runs=60)
+    z = {arm: mean / se for arm, (mean, se) in result.differences.items() if se > 0}
+    assert result.arm == "dt-relative" and result.against == "roughening"
+    assert z["dt-relative"] < -rehearse.Z
+    assert z["dt-paper"] > 3
+    assert result.errors["dt-relative"] == min(result.errors.values())
+    assert (result.runs, result.steps, result.particles) == (60, 20, 100)
+    assert "base dt-relative" in result.summary() and "dt-paper +" in result.summary()
+
+
+def test_no_arm_significantly_better_leaves_the_default_base():
+    """ungm over 20 steps: no arm's error differs from roughening's by 2.5 standard errors; roughening stays."""
+    result = rehearse.rehearse(models.get("ungm"), FIVE, n=100, steps=20, runs=60)
+    assert result.arm == "roughening"
+    assert all(abs(mean) <= rehearse.Z * se for arm, (mean, se) in result.differences.items() if arm != "roughening")
+
+
+def test_an_arm_that_moves_like_the_base_is_never_chosen(few_runs, tmp_path):
+    """The run's own move as an arm, roughening again: with common random numbers every difference is 0."""
+    (tmp_path / "same.py").write_text("from dtpf.entity import jitter\n\n\ndef same(resampled, particles, weights, rng):\n"
+                                      "    return jitter.apply('roughening', resampled, particles, weights, rng, "
+                                      "n=len(weights))\n")
+    result = rehearse.rehearse(DRIFT_PLUS_100, ("plain", "roughening", names.OWN_ARM), n=50, steps=10,
+                               move=f"{tmp_path / 'same.py'}:same")
+    assert result.differences[names.OWN_ARM] == (0.0, 0.0) and result.arm in ("plain", "roughening")
+
+
+def test_the_rehearsal_depends_on_the_model_n_and_steps_and_not_on_the_run_seed(few_runs):
+    configs = [RunConfig(**SHIFTED, policy="choose", choose_base="rehearse", particles=60, steps=15, seed=seed)
+               for seed in (1, 2)]
+    first, second = (SystemLayer.from_config(c, model=DRIFT_PLUS_100).policy for c in configs)
+    assert first.rehearsal is second.rehearsal          # computed once in a process
+    rehearse._CACHE.clear()
+    again = SystemLayer.from_config(configs[0], model=DRIFT_PLUS_100).policy.rehearsal
+    assert again is not first.rehearsal and again == first.rehearsal   # the same numbers when computed again
+    longer = RunConfig(**SHIFTED, policy="choose", choose_base="rehearse", particles=60, steps=25, seed=1)
+    assert SystemLayer.from_config(longer, model=DRIFT_PLUS_100).policy.rehearsal.steps == 25
+    assert rehearse.rehearse(DRIFT_PLUS_100, FIVE, n=60, steps=None, runs=2).steps == rehearse.STEPS
+
+
+def test_the_layers_start_on_the_default_base_and_the_first_decision_puts_the_rehearsed_one_in_force(few_runs):
+    config = RunConfig(**SHIFTED, policy="choose", choose_base="rehearse", particles=100, steps=20, seed=5)
+    _, z = simulate(config, DRIFT_PLUS_100)
+    pf = build(config, z, DRIFT_PLUS_100)
+    policy = pf.preprocessor.system.policy
+    assert (policy.initial_arm, policy.base) == ("roughening", policy.rehearsal.arm) == ("roughening", "dt-relative")
+    steps = list(pf)
+    decisions = pf.preprocessor.decisions
+    assert decisions[0].arm == "dt-relative" and decisions[0].applies_from_step == 2
+    assert decisions[0].reason.startswith("choose: rehearsal over 60 simulated runs of 20 steps")
+    # The relative rule preprocesses from step 2 on (the decision of step 1), roughening runs at step 1.
+    assert steps[0].report.n_processed == 0
+    assert all(step.report.n_processed > 0 or step.report.n_large == config.particles for step in steps[1:])
+    assert any(step.report.n_processed > 0 for step in steps[1:])
+
+
+def test_a_model_that_cannot_draw_observations_keeps_the_default_base_and_says_why(caplog, monkeypatch):
+    from dtpf.system import layer as system_layer
+
+    monkeypatch.setattr(system_layer, "_SAID", set())
+    config = RunConfig(scenario="video", policy="choose", choose_base="rehearse", particles=50, steps=5)
+    with caplog.at_level(logging.WARNING):
+        layer = SystemLayer.from_config(config)
+    assert (layer.policy.base, layer.policy.rehearsal) == ("roughening", None)
+    assert "model 'video' cannot draw observations" in caplog.text and "the base is roughening" in caplog.text
+
+
+def test_why_not_names_what_a_rehearsal_cannot_simulate():
+    class Driven(models.DriftModel):
+        controls = ("v",)
+
+    assert rehearse.why_not(models.get("ungm")) is None
+    assert "driven or has several sensors" in rehearse.why_not(Driven())
+    assert "cannot draw observations" in rehearse.why_not(models.get("video"))
+    with pytest.raises(ValueError, match="choose_base rehearse: model 'video' cannot draw"):
+        rehearse.rehearse(models.get("video"), FIVE, n=10, steps=5)
+    with pytest.raises(ValueError, match="at least 2 runs"):
+        rehearse.rehearse(DRIFT_PLUS_100, FIVE, n=10, steps=5, runs=1)
+
+
+def test_keeping_the_estimates_changes_no_number_of_the_copies_and_a_dt_arm_s_is_after_its_move():
+    model = DRIFT_PLUS_100
+    truth, z = model.simulate(6, np.random.default_rng(3))
+    runs = []
+    for keep in (False, True):
+        copies = ArmEvidence(model, FIVE, n=80, particles=80)
+        if keep:
+            copies.estimates = {}
+        rng = np.random.default_rng(11)
+        particles = model.initial_particles(80, np.random.default_rng(1))
+        log_w = model.log_likelihood(particles, z[0], 1)
+        weights = np.exp(log_w - log_w.max())
+        weights /= weights.sum()
+        scored = [copies.observe(k, particles, weights, z[k - 1], rng) for k in range(1, 7)]
+        runs.append((scored, copies.copies, copies.estimates))
+    (plain_scores, plain_copies, none), (kept_scores, kept_copies, estimates) = runs
+    assert none is None and plain_scores == kept_scores
+    assert all(np.array_equal(plain_copies[a], kept_copies[a]) for a in plain_copies)
+    # Plain's estimate is its weighted mean; the paper's rule reports the set it moved, far from plain's.
+    assert set(estimates) == set(copies.names)
+    assert abs(estimates["dt-paper"][0] - estimates["plain"][0]) > 10 * abs(estimates["plain"][0] - truth[5, 0])
+
+
+def test_the_configuration_and_the_command_line_take_rehearse_for_the_choosing_policy_only():
+    from dtpf.messages.config import add_run_arguments, config_from_args
+    import argparse
+
+    assert names.REHEARSE in names.CHOOSE_BASES and names.REHEARSE not in names.ARMS
+    assert RunConfig(policy="choose", choose_base="rehearse").choose_base == "rehearse"
+    with pytest.raises(ValueError, match="a base arm \\(rehearse\\) is for policy 'choose'"):
+        RunConfig(policy="fixed", choose_base="rehearse")
+    parser = argparse.ArgumentParser()
+    add_run_arguments(parser)
+    args = parser.parse_args(["--policy", "choose", "--choose-base", "rehearse"])
+    assert config_from_args(args).choose_base == "rehearse"
+    assert "simulated runs of the model" in parser.format_help()
+
+
+def test_the_threshold_keeps_a_false_base_below_2_5_percent_over_four_arms():
+    """One-sided 2.5 standard errors per arm: at most 2.5% over four arms (Bonferroni)."""
+    tail = 0.5 * math.erfc(rehearse.Z / math.sqrt(2.0))
+    assert 4 * tail <= 0.025
+
+
+def test_a_launched_rehearsal_decides_as_the_inprocess_one_and_its_log_verifies(tmp_path):
+    """Over Zenoh the system service rehearses before its first decision (400 runs of 15 steps here), and
+    dtpf verify, rehearsing again, reproduces every decision."""
+    from dtpf.recording.logfile import read_log
+    from dtpf.scripts.launch import launch
+    from dtpf.scripts.logs.verify import verify
+
+    config = RunConfig(**SHIFTED, policy="choose", choose_base="rehearse", particles=60, steps=15, seed=2,
+                       twin="t-rehearse")
+    result = launch(config, log_path=tmp_path / "run.mcap", timeout=30.0)
+    assert result.exit_codes["entity"] == 0
+    log = read_log(tmp_path / "run.mcap")
+    commands = {m.step: m for _, m in log.decoded(lambda topic: topic.endswith("/system/ps"))}
+    assert sorted(commands) == list(range(1, 16))
+    assert commands[1].arm == "dt-relative" and "rehearsal over 400 simulated runs of 15 steps" in commands[1].reason
+    checked = verify(log)
+    assert checked.ok and len(checked.checked) == 15

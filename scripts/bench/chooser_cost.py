@@ -18,6 +18,13 @@ at N = 100 and 1.5 x at N = 1000, in process and through launch::
     python -m dtpf.scripts.bench.chooser_cost --repeats 5 --steps 400
     python -m dtpf.scripts.bench.chooser_cost --where inprocess     # in process only (seconds)
     python -m dtpf.scripts.bench.chooser_cost --copies 250 100      # and choose with smaller copies (in process)
+    python -m dtpf.scripts.bench.chooser_cost --rehearsal ungm range-bearing   # and --choose-base rehearse's
+                                                                    # rehearsal, once per run, on these scenarios
+
+``--choose-base rehearse`` costs what ``choose`` costs per step (the same copies; only the arm in force differs),
+and once before the run its rehearsal (:mod:`dtpf.system.rehearse`): ``--rehearsal`` times it, wall seconds of one
+rehearsal of min(T, 100) steps at each N, median over the repetitions (each computed afresh), beside what the plain
+filter takes for the run's T steps.
 """
 from __future__ import annotations
 
@@ -143,6 +150,36 @@ def table(figures: dict, sizes, wheres) -> str:
     return "\n".join(rows)
 
 
+def rehearsal_seconds(scenarios, sizes, repeats: int, steps: int, progress=print) -> dict:
+    """{(scenario, n): [wall seconds of one rehearsal, per repetition]}, each computed afresh."""
+    from dtpf.information.layer import ARMS
+    from dtpf.scripts.paper.evaluate_chooser import scenario_model
+    from dtpf.system import rehearse
+
+    figures: dict[tuple[str, int], list[float]] = {}
+    for repeat in range(repeats):
+        for scenario in scenarios:
+            model = scenario_model(scenario)[1]
+            for n in sizes:
+                rehearse._CACHE.clear()
+                start = time.perf_counter()
+                result = rehearse.rehearse(model, tuple(ARMS), n=n, steps=steps)
+                seconds = time.perf_counter() - start
+                figures.setdefault((scenario, n), []).append(seconds)
+                progress(f"repetition {repeat + 1}: rehearsal {scenario} N = {n}: {seconds:.1f} s, base {result.arm}")
+    return figures
+
+
+def rehearsal_table(figures: dict, plain: dict, steps: int) -> str:
+    rows = [f"| rehearsal (once a run; {min(steps, 100)} steps x 400 runs) | N | seconds | the plain filter's {steps} "
+            "steps in process, seconds |", "|---|---|---|---|"]
+    for (scenario, n), seconds in figures.items():
+        run = plain.get(("inprocess", n, "plain"))
+        rows.append(f"| {scenario} | {n} | {statistics.median(seconds):.1f} | "
+                    f"{'-' if not run else f'{statistics.median(run) * steps / 1e3:.3f}'} |")
+    return "\n".join(rows)
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", type=int, nargs="+", default=sorted(TARGETS))
@@ -152,6 +189,9 @@ def main(argv=None) -> int:
     parser.add_argument("--seed", type=int, default=2)
     parser.add_argument("--copies", type=int, nargs="+", default=(), metavar="M",
                         help="in process, also choose with copies of M particles each (default M: min(N, 1000))")
+    parser.add_argument("--rehearsal", nargs="+", default=(), metavar="SCENARIO",
+                        help="also time --choose-base rehearse's rehearsal at each N on these scenarios (ungm, drift, "
+                             "drift+100, range-bearing, moving, switching)")
     parser.add_argument("--quiet", "-q", action="store_true", help="no line per run on stderr")
     args = parser.parse_args(argv)
     if args.steps <= FIRST_TIMED + 1:
@@ -161,12 +201,16 @@ def main(argv=None) -> int:
     start = time.perf_counter()
     with threadpool_limits(limits=1, user_api="blas"):
         figures = measure(args.sizes, wheres, args.repeats, args.steps, args.seed, progress, args.copies)
+        rehearsals = rehearsal_seconds(args.rehearsal, args.sizes, args.repeats, args.steps, progress)
     print(f"`python -m dtpf.scripts.bench.chooser_cost {' '.join(argv if argv is not None else sys.argv[1:])}`"
           f": ungm, T = {args.steps} (timed from step {FIRST_TIMED}), seed {args.seed}, median of {args.repeats} "
           f"interleaved repetitions; Python {platform.python_version()}, numpy {np.__version__}, "
           f"{os.cpu_count()} CPUs, load {os.getloadavg()[0]:.2f}; {time.perf_counter() - start:.0f} s")
     print()
     print(table(figures, args.sizes, wheres))
+    if rehearsals:
+        print()
+        print(rehearsal_table(rehearsals, figures, args.steps))
     return 0
 
 

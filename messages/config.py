@@ -512,8 +512,9 @@ def add_run_arguments(parser: argparse.ArgumentParser, threads: bool = False) ->
     group.add_argument("--choose-base", default=None, choices=names.CHOOSE_BASES, metavar="ARM",
                        help="with --policy choose: the arm in force when no other has the evidence, and the one the "
                             f"others are scored against ({', '.join(names.ARMS)}; default: {names.DEFAULT_CHOOSE_BASE}); "
-                            f"'{names.REHEARSE}': before the run, filter {400} simulated runs of the model with every "
-                            "arm and take the one that estimated best (roughening unless one is significantly better)")
+                            f"'{names.REHEARSE}': before the run, filter 200 to 1,600 simulated runs of the model with "
+                            "every arm and take the one that estimated best (roughening unless one is significantly "
+                            "better)")
     group.add_argument("--ps", type=float, default=None,
                        help=f"PS of the fixed policy, initial PS of the others (default: {defaults.ps})")
     group.add_argument("--ps-rate", type=float, default=None, metavar="CHANGE",

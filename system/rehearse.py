@@ -16,14 +16,20 @@ observations: with the truth of a simulation the error of each arm's estimate is
 3. Each arm's estimate at step k is the weighted mean of the set its filter reports (a DT arm's after its
    move, as the entity reports it); its error in a run is the squared error against the simulated truth,
    averaged over steps and state dimensions.
-4. An arm replaces the default base (roughening) when its paired difference to it, over the R runs, has a
-   mean below 0 by more than ``z`` standard errors (default 2.5: one-sided 0.6% per arm, at most 2.5% over four
-   arms); of those that do, the one with the lowest mean error. Otherwise roughening stays.
+4. The runs come in looks: after 200 runs, 400, 800, ... up to as many as 16e6 particle-steps allow (at
+   least 200, at most 1,600: 1,600 at M = 100 and T = 100, 200 at M = 1000). At each look every arm's paired
+   difference to the default base (roughening) is a mean with its standard error. When some arm's difference
+   lies below 0 by more than ``z`` standard errors (default 2.9 at every look: over four looks about what one
+   look at 2.5, one-sided 0.6%, gives; at most 2.5% over four arms), the rehearsal stops, and of those arms
+   the one with the lowest mean error becomes the base. An arm whose difference lies above 0 by
+   more than one standard error is dropped (it would hardly ever pass); when none is left, or after the last
+   look, roughening stays.
 
-Cost: R x T steps of the copies, about 35 ms a run of 100 steps at N = 100 and 130 ms at N = 1000 (one core),
-once per (model, N, T, arms) in a process. A model that cannot draw observations (``samples_observations``
-False: the video, a twin of a real system without a sensor model), or that is driven or fused from several
-sensors, cannot be rehearsed: :func:`why_not` says why.
+Cost: about 35 ms a simulated run of 100 steps at N = 100 and 130 ms at N = 1000 (one core), so 7 to 60 s at
+N = 100 and T = 100 (200 to 1,600 runs) and about 26 s at N = 1000; once per (model, N, T, arms) in a process.
+A model that cannot draw observations (``samples_observations`` False: the video, a twin of a real system
+without a sensor model), or that is driven or fused from several sensors, cannot be rehearsed: :func:`why_not`
+says why.
 """
 from __future__ import annotations
 
@@ -36,16 +42,21 @@ from dtpf.entity import resampling
 from dtpf.messages.names import DEFAULT_CHOOSE_BASE
 from dtpf.system.choose import ArmEvidence
 
-__all__ = ["Rehearsal", "rehearse", "why_not", "SEED", "RUNS", "STEPS", "Z"]
+__all__ = ["Rehearsal", "rehearse", "why_not", "most_runs", "looks", "SEED", "BUDGET", "FEWEST", "MOST", "STEPS", "Z"]
 
 #: The root seed of every rehearsal's runs (independent of the run's seed: see the module docstring).
 SEED = 20261205
-#: Simulated runs per rehearsal.
-RUNS = 400
+#: A rehearsal runs at most this many particle-steps (M x T x runs) ...
+BUDGET = 16_000_000
+#: ... and at least FEWEST, at most MOST simulated runs.
+FEWEST, MOST = 200, 1600
 #: Steps per simulated run: the run's, at most this many.
 STEPS = 100
-#: Standard errors an arm's mean difference to the base must fall below 0 by.
-Z = 2.5
+#: Standard errors an arm's mean difference to the base must fall below 0 by, at every look (a constant boundary:
+#: with four looks about the one-sided 0.6% per arm a single look at 2.5 has).
+Z = 2.9
+#: At a look, an arm whose mean difference to the base is above this many standard errors is dropped.
+DROP = 1.0
 #: An error above this (or not finite) counts as this: one lost run cannot make a mean infinite.
 _LARGEST = 1e12
 #: Rehearsals kept per process, by their inputs.
@@ -67,8 +78,12 @@ class Rehearsal:
     particles: int
     #: Each arm's mean error over the runs.
     errors: dict[str, float]
-    #: Each arm's paired difference to ``against``: (mean, standard error).
+    #: Each arm's paired difference to ``against``: (mean, standard error), over the runs it took part in.
     differences: dict[str, tuple[float, float]]
+    #: The arms dropped at a look, their difference clearly above 0.
+    dropped: tuple[str, ...] = ()
+    #: The most runs the rehearsal would have made.
+    most: int = 0
 
     def summary(self) -> str:
         """One line: the chosen arm and each arm's difference to the base, with 95% intervals."""
@@ -88,43 +103,73 @@ def why_not(model) -> str | None:
     return None
 
 
+def most_runs(particles: int, steps: int) -> int:
+    """The most simulated runs of a rehearsal at M particles and T steps: :data:`BUDGET` particle-steps, at least
+    :data:`FEWEST` and at most :data:`MOST` runs."""
+    return int(min(MOST, max(FEWEST, BUDGET // max(1, int(particles) * int(steps)))))
+
+
+def looks(runs: int) -> list[int]:
+    """The numbers of runs after which a rehearsal of at most ``runs`` looks: FEWEST, twice that, ..., ``runs``."""
+    out, n = [], min(FEWEST, int(runs))
+    while n < runs:
+        out.append(n)
+        n *= 2
+    return [*out, int(runs)]
+
+
 def rehearse(model, arms, *, n: int, steps: int | None, runs: int | None = None, threshold_rule="neff",
-             move: str = "none", particles: int = 1000, z: float = Z, seed: int = SEED) -> Rehearsal:
-    """Rehearse ``arms`` on ``runs`` simulated runs of ``model`` and choose the base (the module docstring).
+             move: str = "none", particles: int = 1000, z: float | None = None, seed: int = SEED) -> Rehearsal:
+    """Rehearse ``arms`` on simulated runs of ``model`` and choose the base (the module docstring).
 
     ``steps``: the run's (None: a run without end); each simulated run has min(steps, :data:`STEPS`).
-    ``runs``: default :data:`RUNS`. The same inputs in one process give the same object, computed once.
+    ``runs``: the most runs (default :func:`most_runs`); ``z``: default :data:`Z`. The same inputs in one process
+    give the same object, computed once.
     """
-    runs = RUNS if runs is None else runs
     reason = why_not(model)
     if reason is not None:
         raise ValueError(f"choose_base rehearse: {reason}; name a base arm instead")
-    if int(runs) < 2:
-        raise ValueError(f"a rehearsal needs at least 2 runs, got {runs!r}")
     length = STEPS if steps is None else max(1, min(int(steps), STEPS))
     m = max(1, min(int(n), int(particles)))
-    key = (id(model), tuple(arms), int(n), length, int(runs), threshold_rule, move, m, float(z), int(seed))
+    runs = most_runs(m, length) if runs is None else int(runs)
+    z = Z if z is None else float(z)
+    if runs < 2:
+        raise ValueError(f"a rehearsal needs at least 2 runs, got {runs!r}")
+    key = (id(model), tuple(arms), int(n), length, runs, threshold_rule, move, m, z, int(seed))
     kept = _CACHE.get(key)
     if kept is not None and kept[0] is model:
         return kept[1]
-    names = None
-    errors = []
-    for child in np.random.SeedSequence(int(seed)).spawn(int(runs)):
-        run = _one_run(model, arms, n=int(n), m=m, steps=length, threshold_rule=threshold_rule, move=move,
-                       rng=np.random.Generator(np.random.PCG64(child)))
-        names = names or tuple(run)
-        errors.append([run[a] for a in names])
-    table = np.array(errors)
-    against = DEFAULT_CHOOSE_BASE if DEFAULT_CHOOSE_BASE in names else "plain"
-    base = table[:, names.index(against)]
-    differences = {}
-    for i, name in enumerate(names):
-        d = table[:, i] - base
-        differences[name] = (float(d.mean()), float(d.std(ddof=1) / math.sqrt(d.size)))
-    means = dict(zip(names, map(float, table.mean(axis=0))))
-    better = [a for a, (mean, se) in differences.items() if a != against and mean < 0 and mean < -z * se]
-    chosen = min(better, key=means.__getitem__) if better else against
-    result = Rehearsal(chosen, against, int(runs), length, m, means, differences)
+    streams = np.random.SeedSequence(int(seed)).spawn(runs)
+    active = tuple(dict.fromkeys(arms))
+    errors: dict[str, list[float]] = {}
+    differences: dict[str, tuple[float, float]] = {}
+    against, chosen, done, dropped = None, None, 0, []
+    for look in looks(runs):
+        for i in range(done, look):
+            run = _one_run(model, active, n=int(n), m=m, steps=length, threshold_rule=threshold_rule, move=move,
+                           rng=np.random.Generator(np.random.PCG64(streams[i])))
+            for name, error in run.items():
+                errors.setdefault(name, []).append(error)
+        done = look
+        if against is None:
+            against = DEFAULT_CHOOSE_BASE if DEFAULT_CHOOSE_BASE in errors else "plain"
+        base = np.array(errors[against])
+        candidates = [a for a in active if a != against]
+        for name in (*candidates, against):
+            d = np.array(errors[name]) - base
+            differences[name] = (float(d.mean()), float(d.std(ddof=1) / math.sqrt(d.size)))
+        passed = [a for a in candidates if differences[a][0] < -z * differences[a][1]]
+        if passed:
+            chosen = min(passed, key=lambda a: np.mean(errors[a]))
+            break
+        clear = [a for a in candidates if differences[a][0] > DROP * differences[a][1]]
+        dropped += clear
+        active = tuple(a for a in active if a not in clear)
+        if not [a for a in active if a != against]:
+            break
+    result = Rehearsal(chosen or against, against, done, length, m,
+                       {a: float(np.mean(e)) for a, e in errors.items() if a in differences},
+                       {a: differences[a] for a in errors if a in differences}, tuple(dropped), runs)
     if len(_CACHE) >= _KEPT:
         _CACHE.pop(next(iter(_CACHE)))
     _CACHE[key] = (model, result)

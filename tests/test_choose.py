@@ -596,3 +596,17 @@ def test_verify_notices_a_flipped_arm(chosen_log, tmp_path):
                         lambda m: {"jitter": "roughening"})
     mismatch = verify(read_log(moved)).mismatch
     assert (mismatch.step, mismatch.field) == (step + 1, "jitter")
+
+
+def test_rerunning_a_variant_in_some_cells_keeps_its_rows_in_the_others(tmp_path):
+    from dtpf.scripts.paper import evaluate_chooser
+
+    path = tmp_path / "runs.csv"
+    path.write_text("scenario,particles,seed,variant,error,ms,off_plain,evidence\n"
+                    "ungm,100,0,choose,1.0,0.1,0.0,-3\nungm,100,0,systematic,2.0,0.1,,-4\n"
+                    "drift,100,0,choose,3.0,0.1,0.0,-5\nungm,1000,0,choose,4.0,0.1,0.0,-6\n")
+    evaluate_chooser._drop_variants(path, {"choose"}, [("ungm", 100)])
+    kept = [line.split(",")[:4] for line in path.read_text().splitlines()[1:]]
+    assert kept == [["ungm", "100", "0", "systematic"], ["drift", "100", "0", "choose"], ["ungm", "1000", "0", "choose"]]
+    evaluate_chooser._drop_variants(path, {"choose"})
+    assert [line.split(",")[3] for line in path.read_text().splitlines()[1:]] == ["systematic"]

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import logging
 import math
+import re
 
 import numpy as np
 import pytest
@@ -25,8 +26,9 @@ SHIFTED = dict(model="dtpf.scripts.paper.evaluate_guard:DRIFT_PLUS_100")
 
 @pytest.fixture
 def few_runs(monkeypatch):
-    """60 simulated runs per rehearsal instead of 400, and nothing kept from another test."""
-    monkeypatch.setattr(rehearse, "RUNS", 60)
+    """At most 60 simulated runs per rehearsal, looked at once, and nothing kept from another test."""
+    monkeypatch.setattr(rehearse, "MOST", 60)
+    monkeypatch.setattr(rehearse, "FEWEST", 60)
     monkeypatch.setattr(rehearse, "_CACHE", {})
 
 
@@ -148,7 +150,7 @@ def test_the_configuration_and_the_command_line_take_rehearse_for_the_choosing_p
     add_run_arguments(parser)
     args = parser.parse_args(["--policy", "choose", "--choose-base", "rehearse"])
     assert config_from_args(args).choose_base == "rehearse"
-    assert "simulated runs of the model" in parser.format_help()
+    assert "simulated runs of the model" in " ".join(parser.format_help().split())
 
 
 def test_the_threshold_keeps_a_false_base_below_2_5_percent_over_four_arms():
@@ -158,7 +160,7 @@ def test_the_threshold_keeps_a_false_base_below_2_5_percent_over_four_arms():
 
 
 def test_a_launched_rehearsal_decides_as_the_inprocess_one_and_its_log_verifies(tmp_path):
-    """Over Zenoh the system service rehearses before its first decision (400 runs of 15 steps here), and
+    """Over Zenoh the system service rehearses before its first decision (runs of 15 steps here), and
     dtpf verify, rehearsing again, reproduces every decision."""
     from dtpf.recording.logfile import read_log
     from dtpf.scripts.launch import launch
@@ -171,6 +173,28 @@ def test_a_launched_rehearsal_decides_as_the_inprocess_one_and_its_log_verifies(
     log = read_log(tmp_path / "run.mcap")
     commands = {m.step: m for _, m in log.decoded(lambda topic: topic.endswith("/system/ps"))}
     assert sorted(commands) == list(range(1, 16))
-    assert commands[1].arm == "dt-relative" and "rehearsal over 400 simulated runs of 15 steps" in commands[1].reason
+    assert commands[1].arm == "dt-relative" and re.search("rehearsal over [0-9]+ simulated runs of 15 steps",
+                                                          commands[1].reason)
     checked = verify(log)
     assert checked.ok and len(checked.checked) == 15
+
+
+def test_the_looks_double_up_to_the_budget_and_a_clear_winner_stops_the_rehearsal_at_the_first():
+    assert rehearse.looks(1600) == [200, 400, 800, 1600] and rehearse.looks(300) == [200, 300]
+    assert rehearse.looks(60) == [60]
+    assert (rehearse.most_runs(100, 100), rehearse.most_runs(1000, 100), rehearse.most_runs(10, 10)) == (1600, 200, 1600)
+    result = rehearse.rehearse(DRIFT_PLUS_100, FIVE, n=60, steps=20)
+    assert (result.arm, result.runs, result.most) == ("dt-relative", 200, 1600)
+
+
+def test_an_arm_clearly_worse_than_the_base_is_dropped_at_a_look(monkeypatch):
+    """ungm over 20 steps at N = 50, looks at 100 and 200 runs: arms worse than roughening by more than one
+    standard error at the first look run no more; none passes, roughening stays."""
+    monkeypatch.setattr(rehearse, "FEWEST", 100)
+    monkeypatch.setattr(rehearse, "_CACHE", {})
+    result = rehearse.rehearse(models.get("ungm"), FIVE, n=50, steps=20, runs=200)
+    assert result.arm == "roughening" and result.dropped
+    for arm in result.dropped:
+        mean, se = result.differences[arm]
+        assert mean > rehearse.DROP * se
+    assert result.runs == 200 or set(result.dropped) == set(FIVE) - {"roughening"}

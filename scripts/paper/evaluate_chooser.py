@@ -445,10 +445,13 @@ def read_csv(path: Path) -> dict[tuple[str, int], dict[int, dict]]:
     return cells
 
 
-def _drop_variants(path: Path, labels: set[str]) -> None:
-    """Rewrite the CSV at ``path`` without the rows of ``labels`` (and without a last row cut short)."""
+def _drop_variants(path: Path, labels: set[str], cells=None) -> None:
+    """Rewrite the CSV at ``path`` without the rows of ``labels`` in ``cells`` ((scenario, N) pairs; None: every
+    cell), and without a last row cut short."""
     rows = _whole_rows(path)
-    kept = [row for i, row in enumerate(rows) if i == 0 or len(row) < 4 or row[3] not in labels]
+    chosen = None if cells is None else {(scenario, str(n)) for scenario, n in cells}
+    kept = [row for i, row in enumerate(rows) if i == 0 or len(row) < 4 or row[3] not in labels
+            or (chosen is not None and (row[0], row[1]) not in chosen)]
     with open(path, "w", newline="") as handle:
         csv.writer(handle).writerows(kept)
 
@@ -606,7 +609,7 @@ def main(argv=None) -> int:
         except ValueError as error:
             parser.error(f"--resume: {error}")
         if args.rerun:
-            _drop_variants(args.csv, set(args.rerun))
+            _drop_variants(args.csv, set(args.rerun), cells)  # the cells run now, the others as they are
         for cell, by_seed in read_csv(args.csv).items():
             if cell in results:
                 results[cell].update(by_seed)

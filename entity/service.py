@@ -37,6 +37,7 @@ from dtpf.messages.config import RunConfig, add_run_arguments
 from dtpf.messages.foxglove import PackedElementField, PointCloud
 from dtpf.messages.models import (ARRAYS_CHECKED, Control, Estimate, Observation, ParticleSet, ParticleSetKind,
                                   ServiceState, Time)
+from dtpf.messages.names import REHEARSAL_WAIT
 from dtpf.shell.bus import Doorbell, add_zenoh_arguments, open_session
 from dtpf.shell.fleet import host_twins, serve_run
 from dtpf.shell.service import TAKE_BUDGET, ServiceShell, add_service_arguments, refuse_taken_twins, run_service
@@ -176,6 +177,13 @@ def hosted_configs(config: RunConfig, twins: str) -> list[RunConfig]:
     return [RunConfig.model_validate({**config.model_dump(), "twin": name}) for name in names]
 
 
+def startup_wait(config: RunConfig, timeout: float, wait_for) -> float:
+    """Seconds the entity waits for the layers of ``wait_for`` before its first step: ``timeout``, and
+    :data:`~dtpf.messages.names.REHEARSAL_WAIT` more for a system layer that rehearses the model first (it is
+    alive once it has its base, seconds to minutes later)."""
+    return float(timeout) + (REHEARSAL_WAIT if config.rehearses and "system" in wait_for else 0.0)
+
+
 class TwinRun:
     """One twin's filter on ``shell`` as a state machine that never blocks: :meth:`poll` does what can be done.
 
@@ -211,8 +219,8 @@ class TwinRun:
         self.period = 1.0 / args.rate if args.rate and data is not None else 0.0
         if self.wait_for:  # the run configuration, at once: a fleet's shared layers learn the twin from it
             shell.publish_status()
-        self.startup_deadline = time.monotonic() + args.startup_timeout
-        self.startup_timeout = args.startup_timeout
+        self.startup_timeout = startup_wait(config, args.startup_timeout, self.wait_for)
+        self.startup_deadline = time.monotonic() + self.startup_timeout
         self.pf: ParticleFilter | None = None
         self.pending: PendingStep | None = None
         self.truth = None

@@ -217,6 +217,11 @@ class RunConfig(BaseModel):
         return self.model or self.scenario
 
     @property
+    def rehearses(self) -> bool:
+        """Whether the system layer rehearses the model before the first step (``choose_base`` "rehearse")."""
+        return self.choose_base == names.REHEARSE
+
+    @property
     def live(self) -> bool:
         """Whether observations arrive over Zenoh, one at a time."""
         if self.ros2_sensors:

@@ -20,7 +20,7 @@ import sys
 from dtpf.messages.family import Family
 
 __all__ = ["SCENARIOS", "MODEL_ENTRY_POINTS", "CANNOT_SAMPLE", "BuiltinOnly", "WEIGHT_RULE_REGISTRY",
-           "MOVE_RULE_REGISTRY", "ARMS", "OWN_ARM", "REHEARSE", "CHOOSE_BASES", "scenario_names"]
+           "MOVE_RULE_REGISTRY", "ARMS", "OWN_ARM", "REHEARSE", "CHOOSE_BASES", "REHEARSAL_WAIT", "scenario_names"]
 
 #: Built-in scenarios (dtpf.entity.models): Eq. 35 with 25, Eq. 35 as printed (0.25), the tracking video, and a
 #: slowly drifting constant with precise observations (where particles impoverish; not in the paper), and the
@@ -76,6 +76,9 @@ DEFAULT_CHOOSE_BASE = "roughening"
 REHEARSE = "rehearse"
 #: What the choosing policy's base may be: an arm, or "rehearse".
 CHOOSE_BASES = (*ARMS, REHEARSE)
+#: Seconds an entity waits, beyond its startup timeout, for a system layer that rehearses (a rehearsal takes
+#: seconds to a minute or two; the system layer is alive once it has its base).
+REHEARSAL_WAIT = 600.0
 
 
 def scenario_names() -> list[str]:

@@ -57,6 +57,11 @@ def fit_simulation(config, args: argparse.Namespace):
     raise ValueError(f"--steps: the {config.model_ref} scenario can simulate at most {most} steps, got {config.steps}")
 
 
+#: What a run whose system layer rehearses the model says before its first step.
+REHEARSING = ("dtpf: the system layer rehearses the model before the first step (--choose-base rehearse: every arm "
+              "on 200 to 1,600 simulated runs), seconds to a minute or two")
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     from dtpf.entity import cores
     from dtpf.scripts.inprocess import run
@@ -64,6 +69,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     cores.set_threads(args.threads)
     # run() reads the file once; T is its rows unless --steps is smaller
     config = fit_simulation(config_from_args(args), args)
+    if config.rehearses and not args.quiet:
+        print(REHEARSING, file=sys.stderr, flush=True)
     result = run(config, progress=None if args.quiet else ProgressBar(),
                  note=lambda problem: print(f"dtpf: note: {problem}", file=sys.stderr))
     ps = result.ps
@@ -183,6 +190,8 @@ def cmd_launch(args: argparse.Namespace) -> int:
     if kernels_cold(config):
         print("dtpf: compiling numba kernels on first use (once per install), this can take about 30 s",
               file=sys.stderr, flush=True)
+    if config.rehearses:
+        print(REHEARSING, file=sys.stderr, flush=True)
     if config.live and args.twins is not None:
         first = sensor_command(config.model_copy(update={"twin": f"{config.twin}-1", "observations": None}),
                                endpoint, args.secure)

@@ -32,6 +32,7 @@ from dtpf.messages.codec import MessageError, decode_for_key
 from dtpf.messages.config import BLOCK_PARTICLES, RunConfig
 from dtpf.messages.errors import DtpfError
 from dtpf.messages.models import Estimate, Layer, ServiceState, Status
+from dtpf.messages.names import REHEARSAL_WAIT
 from dtpf.recording.logfile import what_it_holds
 from dtpf.recording.writer import EXIT_LOG_WRITE, LogExistsError, LogWriteError, claim_log
 from dtpf.shell.bus import BusError, Claims, Inbox, Presence, free_port, open_session, zenoh_config
@@ -648,7 +649,8 @@ def launch(config: RunConfig, *, log_path: Path | None = None, port: int | None 
         per_step = timeout + (1.0 / rate if rate else 0.0)
         # A live run waits for its sensor as long as it takes; a file or simulation has T steps.
         deadline = float("inf") if config.live else (
-            time.monotonic() + startup_timeout + per_step * (config.steps or _rows(config)) + 60.0)
+            time.monotonic() + startup_timeout + per_step * (config.steps or _rows(config)) + 60.0
+            + (REHEARSAL_WAIT if config.rehearses else 0.0))
         next_trim = time.monotonic() + 10.0
         while True:
             # Every turn looks at the children and the deadline, whatever arrives (a flood cannot hold it).

@@ -198,3 +198,13 @@ def test_an_arm_clearly_worse_than_the_base_is_dropped_at_a_look(monkeypatch):
         mean, se = result.differences[arm]
         assert mean > rehearse.DROP * se
     assert result.runs == 200 or set(result.dropped) == set(FIVE) - {"roughening"}
+
+
+def test_an_entity_waits_for_a_rehearsing_system_layer_longer_than_its_startup_timeout():
+    from dtpf.entity.service import startup_wait
+
+    rehearsing = RunConfig(policy="choose", choose_base="rehearse")
+    assert startup_wait(rehearsing, 20.0, {"information", "system"}) == 20.0 + names.REHEARSAL_WAIT
+    assert startup_wait(rehearsing, 20.0, {"information"}) == 20.0          # not waiting for the system layer
+    assert startup_wait(RunConfig(policy="choose"), 20.0, {"information", "system"}) == 20.0
+    assert rehearsing.rehearses and not RunConfig(policy="choose", choose_base="regularised").rehearses

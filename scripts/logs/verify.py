@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import sys
 from dataclasses import dataclass, field
 
 
@@ -185,6 +186,9 @@ def verify_twin(by_topic: dict[str, list], twin: str, problem: str | None = None
     statuses = [m for topic, ms in by_topic.items() if topic.startswith(f"dtpf/{twin}/") for m in ms
                 if isinstance(m, Status)]
     config = _config_of(statuses, twin)
+    if config.rehearses:  # the re-run system layer rehearses too: say why the next seconds pass in silence
+        print(f"dtpf verify: twin {twin}: the system layer rehearses the model first (--choose-base rehearse), "
+              "seconds to a minute or two", file=sys.stderr, flush=True)
     result = Verification(twin, config, problem=problem, changed_code=changed_code(statuses, config))
     result.lost = lost_steps([m for m in by_topic.get(f"dtpf/{twin}/recorder/missed", []) if isinstance(m, Missed)])
     first_lost = min((steps[0] for steps in result.lost_checked.values()), default=None)

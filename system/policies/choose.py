@@ -63,6 +63,8 @@ class ChoosePS(PSPolicy):
     base : str
         The arm in force when no other has the evidence (default roughening,
         :data:`dtpf.messages.names.DEFAULT_CHOOSE_BASE`); every threshold above is against this arm's copy.
+        A run's ``choose_base`` "rehearse" has the system layer choose it before the run
+        (:mod:`dtpf.system.rehearse`) and set :attr:`rehearsal`.
     move : str
         The run's own move after resampling: a user's (``--move file.py:NAME``) is one more arm, "own"
         (:func:`dtpf.information.layer.arms_for`).

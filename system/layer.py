@@ -102,8 +102,11 @@ class SystemLayer:
             from dtpf.system.rehearse import rehearse
             rehearsal = rehearse(model, policy.arms, n=config.particles, steps=config.steps,
                                  threshold_rule=config.threshold, move=config.jitter, particles=policy.particles)
+            options = dict(policy_options or {})
+            # Arms the rehearsal found clearly worse than roughening are neither copied nor entered.
+            options.setdefault("arms", tuple(a for a in policy.arms if a not in rehearsal.dropped))
             policy = cls_(ps=config.ps, max_change=config.ps_rate, base=rehearsal.arm, move=config.jitter,
-                          **(policy_options or {}))
+                          **options)
             policy.arm = policy.initial_arm = DEFAULT_CHOOSE_BASE
             policy.rehearsal = rehearsal
         view = None

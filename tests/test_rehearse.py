@@ -91,6 +91,22 @@ def test_the_layers_start_on_the_default_base_and_the_first_decision_puts_the_re
     assert any(step.report.n_processed > 0 for step in steps[1:])
 
 
+def test_arms_the_rehearsal_dropped_are_neither_copied_nor_entered(monkeypatch):
+    """ungm at N = 50 over 20 steps, looks at 100 and 200 runs: the arms dropped as clearly worse than roughening
+    leave the chooser's arms and its copies; plain stays, the reference every arm is scored against."""
+    monkeypatch.setattr(rehearse, "FEWEST", 100)
+    monkeypatch.setattr(rehearse, "MOST", 200)
+    monkeypatch.setattr(rehearse, "_CACHE", {})
+    config = RunConfig(scenario="ungm", policy="choose", choose_base="rehearse", particles=50, steps=20, seed=4)
+    layer = SystemLayer.from_config(config)
+    dropped = layer.policy.rehearsal.dropped
+    assert dropped and not set(dropped) & set(layer.policy.arms) - {"plain"}
+    assert set(layer.predictor.evidence.names) == set(layer.policy.arms)
+    assert set(layer.policy.arms) | set(dropped) == set(FIVE)
+    chosen = SystemLayer.from_config(config, policy_options={"arms": ("regularised",)}).policy.arms
+    assert chosen == ("plain", "regularised", "roughening")      # arms named by the caller are kept as named
+
+
 def test_a_model_that_cannot_draw_observations_keeps_the_default_base_and_says_why(caplog, monkeypatch):
     from dtpf.system import layer as system_layer
 

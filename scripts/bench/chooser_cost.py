@@ -18,13 +18,14 @@ at N = 100 and 1.5 x at N = 1000, in process and through launch::
     python -m dtpf.scripts.bench.chooser_cost --repeats 5 --steps 400
     python -m dtpf.scripts.bench.chooser_cost --where inprocess     # in process only (seconds)
     python -m dtpf.scripts.bench.chooser_cost --copies 250 100      # and choose with smaller copies (in process)
+    python -m dtpf.scripts.bench.chooser_cost --rehearsed           # and choose on a rehearsed base (in process)
     python -m dtpf.scripts.bench.chooser_cost --rehearsal ungm range-bearing   # and --choose-base rehearse's
                                                                     # rehearsal, once per run, on these scenarios
 
-``--choose-base rehearse`` costs what ``choose`` costs per step (the same copies; only the arm in force differs),
-and once before the run its rehearsal (:mod:`dtpf.system.rehearse`): ``--rehearsal`` times it, wall seconds of one
-rehearsal of min(T, 100) steps at each N, median over the repetitions (each computed afresh), beside what the plain
-filter takes for the run's T steps.
+``--choose-base rehearse`` runs the copies of ``choose`` without the arms its rehearsal dropped
+(:mod:`dtpf.system.rehearse`): ``--rehearsed`` times it per step in process. Its rehearsal comes once before the
+run: ``--rehearsal`` times that, wall seconds of one rehearsal of min(T, 100) steps at each N, median over the
+repetitions (each computed afresh), beside what the plain filter takes for the run's T steps.
 """
 from __future__ import annotations
 
@@ -94,20 +95,33 @@ def launched_ms(config: RunConfig, folder: Path, timeout: float = 10.0) -> float
     return 1e3 * sum(cpu.get(kind, 0.0) for kind in LAYERS) / (config.steps - FIRST_TIMED)
 
 
-def measure(sizes, wheres, repeats: int, steps: int, seed: int, progress=print, copies=()) -> dict:
+#: The in-process mode of ``--rehearsed``: choose on the base its rehearsal chose, without the arms it dropped.
+REHEARSED = "choose, rehearsed base"
+
+
+def measure(sizes, wheres, repeats: int, steps: int, seed: int, progress=print, copies=(),
+            rehearsed: bool = False) -> dict:
     """{(where, n, mode): [ms per step of each repetition]}, the runs interleaved in random order; ``copies``:
-    in process, choose with copies of M particles as well (mode "choose, M = ...")."""
+    in process, choose with copies of M particles as well (mode "choose, M = ..."); ``rehearsed``: in process,
+    :data:`REHEARSED` as well (its rehearsal before the timed window)."""
     order = random.Random(seed)
     figures: dict[tuple[str, int, str], list[float]] = {}
     with tempfile.TemporaryDirectory() as folder:
         for repeat in range(repeats):
             runs = [(where, n, mode) for where in wheres for n in sizes for mode in MODES]
             runs += [("inprocess", n, f"choose, M = {m}") for n in sizes for m in copies if "inprocess" in wheres]
+            runs += [("inprocess", n, REHEARSED) for n in sizes if rehearsed and "inprocess" in wheres]
             order.shuffle(runs)
             for where, n, mode in runs:
                 if mode.startswith("choose, M = "):
                     m = int(mode.rsplit(" ", 1)[1])
                     ms = inprocess_ms(config_of("choose", n, steps, seed), copies=m)
+                    figures.setdefault((where, n, mode), []).append(ms)
+                    progress(f"repetition {repeat + 1}: {where} N = {n} {mode}: {ms:.3f} ms / step")
+                    continue
+                if mode == REHEARSED:
+                    config = config_of("choose", n, steps, seed).model_copy(update={"choose_base": "rehearse"})
+                    ms = 1e3 * inprocess_times(config)[0]   # no warm-up run: it would rehearse a shorter run
                     figures.setdefault((where, n, mode), []).append(ms)
                     progress(f"repetition {repeat + 1}: {where} N = {n} {mode}: {ms:.3f} ms / step")
                     continue
@@ -138,9 +152,13 @@ def table(figures: dict, sizes, wheres) -> str:
                         f"{cost:.2f} | {ratio(figures, where, n, 'paper', 'plain'):.2f} | "
                         f"{ratio(figures, where, n, 'choose', 'paper'):.2f} | "
                         f"{'-' if target is None else f'<= {target:g}'} | {verdict} |")
-    extra = sorted({mode for (_, _, mode) in figures if mode not in MODES}, key=lambda m: int(m.rsplit(" ", 1)[1]))
+    extra = sorted({mode for (_, _, mode) in figures if mode not in MODES and mode != REHEARSED},
+                   key=lambda m: int(m.rsplit(" ", 1)[1]))
+    if any(mode == REHEARSED for (_, _, mode) in figures):
+        extra.append(REHEARSED)
     if extra:
-        rows += ["", "| in process (wall), choose with copies of M particles | N | ms / step | / plain | / choose |",
+        rows += ["", "| in process (wall), choose with copies of M particles or a rehearsed base | N | ms / step | "
+                 "/ plain | / choose |",
                  "|---|---|---|---|---|"]
         for mode in extra:
             for n in sizes:
@@ -208,6 +226,8 @@ def main(argv=None) -> int:
     parser.add_argument("--seed", type=int, default=2)
     parser.add_argument("--copies", type=int, nargs="+", default=(), metavar="M",
                         help="in process, also choose with copies of M particles each (default M: min(N, 1000))")
+    parser.add_argument("--rehearsed", action="store_true",
+                        help=f"in process, also time '{REHEARSED}' (--choose-base rehearse) per step")
     parser.add_argument("--rehearsal", nargs="+", default=(), metavar="SCENARIO",
                         help="also time --choose-base rehearse's rehearsal at each N on these scenarios (ungm, drift, "
                              "drift+100, range-bearing, moving, switching)")
@@ -219,7 +239,8 @@ def main(argv=None) -> int:
     progress = (lambda text: None) if args.quiet else (lambda text: print(text, file=sys.stderr, flush=True))
     start = time.perf_counter()
     with threadpool_limits(limits=1, user_api="blas"):
-        figures = measure(args.sizes, wheres, args.repeats, args.steps, args.seed, progress, args.copies)
+        figures = measure(args.sizes, wheres, args.repeats, args.steps, args.seed, progress, args.copies,
+                          args.rehearsed)
         rehearsals = rehearsal_seconds(args.rehearsal, args.sizes, args.repeats, args.steps, progress)
     print(f"`python -m dtpf.scripts.bench.chooser_cost {' '.join(argv if argv is not None else sys.argv[1:])}`"
           f": ungm, T = {args.steps} (timed from step {FIRST_TIMED}), seed {args.seed}, median of {args.repeats} "

@@ -35,6 +35,7 @@ says why.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -126,7 +127,8 @@ def rehearse(model, arms, *, n: int, steps: int | None, runs: int | None = None,
 
     ``steps``: the run's (None: a run without end); each simulated run has min(steps, :data:`STEPS`).
     ``runs``: the most runs (default :func:`most_runs`); ``z``: default :data:`Z`. The same inputs in one process
-    give the same object, computed once.
+    give the same object, computed once (equal built-in models count as the same: a fleet's twins of one
+    scenario, N and T share one rehearsal).
     """
     reason = why_not(model)
     if reason is not None:
@@ -137,9 +139,9 @@ def rehearse(model, arms, *, n: int, steps: int | None, runs: int | None = None,
     z = Z if z is None else float(z)
     if runs < 2:
         raise ValueError(f"a rehearsal needs at least 2 runs, got {runs!r}")
-    key = (id(model), tuple(arms), int(n), length, runs, threshold_rule, move, m, z, int(seed))
+    key = (_identity(model), tuple(arms), int(n), length, runs, threshold_rule, move, m, z, int(seed))
     kept = _CACHE.get(key)
-    if kept is not None and kept[0] is model:
+    if kept is not None and _same(kept[0], model):
         return kept[1]
     streams = np.random.SeedSequence(int(seed)).spawn(runs)
     active = tuple(dict.fromkeys(arms))
@@ -176,6 +178,24 @@ def rehearse(model, arms, *, n: int, steps: int | None, runs: int | None = None,
         _CACHE.pop(next(iter(_CACHE)))
     _CACHE[key] = (model, result)
     return result
+
+
+def _identity(model) -> tuple:
+    """What tells one model from another for the cache: a dataclass (every built-in model) by its class and
+    fields, so that equal models (a fleet's twins of one scenario) share a rehearsal; any other by the object."""
+    if dataclasses.is_dataclass(model):
+        return (type(model).__module__, type(model).__qualname__, repr(model))
+    return ("object", id(model))
+
+
+def _same(kept, model) -> bool:
+    """Whether ``model`` is the model a kept rehearsal was made for: the same object, or an equal dataclass."""
+    if kept is model:
+        return True
+    try:
+        return type(kept) is type(model) and dataclasses.is_dataclass(model) and bool(kept == model)
+    except (TypeError, ValueError):  # fields whose comparison has no single truth value (arrays)
+        return False
 
 
 def _one_run(model, arms, *, n: int, m: int, steps: int, threshold_rule, move: str,

@@ -224,3 +224,29 @@ def test_an_entity_waits_for_a_rehearsing_system_layer_longer_than_its_startup_t
     assert startup_wait(rehearsing, 20.0, {"information"}) == 20.0          # not waiting for the system layer
     assert startup_wait(RunConfig(policy="choose"), 20.0, {"information", "system"}) == 20.0
     assert rehearsing.rehearses and not RunConfig(policy="choose", choose_base="regularised").rehearses
+
+
+def test_equal_built_in_models_share_one_rehearsal_and_other_models_do_not(few_runs):
+    first = rehearse.rehearse(models.DriftModel(prior_mean=100.0), FIVE, n=40, steps=8)
+    assert rehearse.rehearse(models.DriftModel(prior_mean=100.0), FIVE, n=40, steps=8) is first
+    assert rehearse.rehearse(models.DriftModel(prior_mean=50.0), FIVE, n=40, steps=8) is not first
+
+    class Plain(StateSpaceModel):   # not a dataclass: told apart by the object
+        name, dim, obs_dim = "plain-drift", 1, 1
+        inner = models.DriftModel(prior_mean=100.0)
+
+        def initial_particles(self, n, rng):
+            return self.inner.initial_particles(n, rng)
+
+        def propagate(self, particles, k, rng, noise=None):
+            return self.inner.propagate(particles, k, rng, noise)
+
+        def log_likelihood(self, particles, observation, k):
+            return self.inner.log_likelihood(particles, observation, k)
+
+        def sample_observation(self, states, k, rng):
+            return self.inner.sample_observation(states, k, rng)
+
+    one, two = Plain(), Plain()
+    assert rehearse.rehearse(one, FIVE, n=40, steps=8) is rehearse.rehearse(one, FIVE, n=40, steps=8)
+    assert rehearse.rehearse(two, FIVE, n=40, steps=8) is not rehearse.rehearse(one, FIVE, n=40, steps=8)

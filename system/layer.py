@@ -40,6 +40,30 @@ __all__ = ["SystemLayer"]
 _SAID: set[str] = set()
 
 
+def _rehearsed(policy: PSPolicy, config, model, policy_options: dict | None) -> PSPolicy:
+    """The choosing ``policy`` of a run whose ``choose_base`` is "rehearse": on the base its rehearsal of ``model``
+    chose (:mod:`dtpf.system.rehearse`), without the arms it dropped, starting on the default base (the layers
+    do; its first decision puts the base in force). A model that cannot be rehearsed keeps ``policy`` as it is,
+    on the default base, and the reason is logged once a process."""
+    from dtpf.system.rehearse import rehearse, why_not
+
+    reason = why_not(model)
+    if reason is not None:
+        if reason not in _SAID:
+            _SAID.add(reason)
+            logging.getLogger(__name__).warning("choose_base rehearse: %s; the base is %s", reason,
+                                                DEFAULT_CHOOSE_BASE)
+        return policy
+    rehearsal = rehearse(model, policy.arms, n=config.particles, steps=config.steps, threshold_rule=config.threshold,
+                         move=config.jitter, particles=policy.particles)
+    options = dict(policy_options or {})
+    options.setdefault("arms", tuple(a for a in policy.arms if a not in rehearsal.dropped))
+    chosen = type(policy)(ps=config.ps, max_change=config.ps_rate, base=rehearsal.arm, move=config.jitter, **options)
+    chosen.arm = chosen.initial_arm = DEFAULT_CHOOSE_BASE
+    chosen.rehearsal = rehearsal
+    return chosen
+
+
 class SystemLayer:
     """Degradation prediction and PS control for one twin.
 
@@ -90,25 +114,7 @@ class SystemLayer:
         if policy.simulates and model is None:
             model = model_ref.resolve(config.model_ref)
         if rehearsing:
-            from dtpf.system.rehearse import why_not
-            reason = why_not(model)
-            if reason is not None:  # the default base, and the reason in the log (once a process)
-                if reason not in _SAID:
-                    _SAID.add(reason)
-                    logging.getLogger(__name__).warning("choose_base rehearse: %s; the base is %s", reason,
-                                                        DEFAULT_CHOOSE_BASE)
-                rehearsing = False
-        if rehearsing:  # the base the model's simulated runs favour; the layers start on the default base
-            from dtpf.system.rehearse import rehearse
-            rehearsal = rehearse(model, policy.arms, n=config.particles, steps=config.steps,
-                                 threshold_rule=config.threshold, move=config.jitter, particles=policy.particles)
-            options = dict(policy_options or {})
-            # Arms the rehearsal found clearly worse than roughening are neither copied nor entered.
-            options.setdefault("arms", tuple(a for a in policy.arms if a not in rehearsal.dropped))
-            policy = cls_(ps=config.ps, max_change=config.ps_rate, base=rehearsal.arm, move=config.jitter,
-                          **options)
-            policy.arm = policy.initial_arm = DEFAULT_CHOOSE_BASE
-            policy.rehearsal = rehearsal
+            policy = _rehearsed(policy, config, model, policy_options)
         view = None
         if model is not None:
             from dtpf.entity.calls import ModelCalls, StepModel

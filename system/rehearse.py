@@ -206,13 +206,12 @@ def _one_run(model, arms, *, n: int, m: int, steps: int, threshold_rule, move: s
     copies = ArmEvidence(model, arms, n=n, threshold_rule=threshold_rule, particles=m, window=1, move=move)
     copies.estimates = {}
     estimates = {name: np.empty_like(truth) for name in copies.names}
-    points = np.arange(m, dtype=np.float64)
     particles = np.asarray(model.initial_particles(m, rng), dtype=np.float64).reshape(m, -1)
     weights = np.full(m, 1.0 / m)
     for k in range(1, steps + 1):
         z = np.asarray(observations[k - 1], dtype=np.float64).reshape(-1)
         if k > 1:   # the plain filter the copies start from: systematic resampling, then the state equation
-            ancestors = resampling.inverse_cdf((rng.random() + points) / m, weights)
+            ancestors = resampling.systematic(weights, rng)
             particles = np.asarray(model.propagate(particles[ancestors], k, rng), dtype=np.float64).reshape(m, -1)
         log_w = np.asarray(model.log_likelihood(particles, z, k), dtype=np.float64).reshape(-1)
         top = np.max(log_w)

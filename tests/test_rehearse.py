@@ -169,10 +169,17 @@ def test_the_configuration_and_the_command_line_take_rehearse_for_the_choosing_p
     assert "simulated runs of the model" in " ".join(parser.format_help().split())
 
 
-def test_the_threshold_keeps_a_false_base_below_2_5_percent_over_four_arms():
-    """One-sided 2.5 standard errors per arm: at most 2.5% over four arms (Bonferroni)."""
-    tail = 0.5 * math.erfc(rehearse.Z / math.sqrt(2.0))
-    assert 4 * tail <= 0.025
+def test_the_boundary_over_the_looks_errs_as_one_look_at_2_5_standard_errors():
+    """An arm no better than the base crosses -Z at one of the looks 200, 400, 800, 1600 about as often as it
+    would cross -2.5 at a single look (one-sided 0.62%: at most 2.5% over four arms). The paired mean after n runs
+    is a random walk's sum over n: 200,000 such walks, the tolerance four binomial standard errors."""
+    looks = np.array(rehearse.looks(1600))
+    rng = np.random.default_rng(11)
+    sums = np.cumsum(rng.standard_normal((200_000, looks.size)) * np.sqrt(np.diff(looks, prepend=0)), axis=1)
+    crossed = float(np.mean((sums / np.sqrt(looks) < -rehearse.Z).any(axis=1)))
+    single = 0.5 * math.erfc(2.5 / math.sqrt(2.0))
+    assert abs(crossed - single) < 4 * math.sqrt(single * (1 - single) / 200_000)
+    assert 4 * single <= 0.025
 
 
 def test_a_launched_rehearsal_decides_as_the_inprocess_one_and_its_log_verifies(tmp_path):

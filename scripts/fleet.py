@@ -21,7 +21,7 @@ from pathlib import Path
 from dtpf.messages import keys
 from dtpf.messages.codec import MessageError, decode_for_key
 from dtpf.messages.config import RunConfig
-from dtpf.messages.models import Estimate, Layer, Status
+from dtpf.messages.models import Estimate, Layer, ServiceState, Status
 from dtpf.recording.logfile import what_it_holds
 from dtpf.recording.writer import EXIT_LOG_WRITE
 from dtpf.scripts.launch import (
@@ -334,10 +334,20 @@ def _take(result: FleetResult, item, layer_of_pid) -> Estimate | Status | None:
 
 def _drain(watch: Inbox, result: FleetResult, layer_of_pid, quiet: float = 0.3) -> None:
     """Take what is still in flight until none of the fleet's own estimates or statuses came for ``quiet``
-    seconds (what others publish meanwhile does not hold the launcher), at most 5 s."""
+    seconds (what others publish meanwhile does not hold the launcher), at most 5 s, and not before every
+    twin's entity has said its run ended (its last message: what it published before has arrived by then,
+    however far behind a loaded machine left this process), as a solo launch waits for its entity."""
     deadline = time.monotonic() + 5.0
     last_taken = time.monotonic()
-    while (now := time.monotonic()) < deadline and now - last_taken < quiet:
-        item = watch.get(timeout=max(0.0, quiet - (now - last_taken)))
+
+    def entities_done() -> bool:
+        ended = {twin for (pid, twin), status in result.statuses.items() if layer_of_pid.get(pid) == "entity"
+                 and status.state in (ServiceState.FINISHED, ServiceState.FAILED)}
+        return ended >= set(result.tallies)
+
+    while (now := time.monotonic()) < deadline:
+        if now - last_taken >= quiet and entities_done():
+            break
+        item = watch.get(timeout=max(0.01, quiet - (now - last_taken)))
         if item is not None and _take(result, item, layer_of_pid) is not None:
             last_taken = time.monotonic()

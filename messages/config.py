@@ -427,10 +427,16 @@ class _ObservationsAction(argparse.Action):
         setattr(namespace, self.dest, value)
 
 
-def add_run_arguments(parser: argparse.ArgumentParser, threads: bool = False) -> None:
+def add_run_arguments(parser: argparse.ArgumentParser, threads: bool = False, choose_by_default: bool = False) -> None:
     """Options of one run, shared by every command that starts a run; ``threads``: and ``--threads``, for
-    a command that computes a run's filter (``dtpf run``, ``dtpf launch``, the layers' services)."""
+    a command that computes a run's filter (``dtpf run``, ``dtpf launch``, the layers' services);
+    ``choose_by_default``: its --help gives the command line's policy (:func:`command_line_policy`) as the default
+    (``dtpf run``, ``dtpf launch``)."""
     defaults = RunConfig()
+    policy_default = (f"{names.COMMAND_LINE_POLICY[0]} on a {names.COMMAND_LINE_POLICY[1]}d base; {defaults.policy} "
+                      f"(PS {defaults.ps}, the paper's) with --ps, --weight-rule, --move-rule, --move or "
+                      "--no-preprocess"
+                      if choose_by_default else defaults.policy)
     # Every run flag defaults to None, "not given", so that a --config file can set what no flag does.
     parser.add_argument("--config", type=Path, default=None, metavar="FILE",
                         help="run configuration file (TOML, the RunConfig fields, e.g. particles = 5000); "
@@ -513,7 +519,7 @@ def add_run_arguments(parser: argparse.ArgumentParser, threads: bool = False) ->
                            default=defaults.move_rule))
     group.add_argument("--policy", default=None, metavar="NAME",
                        help="PS policy of the system layer (docs/guides/policies.md): " + family.POLICIES.help(
-                           "your own PSPolicy subclass", defaults.policy))
+                           "your own PSPolicy subclass", policy_default))
     group.add_argument("--choose-base", default=None, choices=names.CHOOSE_BASES, metavar="ARM",
                        help="with --policy choose: the arm in force when no other has the evidence, and the one the "
                             f"others are scored against ({', '.join(names.ARMS)}; default: {names.DEFAULT_CHOOSE_BASE}); "
@@ -616,11 +622,31 @@ def recorded_config(config_json: str) -> RunConfig:
     return config
 
 
-def config_from_args(args: argparse.Namespace) -> RunConfig:
+#: Settings a run names to have them run at every step: PS and the rules of the fixed policy, and the move after
+#: resampling (``--move``). A run that sets one (or turns the twin off) without naming a policy takes the fixed one
+#: (:func:`command_line_policy`); the choosing policy would run a named move only where its evidence favours it.
+FIXED_SETTINGS = ("ps", "weight_rule", "move_rule", "jitter")
+
+
+def command_line_policy(values: dict) -> dict:
+    """``values`` (RunConfig fields given) with the command line's policy when they name none: the choosing policy
+    on a rehearsed base (:data:`~dtpf.messages.names.COMMAND_LINE_POLICY`), unless they set PS, a rule or a move
+    (:data:`FIXED_SETTINGS`) or turn the twin off, which keeps RunConfig's default, the paper's fixed PS."""
+    if "policy" in values or values.get("preprocess") is False or any(name in values for name in FIXED_SETTINGS):
+        return values
+    policy, base = names.COMMAND_LINE_POLICY
+    return {**values, "policy": policy, "choose_base": values.get("choose_base") or base}
+
+
+def config_from_args(args: argparse.Namespace, *, choose_by_default: bool = False) -> RunConfig:
     """The RunConfig of parsed arguments: the defaults, then the --config file, then the flags given;
-    raises ValueError naming a bad option."""
+    raises ValueError naming a bad option. ``choose_by_default``: a run that names no policy takes the command
+    line's (:func:`command_line_policy`: ``dtpf run``, ``dtpf launch``); False: RunConfig's (the services started
+    by hand, ``dtpf compare``'s variants)."""
     values = read_config_file(args.config) if getattr(args, "config", None) else {}
     values.update({name: getattr(args, name) for name in _FLAG_FIELDS if getattr(args, name, None) is not None})
+    if choose_by_default:
+        values = command_line_policy(values)
     block = getattr(args, "block_particles", None)
     if block is not None:
         values["block_particles"] = None if block == ONE_BLOCK else block

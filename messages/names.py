@@ -20,7 +20,7 @@ import sys
 from dtpf.messages.family import Family
 
 __all__ = ["SCENARIOS", "MODEL_ENTRY_POINTS", "CANNOT_SAMPLE", "BuiltinOnly", "WEIGHT_RULE_REGISTRY",
-           "MOVE_RULE_REGISTRY", "ARMS", "OWN_ARM", "REHEARSE", "CHOOSE_BASES", "REHEARSAL_WAIT", "scenario_names"]
+           "MOVE_RULE_REGISTRY", "ARMS", "OWN_ARM", "REHEARSE", "COMMAND_LINE_POLICY", "CHOOSE_BASES", "REHEARSAL_WAIT", "scenario_names"]
 
 #: Built-in scenarios (dtpf.entity.models): Eq. 35 with 25, Eq. 35 as printed (0.25), the tracking video, and a
 #: slowly drifting constant with precise observations (where particles impoverish; not in the paper), and the
@@ -74,6 +74,10 @@ DEFAULT_CHOOSE_BASE = "roughening"
 #: The choosing policy's base "rehearse": before the run the system layer filters simulated runs of the model
 #: with every arm and takes the arm that estimated best (dtpf.system.rehearse).
 REHEARSE = "rehearse"
+#: The PS policy ``dtpf launch`` and ``dtpf run`` take when none is named: the choosing policy on a rehearsed base
+#: (docs/results/chooser.md). A run that sets PS, the weight or move rule or its own move, or turns the twin off,
+#: takes the fixed policy, as :class:`~dtpf.messages.config.RunConfig` does.
+COMMAND_LINE_POLICY = ("choose", REHEARSE)
 #: What the choosing policy's base may be: an arm, or "rehearse".
 CHOOSE_BASES = (*ARMS, REHEARSE)
 #: Seconds an entity waits, beyond its startup timeout, for a system layer that rehearses (a rehearsal takes

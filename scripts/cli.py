@@ -35,7 +35,7 @@ def resolved_config(args: argparse.Namespace):
     not given (so every process and the progress bar know T)."""
     from dtpf.entity.sources import read_table
 
-    config = config_from_args(args)
+    config = config_from_args(args, choose_by_default=True)
     if config.observation_file is not None and config.steps is None:
         config = config.model_copy(update={"steps": read_table(config).steps})
     if config.sensor_files and config.steps is None and not config.live:  # a driven twin's files: every row
@@ -58,8 +58,29 @@ def fit_simulation(config, args: argparse.Namespace):
 
 
 #: What a run whose system layer rehearses the model says before its first step.
-REHEARSING = ("dtpf: the system layer rehearses the model before the first step (--choose-base rehearse: every arm "
-              "on 200 to 1,600 simulated runs), seconds to a minute or two")
+REHEARSING = ("dtpf: the system layer rehearses the model before the run (--choose-base rehearse: every arm on 200 "
+              "to 1,600 simulated runs), seconds to a minute or two once per model, N and T; a rehearsal already "
+              "made is read from ~/.cache/dtpf/rehearsals")
+
+
+def settle_rehearsal(config, args: argparse.Namespace, model=None):
+    """The run's config once its model is known: a rehearsal the command line chose by default (no --choose-base)
+    for a model that cannot be rehearsed (:func:`dtpf.system.rehearse.why_not`: no sample_observation, driven, several
+    sensors) gives way to the default base, roughening, without a word; otherwise, unless -q, the notice that the
+    system layer rehearses first. A model that does not load is left to the run, which says what is wrong."""
+    if not config.rehearses:
+        return config
+    from dtpf.system.rehearse import why_not
+
+    try:
+        reason = why_not(model if model is not None else sources.load_model(config, check=False))
+    except Exception:  # noqa: BLE001 - the run reports a model that does not load, in one line
+        return config
+    if reason is not None and getattr(args, "choose_base", None) is None:
+        return config.model_copy(update={"choose_base": None})
+    if reason is None and not getattr(args, "quiet", False):
+        print(REHEARSING, file=sys.stderr, flush=True)
+    return config
 
 
 def cmd_run(args: argparse.Namespace) -> int:
@@ -68,9 +89,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 
     cores.set_threads(args.threads)
     # run() reads the file once; T is its rows unless --steps is smaller
-    config = fit_simulation(config_from_args(args), args)
-    if config.rehearses and not args.quiet:
-        print(REHEARSING, file=sys.stderr, flush=True)
+    config = settle_rehearsal(fit_simulation(config_from_args(args, choose_by_default=True), args), args)
     result = run(config, progress=None if args.quiet else ProgressBar(),
                  note=lambda problem: print(f"dtpf: note: {problem}", file=sys.stderr))
     ps = result.ps
@@ -79,6 +98,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         f"{'model' if config.model else 'scenario':<16}{config.model_ref} (N = {config.particles}, "
         f"T = {len(result.steps)}, seed {config.seed})",
         *([f"observations    {config.observations}"] if config.observations else []),
+        f"resampling      {config.resampler}, with the move of the arm in force (below)" if result.arms else
         f"resampling      {'DT preprocessing + ' if config.preprocess else ''}{config.resampler}"
         f"{'' if config.jitter == 'none' else ', then the move ' + config.jitter}",
     ]
@@ -102,6 +122,10 @@ def cmd_run(args: argparse.Namespace) -> int:
         *([f"preprocessed    {sum(s.report is not None and s.report.n_processed > 0 for s in result.steps)} of "
            f"{len(result.steps)} steps moved particles (policy {config.policy}: off elsewhere)"]
           if config.preprocess and not family.POLICIES.trait(config.policy, "initial_preprocess", True) else []),
+        *([f"arms in force   {', '.join(f'{arm} {count}' for arm, count in result.arms.items())} steps "
+           f"(policy {config.policy}; base {result.base[0]}: " + (result.base[1] if result.base[1] in ("named", "the default")
+                                                                   else f"from {result.base[1]}") + ")"]
+          if result.arms else []),
         f"degraded steps  {result.degraded}",
         f"time            {result.elapsed:.3f} s ({1e3 * result.elapsed / max(1, len(result.steps)):.3f} ms/step)",
     ]
@@ -153,6 +177,7 @@ def cmd_launch(args: argparse.Namespace) -> int:
         from dtpf.scripts.ros2.preflight import with_param_topics
         config = with_param_topics(config, args.ros2_params, args.steps)
     model = sources.load_model(config)  # a wrong model or file: one line here, before any process starts
+    config = settle_rehearsal(config, argparse.Namespace(choose_base=args.choose_base, quiet=True), model)
     if not _claim_log(args):
         return 2
     _note_partial_truth(config, model)
@@ -339,7 +364,7 @@ def build_parser() -> argparse.ArgumentParser:
                                           "simulated scenario or an observation file (--observations) and "
                                           "print RMSE (or, without truth, the log predictive likelihood), "
                                           "ESS, PS and timing.")
-    add_run_arguments(run, threads=True)
+    add_run_arguments(run, threads=True, choose_by_default=True)
     run.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
     run.set_defaults(handler=cmd_run)
 
@@ -351,7 +376,7 @@ def build_parser() -> argparse.ArgumentParser:
                     "every service and leaves a readable log. Without --secure the router listens on loopback "
                     "only, unauthenticated: any process of this machine can read and publish on it; with "
                     "--secure DIR only the twin's own layers can steer it (docs/guides/security.md).")
-    add_run_arguments(launch, threads=True)
+    add_run_arguments(launch, threads=True, choose_by_default=True)
     group = launch.add_argument_group("launch")
     group.add_argument("--log", "-o", type=Path, default=None, metavar="PATH",
                        help="MCAP file to write, never an existing one (default: "

@@ -75,6 +75,10 @@ class RunResult:
     truth_components: tuple[int, ...] | None = None
     #: The names of the truth columns (the observation file's), for the summary.
     truth_columns: tuple[str, ...] = ()
+    #: A choosing policy's arms: the steps each arm was in force (None: a policy that names no arm).
+    arms: dict[str, int] | None = None
+    #: A choosing policy's base, and how it was reached (its rehearsal's size, "named" or "the default").
+    base: tuple[str, str] | None = None
 
     @property
     def components(self) -> tuple[int, ...]:
@@ -210,4 +214,24 @@ def run(config: RunConfig, progress=None, model=None, note=None) -> RunResult:
         if progress is not None:
             progress(step.step, pf.steps)
     result.elapsed = time.perf_counter() - start
+    _note_arms(result, pf)
     return result
+
+
+def _note_arms(result: RunResult, pf) -> None:
+    """A choosing policy's arms in force at each step of the run, counted, and its base (``result.arms``,
+    ``result.base``)."""
+    preprocessor = getattr(pf, "preprocessor", None)
+    policy = getattr(getattr(preprocessor, "system", None), "policy", None)
+    arm = getattr(policy, "initial_arm", None)
+    if arm is None or not result.steps:
+        return
+    changes = {decision.applies_from_step: decision.arm for decision in preprocessor.decisions if decision.arm}
+    counts: dict[str, int] = {}
+    for step in result.steps:
+        arm = changes.get(step.step, arm)
+        counts[arm] = counts.get(arm, 0) + 1
+    result.arms = dict(sorted(counts.items(), key=lambda item: -item[1]))
+    rehearsal = getattr(policy, "rehearsal", None)
+    result.base = (policy.base, f"a rehearsal of {rehearsal.runs:,} simulated runs" if rehearsal is not None
+                   else "named" if result.config.choose_base else "the default")

@@ -256,9 +256,9 @@ class ArmEvidence:
             if arm.weight_rule == "likelihood":
                 z = self._z
                 log_likelihood = (lambda y: model.log_likelihood(y, z, k))
-            moved = rules.preprocess(x, w, arm.ps, rng, threshold_rule=self.threshold_rule,
-                                     weight_rule=arm.weight_rule, log_likelihood=log_likelihood,
-                                     move_rule=arm.move_rule)
+            moved = rules.preprocess(x, w, arm.ps, rng, threshold_rule=self.threshold_rule,  # sets checked on receipt
+                                     weight_rule=arm.weight_rule, log_likelihood=log_likelihood,  # or made here
+                                     move_rule=arm.move_rule, checked=True)
             if estimates is not None:
                 estimates[arm.name] = moved.weights @ moved.particles
             resampled[arm.name] = moved.particles[resampling.inverse_cdf(points, moved.weights)]

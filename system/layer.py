@@ -54,8 +54,16 @@ def _rehearsed(policy: PSPolicy, config, model, policy_options: dict | None) -> 
             logging.getLogger(__name__).warning("choose_base rehearse: %s; the base is %s", reason,
                                                 DEFAULT_CHOOSE_BASE)
         return policy
-    rehearsal = rehearse(model, policy.arms, n=config.particles, steps=config.steps, threshold_rule=config.threshold,
-                         move=config.jitter, particles=policy.particles)
+    try:
+        rehearsal = rehearse(model, policy.arms, n=config.particles, steps=config.steps,
+                             threshold_rule=config.threshold, move=config.jitter, particles=policy.particles)
+    except Exception as error:  # noqa: BLE001 - a user's model may raise anything; the run itself will say it
+        reason = f"the rehearsal failed: {type(error).__name__}: {str(error)[:300]}"
+        if reason not in _SAID:
+            _SAID.add(reason)
+            logging.getLogger(__name__).warning("choose_base rehearse: %s; the base is %s", reason,
+                                                DEFAULT_CHOOSE_BASE)
+        return policy
     options = dict(policy_options or {})
     options.setdefault("arms", tuple(a for a in policy.arms if a not in rehearsal.dropped))
     chosen = type(policy)(ps=config.ps, max_change=config.ps_rate, base=rehearsal.arm, move=config.jitter, **options)
@@ -90,6 +98,8 @@ class SystemLayer:
         self.history: deque[tuple[int, WeightSummary]] = deque(maxlen=keep)
         self.forecasts: deque[Forecast] = deque(maxlen=keep)
         self.decisions: deque[PSDecision] = deque(maxlen=keep)
+        #: Steps whose forecast the model failed (:meth:`_model_failed`).
+        self.model_failures = 0
 
     @classmethod
     def from_config(cls, config, twin: str | None = None, model=None, keep: int | None = None,
@@ -152,14 +162,31 @@ class SystemLayer:
         if self.view is not None:
             self.view.hold(sensor, drive)
         self.history.append((step, summary))
+        forecast = None
         if self.needs_particles and snapshot is not None:
-            forecast = self.predictor.forecast(step, summary, snapshot, stream(self.seed, self.twin, step, "system"))
-        else:
+            try:
+                forecast = self.predictor.forecast(step, summary, snapshot,
+                                                   stream(self.seed, self.twin, step, "system"))
+            except Exception as error:  # noqa: BLE001 - a user's model may raise anything; the entity says it too
+                self._model_failed(step, error)
+        if forecast is None:
             forecast = self.predictor.forecast(step, summary)
         decision = self.policy.decide(step, forecast)
         self.forecasts.append(replace(forecast, simulation=None))  # the figures; not the simulated sets
         self.decisions.append(decision)
         return decision
+
+
+    def _model_failed(self, step: int, error: Exception) -> None:
+        """A model call of the forecast (the what-if simulations, the arms' copies) raised at ``step``: logged once
+        a twin, and the step's forecast holds the history figures only (the policy keeps what it has)."""
+        self.predictor.history.pop()      # the figures of this step are appended again
+        if not self.model_failures:
+            logging.getLogger("dtpf.system").warning(
+                "twin %s: the model raised %s: %s in the system layer's forecast at step %d; that step's forecast "
+                "holds the weight history alone (further failures are counted)", self.twin, type(error).__name__,
+                str(error)[:300], step)
+        self.model_failures += 1
 
 
 #: The configurations whose compiled kernels :func:`warm_up` has loaded in this process: numba compiles per

@@ -29,6 +29,12 @@ observations: with the truth of a simulation the error of each arm's estimate is
 Cost, measured by ``python -m dtpf.scripts.bench.chooser_cost --rehearsal ungm drift+100 range-bearing``:
 20-44 ms a simulated run of 100 steps at N = 100 and 46-123 ms at N = 1000 (one core), so 6 to 35 s at N = 100
 and T = 100 (200 to 1,600 runs) and 9 to 25 s at N = 1000 (200 runs); once per (model, N, T, arms) in a process.
+Once per (model, N, T, arms) and dtpf's code on a machine: a rehearsal of a model that is a dataclass (every
+built-in one) is kept in a file of :func:`cache_folder`, named by a digest of those inputs and of the source of dtpf
+and of the model's module, so that a second launch of the same twin starts at once. A file that does not hold
+what its name promises (cut short, edited, another format) is ignored and written again. Any other model is
+rehearsed once per process.
+
 A model that cannot draw observations (``samples_observations`` False: the video, a twin of a real system
 without a sensor model), or that is driven or fused from several sensors, cannot be rehearsed: :func:`why_not`
 says why.
@@ -36,8 +42,15 @@ says why.
 from __future__ import annotations
 
 import dataclasses
+import functools
+import hashlib
+import inspect
+import json
+import logging
 import math
+import os
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -45,7 +58,8 @@ from dtpf.entity import resampling
 from dtpf.messages.names import DEFAULT_CHOOSE_BASE
 from dtpf.system.choose import ArmEvidence
 
-__all__ = ["Rehearsal", "rehearse", "why_not", "most_runs", "looks", "SEED", "BUDGET", "FEWEST", "MOST", "STEPS", "Z"]
+__all__ = ["Rehearsal", "rehearse", "simulated_runs", "why_not", "most_runs", "looks", "cache_folder", "SEED", "BUDGET", "FEWEST", "MOST",
+           "STEPS", "Z"]
 
 #: The root seed of every rehearsal's runs (independent of the run's seed: see the module docstring).
 SEED = 20261205
@@ -65,6 +79,10 @@ _LARGEST = 1e12
 #: Rehearsals kept per process, by their inputs.
 _KEPT = 16
 _CACHE: dict[tuple, tuple[object, "Rehearsal"]] = {}
+#: The format of a rehearsal's file; a file of another is written again.
+FILE_FORMAT = 1
+#: A rehearsal's file larger than this is not read (it holds a few hundred bytes).
+_LARGEST_FILE = 65536
 
 
 @dataclass(frozen=True)
@@ -139,19 +157,23 @@ def rehearse(model, arms, *, n: int, steps: int | None, runs: int | None = None,
     z = Z if z is None else float(z)
     if runs < 2:
         raise ValueError(f"a rehearsal needs at least 2 runs, got {runs!r}")
-    key = (_identity(model), tuple(arms), int(n), length, runs, threshold_rule, move, m, z, int(seed))
+    key = (_identity(model), tuple(arms), int(n), length, runs, tuple(looks(runs)), DROP, threshold_rule, move, m, z,
+           int(seed))
     kept = _CACHE.get(key)
     if kept is not None and _same(kept[0], model):
         return kept[1]
-    streams = np.random.SeedSequence(int(seed)).spawn(runs)
+    file = _file_of(model, key)
+    result = _read(file) if file is not None else None
+    if result is not None:
+        _keep(key, model, result)
+        return result
+    settings = dict(n=int(n), m=m, steps=length, threshold_rule=threshold_rule, move=move, seed=int(seed))
     active = tuple(dict.fromkeys(arms))
     errors: dict[str, list[float]] = {}
     differences: dict[str, tuple[float, float]] = {}
     against, chosen, done, dropped = None, None, 0, []
     for look in looks(runs):
-        for i in range(done, look):
-            run = _one_run(model, active, n=int(n), m=m, steps=length, threshold_rule=threshold_rule, move=move,
-                           rng=np.random.Generator(np.random.PCG64(streams[i])))
+        for run in _shared_runs(model, active, range(done, look), settings):
             for name, error in run.items():
                 errors.setdefault(name, []).append(error)
         done = look
@@ -174,10 +196,103 @@ def rehearse(model, arms, *, n: int, steps: int | None, runs: int | None = None,
     result = Rehearsal(chosen or against, against, done, length, m,
                        {a: float(np.mean(e)) for a, e in errors.items() if a in differences},
                        {a: differences[a] for a in errors if a in differences}, tuple(dropped), runs)
+    _keep(key, model, result)
+    if file is not None:
+        _write(file, result)
+    return result
+
+
+def _keep(key: tuple, model, result: Rehearsal) -> None:
     if len(_CACHE) >= _KEPT:
         _CACHE.pop(next(iter(_CACHE)))
     _CACHE[key] = (model, result)
-    return result
+
+
+def cache_folder() -> Path:
+    """Where rehearsals are kept between processes: ``$XDG_CACHE_HOME/dtpf/rehearsals`` (default
+    ``~/.cache/dtpf/rehearsals``)."""
+    root = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(root) / "dtpf" / "rehearsals"
+
+
+@functools.lru_cache(maxsize=1)
+def _code_digest() -> str:
+    """A digest of dtpf's own source (every .py file of the package): a rehearsal kept by other code is not used."""
+    root = Path(__file__).resolve().parent.parent
+    digest = hashlib.sha256()
+    for path in sorted(root.rglob("*.py")):
+        if "__pycache__" in path.parts:
+            continue
+        digest.update(str(path.relative_to(root)).encode())
+        digest.update(path.read_bytes())
+    return digest.hexdigest()
+
+
+def _file_of(model, key: tuple) -> Path | None:
+    """The file of a rehearsal of ``model`` with the inputs ``key``, or None when it is not kept on disk (a model
+    that is not a dataclass, a rule or move given as an object, a model whose module's source cannot be read)."""
+    if not dataclasses.is_dataclass(model) or not all(isinstance(part, (str, int, float, tuple)) for part in key[1:]):
+        return None
+    try:
+        source = Path(inspect.getsourcefile(type(model)) or "").read_bytes()
+        text = json.dumps([FILE_FORMAT, _code_digest(), hashlib.sha256(source).hexdigest(), list(key)], default=str)
+    except (OSError, TypeError, ValueError):
+        return None
+    return cache_folder() / (hashlib.sha256(text.encode()).hexdigest()[:32] + ".json")
+
+
+def _read(file: Path) -> Rehearsal | None:
+    """The rehearsal kept in ``file``, or None when there is none or the file does not hold one (then it is
+    written again)."""
+    try:
+        if not file.is_file() or file.stat().st_size > _LARGEST_FILE:
+            return None
+        data = json.loads(file.read_bytes())
+        if not isinstance(data, dict) or data.get("format") != FILE_FORMAT:
+            raise ValueError("another format")
+        return _rehearsal_of(data["rehearsal"])
+    except (OSError, ValueError, KeyError, TypeError, RecursionError) as error:
+        logging.getLogger(__name__).warning("rehearsal file %s not used (%s); rehearsing again", file.name, error)
+        return None
+
+
+def _rehearsal_of(value) -> Rehearsal:
+    """A Rehearsal from its JSON form; ValueError or TypeError when any field is missing or of the wrong kind."""
+    if not isinstance(value, dict):
+        raise TypeError("not an object")
+    ints = {name: value[name] for name in ("runs", "steps", "particles", "most")}
+    if not all(type(v) is int and v >= 0 for v in ints.values()):
+        raise ValueError("runs, steps, particles and most must be whole numbers")
+    arm, against = value["arm"], value["against"]
+    errors, differences, dropped = value["errors"], value["differences"], value["dropped"]
+    if not (isinstance(arm, str) and isinstance(against, str) and isinstance(errors, dict)
+            and isinstance(differences, dict) and isinstance(dropped, list)):
+        raise TypeError("arm, against, errors, differences or dropped of the wrong kind")
+    errors = {str(a): float(e) for a, e in errors.items()}
+    pairs = {}
+    for a, pair in differences.items():
+        if not (isinstance(pair, list) and len(pair) == 2):
+            raise ValueError(f"difference of {a!r} is not a pair")
+        pairs[str(a)] = (float(pair[0]), float(pair[1]))
+    names = {arm, against, *map(str, dropped)}
+    if not names <= set(errors) | set(dropped) or arm not in errors:
+        raise ValueError("arms that were not rehearsed")
+    return Rehearsal(arm, against, errors=errors, differences=pairs, dropped=tuple(map(str, dropped)), **ints)
+
+
+def _write(file: Path, result: Rehearsal) -> None:
+    """Keep ``result`` in ``file`` (written whole or not at all); a folder that cannot be written is logged."""
+    data = {"format": FILE_FORMAT, "rehearsal": {**dataclasses.asdict(result), "dropped": list(result.dropped),
+                                                 "differences": {a: list(p) for a, p in result.differences.items()}}}
+    part = file.with_name(f"{file.stem}.{os.getpid()}.part")
+    try:
+        file.parent.mkdir(parents=True, exist_ok=True)
+        part.write_text(json.dumps(data, allow_nan=True))
+        os.replace(part, file)
+    except OSError as error:
+        logging.getLogger(__name__).warning("rehearsal not kept in %s: %s", file.parent, error)
+        if part.parent.is_dir():
+            part.unlink(missing_ok=True)
 
 
 def _identity(model) -> tuple:
@@ -196,6 +311,99 @@ def _same(kept, model) -> bool:
         return type(kept) is type(model) and dataclasses.is_dataclass(model) and bool(kept == model)
     except (TypeError, ValueError):  # fields whose comparison has no single truth value (arrays)
         return False
+
+
+def simulated_runs(model, arms, runs, *, n: int, m: int, steps: int, threshold_rule, move: str,
+                   seed: int) -> list[dict[str, float]]:
+    """Each arm's error on each of the simulated runs numbered ``runs``, run i from the i-th stream spawned
+    from ``seed`` (the same numbers in any process, in any order)."""
+    return [_one_run(model, arms, n=n, m=m, steps=steps, threshold_rule=threshold_rule, move=move,
+                     rng=np.random.Generator(np.random.PCG64(np.random.SeedSequence(seed, spawn_key=(int(i),)))))
+            for i in runs]
+
+
+#: Particle-steps of one look (runs x M x T x arms) from which a rehearsal shares the runs among the cores of its
+#: process (helper processes start in about a second; below this the look takes about as long on one).
+SHARED_WORK = 5_000_000
+
+
+def _shared_runs(model, arms, runs: range, settings: dict) -> list[dict[str, float]]:
+    """:func:`simulated_runs` of ``runs``, shared among the process's cores (:func:`dtpf.entity.cores.threads`)
+    when the look is large (:data:`SHARED_WORK`): helper processes take the later runs, this one the first; a
+    helper that fails (a model that does not pickle, or cannot be imported in another process) has its runs
+    made here. The numbers are those of one process."""
+    from dtpf.entity import cores
+
+    work = len(runs) * settings["m"] * settings["steps"] * len(arms)
+    helpers = min(cores.threads(), len(runs)) - 1 if work >= SHARED_WORK else 0
+    if helpers < 1:
+        return simulated_runs(model, arms, runs, **settings)
+    parts = np.array_split(np.arange(runs.start, runs.stop), helpers + 1)
+    started = [_start_helper(model, arms, part, settings) for part in parts[1:]]
+    out = simulated_runs(model, arms, parts[0].tolist(), **settings)
+    for part, helper in zip(parts[1:], started):
+        result = _finish_helper(helper, len(part))
+        out += result if result is not None else simulated_runs(model, arms, part.tolist(), **settings)
+    return out
+
+
+def _start_helper(model, arms, part, settings: dict):
+    """A helper process given its task, or None when the task does not pickle."""
+    import pickle
+    import subprocess
+    import sys
+    import tempfile
+
+    try:
+        task = pickle.dumps({"model": model, "arms": tuple(arms), "runs": part.tolist(), "settings": settings})
+    except Exception as error:  # noqa: BLE001 - any object a model holds may refuse pickling, in any way
+        _say_once(f"the model does not pickle ({type(error).__name__}); the rehearsal runs on one core")
+        return None
+    files = [tempfile.TemporaryFile() for _ in range(3)]
+    files[0].write(task)
+    files[0].seek(0)
+    try:
+        process = subprocess.Popen([sys.executable, "-P", "-m", "dtpf.system._rehearse_worker"],
+                                   stdin=files[0], stdout=files[1], stderr=files[2])
+    except OSError as error:
+        _say_once(f"no helper process ({error}); the rehearsal runs on one core")
+        return None
+    return process, files
+
+
+def _finish_helper(helper, count: int) -> list[dict[str, float]] | None:
+    """The errors a helper wrote, or None (said once) when it failed or wrote something else."""
+    import pickle
+
+    if helper is None:
+        return None
+    process, (task, out, err) = helper
+    try:
+        code = process.wait()
+        out.seek(0)
+        err.seek(0)
+        if code == 0:
+            result = pickle.load(out)
+            if isinstance(result, list) and len(result) == count and all(isinstance(r, dict) for r in result):
+                return result
+        why = err.read()[-300:].decode(errors="replace").strip().splitlines()
+        _say_once(f"a helper process failed ({why[-1] if why else f'exit code {code}'}); its runs are made here")
+        return None
+    except Exception as error:  # noqa: BLE001 - whatever the helper wrote, the runs are made here
+        _say_once(f"a helper process's answer was unreadable ({type(error).__name__}); its runs are made here")
+        return None
+    finally:
+        for file in (task, out, err):
+            file.close()
+
+
+_HELPER_SAID: set[str] = set()
+
+
+def _say_once(text: str) -> None:
+    if text not in _HELPER_SAID:
+        _HELPER_SAID.add(text)
+        logging.getLogger(__name__).warning("rehearsal: %s", text)
 
 
 def _one_run(model, arms, *, n: int, m: int, steps: int, threshold_rule, move: str,

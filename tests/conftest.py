@@ -79,6 +79,23 @@ def pytest_configure(config):
     config.addinivalue_line("markers", "long: a long end-to-end run (conftest.LONG); python3 -m pytest -m long")
 
 
+@pytest.fixture(scope="session", autouse=True)
+def rehearsal_cache(tmp_path_factory):
+    """The rehearsals (dtpf.system.rehearse) of this test run kept in a folder of its own, not the user's cache:
+    every process a test starts inherits XDG_CACHE_HOME. A test of the cache itself sets its own."""
+    # One folder for both xdist workers (their base folders share a parent), so a rehearsal is made once a run.
+    base = tmp_path_factory.getbasetemp()
+    folder = (base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base) / "rehearsal-cache"
+    folder.mkdir(exist_ok=True)
+    before = os.environ.get("XDG_CACHE_HOME")
+    os.environ["XDG_CACHE_HOME"] = str(folder)
+    yield folder
+    if before is None:
+        os.environ.pop("XDG_CACHE_HOME", None)
+    else:
+        os.environ["XDG_CACHE_HOME"] = before
+
+
 @pytest.hookimpl(tryfirst=True)
 def pytest_collection_modifyitems(config, items):
     """Mark the tests of :data:`LONG` (before ``-m`` chooses)."""

@@ -215,7 +215,8 @@ def test_the_testers_bag_is_refused_naming_the_gap_and_partial_runs_on_the_rest(
     data = (bag / "radar.mcap").read_bytes()
     assert len(records(data, 0x06)) == 1
     (bag / "radar.mcap").write_bytes(zero(data, int(len(data) * 0.6), 4096))
-    common = ["--model", EXAMPLE, "--observations", str(bag), "--topic", TOPIC, "--ros2-fields", FIELDS, "-n", "100"]
+    common = ["--model", EXAMPLE, "--observations", str(bag), "--topic", TOPIC, "--ros2-fields", FIELDS, "-n", "100",
+              "--policy", "fixed"]
     done = subprocess.run([sys.executable, "-m", "dtpf.scripts.cli", "run", "-q", *common], cwd=ROOT,
                           capture_output=True, text=True, timeout=300)
     assert done.returncode == 2, done.stdout + done.stderr
@@ -257,7 +258,7 @@ def test_dtpf_launch_refuses_the_bag_or_with_partial_runs_on_what_dtpf_run_does(
     data = (bag / "radar.mcap").read_bytes()
     (bag / "radar.mcap").write_bytes(zero(data, int(len(data) * 0.5), 2048))
     common = ["-q", "--model", EXAMPLE, "--observations", str(bag), "--topic", TOPIC, "--ros2-fields", FIELDS,
-              "-n", "100", "--twin", "t-partial"]
+              "-n", "100", "--twin", "t-partial", "--policy", "fixed"]
 
     def dtpf(*args):
         return subprocess.run([sys.executable, "-m", "dtpf.scripts.cli", *args], cwd=ROOT, capture_output=True,

@@ -387,7 +387,8 @@ def test_a_model_that_fails_mid_run_is_one_line_naming_the_step_the_method_and_i
     with pytest.raises(FilterError, match=r"^step 5: the model's propagate raised IndexError: index 10 is out of "
                                           r"bounds for axis 0 with size 3 \(at late.py line 7\)$"):
         list(pf)
-    done = subprocess.run([sys.executable, "-P", "-m", "dtpf", "run", "-q", "-T", "10", "--model", "late.py:MODEL"],
+    done = subprocess.run([sys.executable, "-P", "-m", "dtpf", "run", "-q", "--policy", "fixed", "-T", "10", "--model",
+                           "late.py:MODEL"],
                           cwd=tmp_path, capture_output=True, text=True, timeout=300)
     assert done.returncode == 2 and "Traceback" not in done.stderr
     assert done.stderr.strip() == ("dtpf run: error: step 5: the model's propagate raised IndexError: index 10 is "

@@ -64,7 +64,7 @@ def test_a_client_offering_only_the_old_subprotocol_is_refused_with_one_line_per
     from websockets.exceptions import InvalidStatus
 
     port = free_port()
-    launcher = processes.start("launcher", ["-m", "dtpf.scripts.cli", "launch", "--steps", "40", "--rate", "10", "-n",
+    launcher = processes.start("launcher", ["-m", "dtpf.scripts.cli", "launch", "--policy", "fixed", "--steps", "40", "--rate", "10", "-n",
                                             "100", "--foxglove", str(port), "--twin", "t-old", "-o",
                                             str(tmp_path / "old.mcap")])
     refused, deadline = 0, time.monotonic() + 60

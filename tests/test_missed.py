@@ -47,7 +47,7 @@ def test_a_jump_in_the_numbers_is_noted_with_the_steps_around_it_whenever_zenoh_
 @pytest.fixture(scope="module")
 def launch_log(tmp_path_factory):
     folder = tmp_path_factory.mktemp("missed")
-    done = subprocess.run([sys.executable, "-m", "dtpf", "launch", "-q", "--particles", "200", "--steps", "30",
+    done = subprocess.run([sys.executable, "-m", "dtpf", "launch", "-q", "--policy", "fixed", "--particles", "200", "--steps", "30",
                            "--timeout", "1.0", "-o", str(folder / "run.mcap")], capture_output=True, text=True,
                           timeout=180)
     assert done.returncode == 0, done.stdout + done.stderr

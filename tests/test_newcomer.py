@@ -140,7 +140,7 @@ def test_dtpf_run_piped_has_no_progress_but_its_summary():
 
 def test_live_launch_prints_a_sensor_command_that_reaches_the_twin(processes, tmp_path):
     cold = cli.kernels_cold()
-    launcher = processes.start("launch", dtpf_command("launch", "--observations", "live", "--seed", "3", "-n", "200",
+    launcher = processes.start("launch", dtpf_command("launch", "--policy", "fixed", "--observations", "live", "--seed", "3", "-n", "200",
                                                       "-q", "-o", str(tmp_path / "live.mcap")))
     found = wait_for_output(processes, launcher, r"another terminal: (dtpf sensor [^\n]*)\n", 60)
     words = shlex.split(found.group(1))
@@ -215,7 +215,7 @@ def test_run_rmse_covers_the_components_with_truth(tmp_path):
     assert result.components == (0, 1) and result.partial_truth
     expected = math.sqrt(np.mean((result.means[:, :2] - truth[:, :2]) ** 2))
     assert result.rmse == pytest.approx(expected, rel=1e-12)
-    done = subprocess.run([sys.executable, "-m", "dtpf.scripts.cli", "run", "--model", f"{model}:MODEL",
+    done = subprocess.run([sys.executable, "-m", "dtpf.scripts.cli", "run", "--policy", "fixed", "--model", f"{model}:MODEL",
                            "--observations", str(observations), "-n", "300", "-q"],
                           capture_output=True, text=True, cwd=tmp_path, timeout=300)
     assert done.returncode == 0, done.stderr

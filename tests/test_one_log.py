@@ -28,7 +28,7 @@ from dtpf.recording.logfile import MixedRunsError, read_log, read_logs
 from dtpf.recording.writer import LogExistsError, McapRecording, claim_log, existing_log_files, held_by_writer
 from dtpf.shell.bus import free_port
 
-RUN = ("-q", "--particles", "200", "--timeout", "1.0")
+RUN = ("-q", "--particles", "200", "--timeout", "1.0", "--policy", "fixed")
 
 
 def dtpf(*args: str, cwd: Path, timeout: float = 180) -> subprocess.CompletedProcess:

@@ -155,7 +155,7 @@ def launch_beside_a_competitor(processes, args: list[str], twin: str, count: int
     """``dtpf launch ARGS`` (40 steps/s, N = 100) with a :class:`Competitor` of ``twin`` echoing ``count`` of its
     estimates mid-run: (the launcher's exit code, its output, the competitor)."""
     port = free_port()
-    launcher = processes.start("launcher", ["-m", "dtpf.scripts.cli", "launch", "--rate", "40", "--particles", "100",
+    launcher = processes.start("launcher", ["-m", "dtpf.scripts.cli", "launch", "--policy", "fixed", "--rate", "40", "--particles", "100",
                                             "--port", str(port), "--quiet", *args])
     competitor = None
     try:

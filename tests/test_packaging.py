@@ -213,7 +213,7 @@ def test_a_user_folder_with_messages_entity_and_scripts_gives_the_same_numbers(t
     (hostile / "scripts" / "__init__.py").write_text(
         "import pathlib\npathlib.Path(__file__).parent.parent.joinpath('scripts-ran').write_text('yes')\n"
         "raise ImportError('the user scripts package was imported')\n")
-    args = ("-q", "--model", "mymodel.py:RangeBearingTarget", "--observations", "obs.csv", "-n", "300",
+    args = ("-q", "--policy", "fixed", "--model", "mymodel.py:RangeBearingTarget", "--observations", "obs.csv", "-n", "300",
             "--steps", "30", "--seed", "4")
     runs = {}
     for folder in (plain, hostile):

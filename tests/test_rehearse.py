@@ -1,6 +1,7 @@
 """The rehearsal (``--choose-base rehearse``): every arm on simulated runs of the model, the best becomes the base."""
 from __future__ import annotations
 
+import json
 import logging
 import math
 import re
@@ -257,3 +258,143 @@ def test_equal_built_in_models_share_one_rehearsal_and_other_models_do_not(few_r
     one, two = Plain(), Plain()
     assert rehearse.rehearse(one, FIVE, n=40, steps=8) is rehearse.rehearse(one, FIVE, n=40, steps=8)
     assert rehearse.rehearse(two, FIVE, n=40, steps=8) is not rehearse.rehearse(one, FIVE, n=40, steps=8)
+
+
+@pytest.fixture
+def own_cache(monkeypatch, tmp_path, few_runs):
+    """An empty rehearsal cache folder of this test's own, and nothing kept in the process."""
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    return tmp_path / "cache" / "dtpf" / "rehearsals"
+
+
+def _no_runs(*args, **kwargs):
+    raise AssertionError("rehearsed again: the kept rehearsal was not used")
+
+
+def test_a_rehearsal_is_kept_on_disk_and_another_process_reads_it_instead_of_rehearsing(own_cache, monkeypatch):
+    model = models.DriftModel(prior_mean=100.0)
+    first = rehearse.rehearse(model, FIVE, n=40, steps=8)
+    files = list(own_cache.iterdir())
+    assert len(files) == 1 and files[0].suffix == ".json"
+    rehearse._CACHE.clear()                                   # as a new process finds it
+    monkeypatch.setattr(rehearse, "_one_run", _no_runs)
+    again = rehearse.rehearse(models.DriftModel(prior_mean=100.0), FIVE, n=40, steps=8)
+    assert again == first and again is not first
+    # Another N, T, model or arms is another rehearsal: it is not read from that file.
+    for changed in (dict(n=41, steps=8), dict(n=40, steps=9)):
+        with pytest.raises(AssertionError, match="rehearsed again"):
+            rehearse.rehearse(model, FIVE, **changed)
+    with pytest.raises(AssertionError, match="rehearsed again"):
+        rehearse.rehearse(models.DriftModel(prior_mean=50.0), FIVE, n=40, steps=8)
+    with pytest.raises(AssertionError, match="rehearsed again"):
+        rehearse.rehearse(model, FIVE[:3], n=40, steps=8)
+
+
+@pytest.mark.parametrize("damage", ["cut short", "not json", "another format", "wrong kinds", "unknown arm",
+                                    "too large", "deep nesting", "a folder"])
+def test_a_damaged_rehearsal_file_is_not_used_and_is_written_again(own_cache, damage, caplog):
+    model = models.DriftModel(prior_mean=100.0)
+    first = rehearse.rehearse(model, FIVE, n=40, steps=8)
+    (file,) = own_cache.iterdir()
+    text = file.read_text()
+    good = json.loads(text)
+    if damage == "cut short":
+        file.write_text(text[: len(text) // 2])
+    elif damage == "not json":
+        file.write_bytes(b"\xff\x00" * 50)
+    elif damage == "another format":
+        file.write_text(json.dumps({**good, "format": 99}))
+    elif damage == "wrong kinds":
+        file.write_text(json.dumps({**good, "rehearsal": {**good["rehearsal"], "runs": "many"}}))
+    elif damage == "unknown arm":
+        file.write_text(json.dumps({**good, "rehearsal": {**good["rehearsal"], "arm": "teleport"}}))
+    elif damage == "too large":
+        file.write_text(text + " " * (rehearse._LARGEST_FILE + 1))
+    elif damage == "deep nesting":
+        file.write_text("[" * 30_000 + "]" * 30_000)
+    else:
+        file.unlink()
+        file.mkdir()
+    rehearse._CACHE.clear()
+    with caplog.at_level(logging.WARNING):
+        again = rehearse.rehearse(model, FIVE, n=40, steps=8)
+    assert again == first
+    if damage not in ("too large", "a folder"):
+        assert "not used" in caplog.text and file.name in caplog.text
+    if damage != "a folder":
+        assert json.loads(file.read_text()) == good        # written again, whole
+    assert not list(own_cache.glob("*.part"))
+
+
+def test_a_rehearsal_folder_that_cannot_be_written_is_logged_and_the_run_goes_on(monkeypatch, tmp_path, few_runs,
+                                                                                caplog):
+    (tmp_path / "file").write_text("not a folder")
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "file"))
+    with caplog.at_level(logging.WARNING):
+        result = rehearse.rehearse(models.DriftModel(prior_mean=100.0), FIVE, n=40, steps=8)
+    assert result.arm in FIVE and "rehearsal not kept in" in caplog.text
+
+
+def test_a_model_that_is_not_a_dataclass_is_rehearsed_once_a_process_and_not_kept_on_disk(own_cache):
+    class Shifted:
+        """drift+100 behind an object of its own (a user's model that is no dataclass)."""
+        samples_observations = True
+
+        def __init__(self):
+            self.inner = models.DriftModel(prior_mean=100.0)
+
+        def __getattr__(self, name):
+            return getattr(self.__dict__["inner"], name)
+
+    model = Shifted()
+    first = rehearse.rehearse(model, FIVE, n=40, steps=8)
+    assert rehearse.rehearse(model, FIVE, n=40, steps=8) is first
+    assert first.arm == rehearse.rehearse(models.DriftModel(prior_mean=100.0), FIVE, n=40, steps=8).arm
+    assert [file.suffix for file in own_cache.iterdir()] == [".json"]     # the dataclass's alone
+
+
+@pytest.mark.parametrize("flags, policy, base", [
+    ([], "choose", "rehearse"),
+    (["--choose-base", "regularised"], "choose", "regularised"),
+    (["--threshold", "neff", "--resampler", "stratified"], "choose", "rehearse"),
+    (["--move", "roughening"], "fixed", None),
+    (["--policy", "fixed"], "fixed", None),
+    (["--ps", "0.81"], "fixed", None),
+    (["--weight-rule", "inherit"], "fixed", None),
+    (["--move-rule", "paper"], "fixed", None),
+    (["--no-preprocess"], "fixed", None),
+    (["--policy", "choose"], "choose", None),
+])
+def test_the_command_line_chooses_by_default_and_a_fixed_setting_keeps_the_papers_policy(flags, policy, base):
+    """dtpf launch and dtpf run: the choosing policy on a rehearsed base unless the run names a policy or sets a
+    setting of the fixed one; RunConfig itself (and dtpf compare's variants) keep the paper's fixed PS 0.81."""
+    import argparse
+
+    from dtpf.messages.config import add_run_arguments, config_from_args
+
+    parser = argparse.ArgumentParser()
+    add_run_arguments(parser, choose_by_default=True)
+    config = config_from_args(parser.parse_args(flags), choose_by_default=True)
+    assert (config.policy, config.choose_base) == (policy, base)
+    assert (RunConfig().policy, RunConfig().ps) == ("fixed", 0.81)
+    if "--choose-base" not in flags:   # the services, dtpf compare: RunConfig's default unless named
+        assert config_from_args(parser.parse_args(flags)).policy == \
+            ("choose" if "choose" in flags else "fixed")
+
+
+def test_a_config_file_that_sets_ps_keeps_the_fixed_policy_and_one_that_sets_nothing_chooses(tmp_path):
+    import argparse
+
+    from dtpf.messages.config import add_run_arguments, config_from_args
+
+    parser = argparse.ArgumentParser()
+    add_run_arguments(parser, choose_by_default=True)
+    (tmp_path / "ps.toml").write_text("ps = 0.5\n")
+    (tmp_path / "n.toml").write_text("particles = 300\n")
+    args = parser.parse_args(["--config", str(tmp_path / "ps.toml")])
+    assert config_from_args(args, choose_by_default=True).policy == "fixed"
+    chosen = config_from_args(parser.parse_args(["--config", str(tmp_path / "n.toml")]), choose_by_default=True)
+    assert (chosen.policy, chosen.choose_base, chosen.particles) == ("choose", "rehearse", 300)
+    help_text = " ".join(parser.format_help().split())
+    assert "default: choose on a rehearsed base; fixed (PS 0.81, the paper's) with --ps, --weight-rule, " \
+        "--move-rule, --move or --no-preprocess" in help_text

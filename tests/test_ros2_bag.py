@@ -81,9 +81,9 @@ def test_a_bag_written_by_rosbags_drives_dtpf_run_to_the_csv_numbers(bag, monkey
         np.testing.assert_array_equal(result.means, reference.means)
         np.testing.assert_array_equal(result.log_predictive, reference.log_predictive)
     done = dtpf("run", "-q", "--model", EXAMPLE, "--observations", str(bag), "--topic", "/target",
-                "--ros2-fields", "point.x,point.y", "-n", "500", "--seed", "3", "--twin", "rb-bag")
+                "--ros2-fields", "point.x,point.y", "-n", "500", "--seed", "3", "--twin", "rb-bag", "--policy", "fixed")
     csv_done = dtpf("run", "-q", "--model", EXAMPLE, "--observations", EXAMPLE_NO_TRUTH, "-n", "500", "--seed", "3",
-                    "--twin", "rb-bag")
+                    "--twin", "rb-bag", "--policy", "fixed")
     assert done.returncode == 0, done.stderr
     line = [x for x in done.stdout.splitlines() if x.startswith("log predictive")]
     assert line and line == [x for x in csv_done.stdout.splitlines() if x.startswith("log predictive")]
@@ -235,7 +235,7 @@ def test_a_cut_bag_is_read_up_to_the_cut_and_says_so(tmp_path):
     data = (whole / "whole.mcap").read_bytes()
     cut = tmp_path / "cut.mcap"
     cut.write_bytes(data[: len(data) // 2])
-    common = ("--model", EXAMPLE, "--topic", "/target", "--ros2-fields", "point.x,point.y", "-n", "300")
+    common = ("--model", EXAMPLE, "--topic", "/target", "--ros2-fields", "point.x,point.y", "-n", "300", "--policy", "fixed")
     done = dtpf("run", "-q", "--observations", str(cut), *common)
     assert done.returncode == 0, done.stdout + done.stderr
     steps = int(done.stdout.split("T = ")[1].split(",")[0])

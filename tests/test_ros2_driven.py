@@ -132,7 +132,7 @@ def test_live_ros2_topics_drive_the_twin_to_the_files_numbers_and_the_log_verifi
                                          "/gps,/beacons,/odom", "--wait", "240"], env)
     log = tmp_path / "robot.mcap"
     launcher = start(processes, "launch", [
-        "-m", "dtpf.scripts.cli", "launch", "-q", "--model", MODEL, "-n", str(RUN["particles"]), "--seed",
+        "-m", "dtpf.scripts.cli", "launch", "-q", "--policy", "fixed", "--model", MODEL, "-n", str(RUN["particles"]), "--seed",
         str(RUN["seed"]), "--twin", RUN["twin"], "--steps", "22", "--reorder-window", "1.0",
         "--observations", "gps=ros2:/gps", "--observations", "beacons=ros2:/beacons", "--controls", "ros2:/odom",
         "--ros2-params", str(tmp_path / "robot.yaml"), "--port", str(free_port()), "-o", str(log)], env)

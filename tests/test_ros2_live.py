@@ -197,7 +197,7 @@ def test_a_ros2_publisher_drives_the_twin_to_dtpf_run_numbers_and_a_subscriber_g
     publisher = start(processes, "publisher", [str(tmp_path / "pub.py"), EXAMPLE_NO_TRUTH, "/target", "50",
                                                str(steps), "10", reliability, str(go)], env)
     log = tmp_path / "ros2.mcap"
-    launcher = start(processes, "launch", ["-m", "dtpf.scripts.cli", "launch", "-q", "--model", EXAMPLE,
+    launcher = start(processes, "launch", ["-m", "dtpf.scripts.cli", "launch", "-q", "--policy", "fixed", "--model", EXAMPLE,
                                            "--observations", "ros2:/target", "--ros2-fields", "point.x,point.y",
                                            "-n", str(n), "--steps", str(steps), "--twin", "rb-ros",
                                            "--port", str(free_port()), "-o", str(log), *extra], env)

@@ -164,7 +164,7 @@ def test_the_layer_and_its_mirror_use_the_users_W(rules_file, n):
 
 
 def test_dtpf_run_takes_a_users_rule_from_a_file(rules_file):
-    done = dtpf(rules_file.parent, "run", "-q", "-n", "300", "-T", "20", "--seed", "1",
+    done = dtpf(rules_file.parent, "run", "-q", "--policy", "fixed", "-n", "300", "-T", "20", "--seed", "1",
                 "--threshold", "my_rules.py:half_max")
     assert done.returncode == 0, done.stderr
     rmse = run(RunConfig(threshold=f"{rules_file}:half_max", particles=300, steps=20, seed=1)).rmse

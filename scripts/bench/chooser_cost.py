@@ -1,31 +1,32 @@
-"""What the choosing policy costs: time per step of ``--policy choose`` against the plain filter and the paper's default.
+"""What the choosing policy costs: time per step of the default twin against the plain filter and the paper's.
 
-Three runs of the same scenario, N and seed, side by side:
+Four runs of the same scenario, N and seed, side by side:
 
-- plain   ``--no-preprocess``: the entity alone, systematic resampling (no twin consulted);
-- paper   the paper's default: DT preprocessing at PS 0.81 (fixed policy), the layers every step;
-- choose  ``--policy choose``: the system layer runs the five arms' copies (docs/guides/policies.md).
+- plain    ``--no-preprocess``: the entity alone, systematic resampling (no twin consulted);
+- paper    the paper's twin: DT preprocessing at PS 0.81 (``--policy fixed``), the layers every step;
+- choose   ``--policy choose``: the system layer runs the five arms' copies, on roughening (docs/guides/policies.md);
+- default  what ``dtpf launch`` and ``dtpf run`` take when no policy is named: ``--policy choose --choose-base
+           rehearse``, the copies of the arms its rehearsal kept, on the base it chose.
 
 Each is timed two ways: in one process (``dtpf run``'s pipeline, :func:`dtpf.scripts.bench.pipeline.inprocess_times`:
 wall time per step over steps FIRST_TIMED..T after an untimed warm-up), and through ``dtpf launch`` (the layers as
 processes over Zenoh, no recorder): the CPU seconds of all the twin's processes (entity, information, system) between
 the estimates of step FIRST_TIMED and T, sampled from /proc (:class:`dtpf.scripts.bench.cpu.RssSampler`), per step.
-The runs are interleaved in random order in every repetition; the table shows medians over repetitions, and the
-ratios are medians of the per-repetition ratios. Targets (printed PASS/FAIL, no exit code): choose at most 2 x plain
-at N = 100 and 1.5 x at N = 1000, in process and through launch::
+The default's rehearsal comes before step 1, outside the timed window; ``--rehearsal`` times it on its own. The runs
+are interleaved in random order in every repetition; the table shows medians over repetitions, and the ratios are
+medians of the per-repetition ratios. Targets (printed PASS/FAIL, no exit code): the default at most 2 x plain at
+N = 100 and 1.5 x at N = 1000, in process and through launch; "paper / plain" is their floor, the paper's twin alone::
 
     python -m dtpf.scripts.bench.chooser_cost                       # N = 100 and 1000, 3 repetitions
     python -m dtpf.scripts.bench.chooser_cost --repeats 5 --steps 400
     python -m dtpf.scripts.bench.chooser_cost --where inprocess     # in process only (seconds)
     python -m dtpf.scripts.bench.chooser_cost --copies 250 100      # and choose with smaller copies (in process)
-    python -m dtpf.scripts.bench.chooser_cost --rehearsed           # and choose on a rehearsed base (in process)
-    python -m dtpf.scripts.bench.chooser_cost --rehearsal ungm range-bearing   # and --choose-base rehearse's
-                                                                    # rehearsal, once per run, on these scenarios
+    python -m dtpf.scripts.bench.chooser_cost --rehearsal ungm range-bearing   # and the default's rehearsal, once
+                                                                    # per run, on these scenarios
 
-``--choose-base rehearse`` runs the copies of ``choose`` without the arms its rehearsal dropped
-(:mod:`dtpf.system.rehearse`): ``--rehearsed`` times it per step in process. Its rehearsal comes once before the
-run: ``--rehearsal`` times that, wall seconds of one rehearsal of min(T, 100) steps at each N, median over the
-repetitions (each computed afresh), beside what the plain filter takes for the run's T steps.
+The rehearsal of ``--rehearsal`` is computed afresh each time (wall seconds of one rehearsal of min(T, 100) steps at
+each N, median over the repetitions), beside what the plain filter takes for the run's T steps. The default's own
+runs read the rehearsal from the cache (:func:`dtpf.system.rehearse.cache_folder`) after the first.
 """
 from __future__ import annotations
 
@@ -46,8 +47,10 @@ from dtpf.messages.config import RunConfig
 from dtpf.scripts.bench.cpu import RssSampler
 from dtpf.scripts.bench.pipeline import FIRST_TIMED, inprocess_times, window_time
 
-#: The runs compared, by label: their RunConfig fields.
-MODES = {"plain": dict(preprocess=False), "paper": dict(), "choose": dict(policy="choose")}
+#: The runs compared, by label: their RunConfig fields ("default": what dtpf launch and dtpf run take when no policy
+#: is named, the choosing policy on a rehearsed base; its rehearsal comes before the timed window).
+MODES = {"plain": dict(preprocess=False), "paper": dict(), "choose": dict(policy="choose"),
+         "default": dict(policy="choose", choose_base="rehearse")}
 #: Targets: choose / plain at most this at N.
 TARGETS = {100: 2.0, 1000: 1.5}
 #: The twin's processes whose CPU a launch counts (the launcher's embedded router is not the twin's).
@@ -62,7 +65,8 @@ def inprocess_ms(config: RunConfig, copies: int | None = None) -> float:
     """Wall ms per step of the in-process pipeline over the timed window, after an untimed warm-up run;
     ``copies``: choose's copies of M particles each instead of its default (``ChoosePS(particles=M)``)."""
     if copies is None:
-        inprocess_times(config.model_copy(update={"steps": FIRST_TIMED + 2}))
+        if not config.rehearses:   # a warm-up run (a rehearsing one would rehearse its shorter T first)
+            inprocess_times(config.model_copy(update={"steps": FIRST_TIMED + 2}))
         return 1e3 * inprocess_times(config)[0]
     from dtpf.scripts.inprocess import build, simulate
     from dtpf.system.layer import SystemLayer
@@ -95,33 +99,20 @@ def launched_ms(config: RunConfig, folder: Path, timeout: float = 10.0) -> float
     return 1e3 * sum(cpu.get(kind, 0.0) for kind in LAYERS) / (config.steps - FIRST_TIMED)
 
 
-#: The in-process mode of ``--rehearsed``: choose on the base its rehearsal chose, without the arms it dropped.
-REHEARSED = "choose, rehearsed base"
-
-
-def measure(sizes, wheres, repeats: int, steps: int, seed: int, progress=print, copies=(),
-            rehearsed: bool = False) -> dict:
+def measure(sizes, wheres, repeats: int, steps: int, seed: int, progress=print, copies=()) -> dict:
     """{(where, n, mode): [ms per step of each repetition]}, the runs interleaved in random order; ``copies``:
-    in process, choose with copies of M particles as well (mode "choose, M = ..."); ``rehearsed``: in process,
-    :data:`REHEARSED` as well (its rehearsal before the timed window)."""
+    in process, choose with copies of M particles as well (mode "choose, M = ...")."""
     order = random.Random(seed)
     figures: dict[tuple[str, int, str], list[float]] = {}
     with tempfile.TemporaryDirectory() as folder:
         for repeat in range(repeats):
             runs = [(where, n, mode) for where in wheres for n in sizes for mode in MODES]
             runs += [("inprocess", n, f"choose, M = {m}") for n in sizes for m in copies if "inprocess" in wheres]
-            runs += [("inprocess", n, REHEARSED) for n in sizes if rehearsed and "inprocess" in wheres]
             order.shuffle(runs)
             for where, n, mode in runs:
                 if mode.startswith("choose, M = "):
                     m = int(mode.rsplit(" ", 1)[1])
                     ms = inprocess_ms(config_of("choose", n, steps, seed), copies=m)
-                    figures.setdefault((where, n, mode), []).append(ms)
-                    progress(f"repetition {repeat + 1}: {where} N = {n} {mode}: {ms:.3f} ms / step")
-                    continue
-                if mode == REHEARSED:
-                    config = config_of("choose", n, steps, seed).model_copy(update={"choose_base": "rehearse"})
-                    ms = 1e3 * inprocess_times(config)[0]   # no warm-up run: it would rehearse a shorter run
                     figures.setdefault((where, n, mode), []).append(ms)
                     progress(f"repetition {repeat + 1}: {where} N = {n} {mode}: {ms:.3f} ms / step")
                     continue
@@ -138,27 +129,25 @@ def ratio(figures: dict, where: str, n: int, mode: str, against: str) -> float:
 
 
 def table(figures: dict, sizes, wheres) -> str:
-    header = ("| measured | N | plain, ms / step | paper (PS 0.81), ms / step | choose, ms / step | choose / plain "
-              "| paper / plain | choose / paper | target | verdict |")
-    rows = [header, "|---|---|---|---|---|---|---|---|---|---|"]
+    header = ("| measured | N | plain, ms / step | paper (PS 0.81) | choose (roughening base) | default (choose, "
+              "rehearsed) | default / plain | paper / plain: the floor | default / paper | choose / plain | target "
+              "(default / plain) | verdict |")
+    rows = [header, "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     labels = {"inprocess": "in process (wall)", "launch": "dtpf launch (CPU of entity + information + system)"}
     for where in wheres:
         for n in sizes:
             ms = {mode: statistics.median(figures[where, n, mode]) for mode in MODES}
-            cost = ratio(figures, where, n, "choose", "plain")
+            cost = ratio(figures, where, n, "default", "plain")
             target = TARGETS.get(n)
             verdict = "-" if target is None else "PASS" if cost <= target else "FAIL"
             rows.append(f"| {labels[where]} | {n} | {ms['plain']:.3f} | {ms['paper']:.3f} | {ms['choose']:.3f} | "
-                        f"{cost:.2f} | {ratio(figures, where, n, 'paper', 'plain'):.2f} | "
-                        f"{ratio(figures, where, n, 'choose', 'paper'):.2f} | "
+                        f"{ms['default']:.3f} | {cost:.2f} | {ratio(figures, where, n, 'paper', 'plain'):.2f} | "
+                        f"{ratio(figures, where, n, 'default', 'paper'):.2f} | "
+                        f"{ratio(figures, where, n, 'choose', 'plain'):.2f} | "
                         f"{'-' if target is None else f'<= {target:g}'} | {verdict} |")
-    extra = sorted({mode for (_, _, mode) in figures if mode not in MODES and mode != REHEARSED},
-                   key=lambda m: int(m.rsplit(" ", 1)[1]))
-    if any(mode == REHEARSED for (_, _, mode) in figures):
-        extra.append(REHEARSED)
+    extra = sorted({mode for (_, _, mode) in figures if mode not in MODES}, key=lambda m: int(m.rsplit(" ", 1)[1]))
     if extra:
-        rows += ["", "| in process (wall), choose with copies of M particles or a rehearsed base | N | ms / step | "
-                 "/ plain | / choose |",
+        rows += ["", "| in process (wall), choose with copies of M particles | N | ms / step | / plain | / choose |",
                  "|---|---|---|---|---|"]
         for mode in extra:
             for n in sizes:
@@ -187,7 +176,7 @@ def scenario_model(name: str):
 
 def rehearsal_seconds(scenarios, sizes, repeats: int, steps: int, progress=print) -> dict:
     """{(scenario, n): [(wall seconds of one rehearsal, its runs, its base), per repetition]}, each computed
-    afresh."""
+    afresh (an empty cache folder each time), on the cores of this process."""
     from dtpf.information.layer import ARMS
     from dtpf.system import rehearse
 
@@ -197,9 +186,16 @@ def rehearsal_seconds(scenarios, sizes, repeats: int, steps: int, progress=print
             model = scenario_model(scenario)
             for n in sizes:
                 rehearse._CACHE.clear()
-                start = time.perf_counter()
-                result = rehearse.rehearse(model, tuple(ARMS), n=n, steps=steps)
-                seconds = time.perf_counter() - start
+                before = os.environ.get("XDG_CACHE_HOME")
+                with tempfile.TemporaryDirectory() as folder:   # an empty cache: nothing read, made afresh
+                    os.environ["XDG_CACHE_HOME"] = folder
+                    start = time.perf_counter()
+                    result = rehearse.rehearse(model, tuple(ARMS), n=n, steps=steps)
+                    seconds = time.perf_counter() - start
+                if before is None:
+                    os.environ.pop("XDG_CACHE_HOME", None)
+                else:
+                    os.environ["XDG_CACHE_HOME"] = before
                 figures.setdefault((scenario, n), []).append((seconds, result.runs, result.arm))
                 progress(f"repetition {repeat + 1}: rehearsal {scenario} N = {n}: {seconds:.1f} s, base {result.arm}")
     return figures
@@ -226,8 +222,6 @@ def main(argv=None) -> int:
     parser.add_argument("--seed", type=int, default=2)
     parser.add_argument("--copies", type=int, nargs="+", default=(), metavar="M",
                         help="in process, also choose with copies of M particles each (default M: min(N, 1000))")
-    parser.add_argument("--rehearsed", action="store_true",
-                        help=f"in process, also time '{REHEARSED}' (--choose-base rehearse) per step")
     parser.add_argument("--rehearsal", nargs="+", default=(), metavar="SCENARIO",
                         help="also time --choose-base rehearse's rehearsal at each N on these scenarios (ungm, drift, "
                              "drift+100, range-bearing, moving, switching)")
@@ -239,8 +233,7 @@ def main(argv=None) -> int:
     progress = (lambda text: None) if args.quiet else (lambda text: print(text, file=sys.stderr, flush=True))
     start = time.perf_counter()
     with threadpool_limits(limits=1, user_api="blas"):
-        figures = measure(args.sizes, wheres, args.repeats, args.steps, args.seed, progress, args.copies,
-                          args.rehearsed)
+        figures = measure(args.sizes, wheres, args.repeats, args.steps, args.seed, progress, args.copies)
         rehearsals = rehearsal_seconds(args.rehearsal, args.sizes, args.repeats, args.steps, progress)
     print(f"`python -m dtpf.scripts.bench.chooser_cost {' '.join(argv if argv is not None else sys.argv[1:])}`"
           f": ungm, T = {args.steps} (timed from step {FIRST_TIMED}), seed {args.seed}, median of {args.repeats} "

@@ -58,16 +58,46 @@ def fit_simulation(config, args: argparse.Namespace):
 
 
 #: What a run whose system layer rehearses the model says before its first step.
-REHEARSING = ("dtpf: the system layer rehearses the model before the run (--choose-base rehearse: every arm on 200 "
-              "to 1,600 simulated runs), seconds to a minute or two once per model, N and T; a rehearsal already "
-              "made is read from ~/.cache/dtpf/rehearsals")
+REHEARSING = ("dtpf: rehearsing the model (--choose-base rehearse: every arm on 200 to 1,600 simulated runs), "
+              "seconds to a minute or two, once per model, N and T (then kept in ~/.cache/dtpf/rehearsals)")
+
+
+def rehearse_first(config, model=None) -> None:
+    """Make the rehearsal of ``config``'s system layer here, before any service starts, and say its base: the
+    system service then reads it from the cache (:func:`dtpf.system.rehearse.cache_folder`) and starts at once.
+    Where it is kept already, one line says so; a model that cannot be rehearsed says nothing (its system layer
+    logs why); nor does one that fails to load or to rehearse (the run says what is wrong)."""
+    import time
+
+    from dtpf.system import rehearse
+    from dtpf.system.layer import SystemLayer
+
+    import threading
+
+    start = time.perf_counter()
+    notice = threading.Timer(1.0, lambda: print(REHEARSING, file=sys.stderr, flush=True))  # a rehearsal being made
+    notice.daemon = True
+    notice.start()
+    try:
+        if model is None:
+            model = sources.load_model(config, check=False)
+        rehearsal = getattr(SystemLayer.from_config(config, model=model).policy, "rehearsal", None)
+    except Exception:  # noqa: BLE001 - a model or setting that fails here fails the run, which says it in one line
+        return
+    finally:
+        notice.cancel()
+    if rehearsal is None:
+        return
+    how = "kept from an earlier run" if rehearse.last_kept else f"made in {time.perf_counter() - start:.1f} s"
+    print(f"dtpf: rehearsal: base {rehearsal.arm} ({rehearsal.runs:,} simulated runs, T = {rehearsal.steps}, "
+          f"N = {rehearsal.particles}, {how})", file=sys.stderr, flush=True)
 
 
 def settle_rehearsal(config, args: argparse.Namespace, model=None):
     """The run's config once its model is known: a rehearsal the command line chose by default (no --choose-base)
     for a model that cannot be rehearsed (:func:`dtpf.system.rehearse.why_not`: no sample_observation, driven, several
-    sensors) gives way to the default base, roughening, without a word; otherwise, unless -q, the notice that the
-    system layer rehearses first. A model that does not load is left to the run, which says what is wrong."""
+    sensors) gives way to the default base, roughening, without a word. A model that does not load is left to the
+    run, which says what is wrong."""
     if not config.rehearses:
         return config
     from dtpf.system.rehearse import why_not
@@ -78,8 +108,6 @@ def settle_rehearsal(config, args: argparse.Namespace, model=None):
         return config
     if reason is not None and getattr(args, "choose_base", None) is None:
         return config.model_copy(update={"choose_base": None})
-    if reason is None and not getattr(args, "quiet", False):
-        print(REHEARSING, file=sys.stderr, flush=True)
     return config
 
 
@@ -90,6 +118,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     cores.set_threads(args.threads)
     # run() reads the file once; T is its rows unless --steps is smaller
     config = settle_rehearsal(fit_simulation(config_from_args(args, choose_by_default=True), args), args)
+    if config.rehearses and not args.quiet:
+        rehearse_first(config)
     result = run(config, progress=None if args.quiet else ProgressBar(),
                  note=lambda problem: print(f"dtpf: note: {problem}", file=sys.stderr))
     ps = result.ps
@@ -177,7 +207,7 @@ def cmd_launch(args: argparse.Namespace) -> int:
         from dtpf.scripts.ros2.preflight import with_param_topics
         config = with_param_topics(config, args.ros2_params, args.steps)
     model = sources.load_model(config)  # a wrong model or file: one line here, before any process starts
-    config = settle_rehearsal(config, argparse.Namespace(choose_base=args.choose_base, quiet=True), model)
+    config = settle_rehearsal(config, args, model)
     if not _claim_log(args):
         return 2
     _note_partial_truth(config, model)
@@ -216,7 +246,7 @@ def cmd_launch(args: argparse.Namespace) -> int:
         print("dtpf: compiling numba kernels on first use (once per install), this can take about 30 s",
               file=sys.stderr, flush=True)
     if config.rehearses:
-        print(REHEARSING, file=sys.stderr, flush=True)
+        rehearse_first(config, model)
     if config.live and args.twins is not None:
         first = sensor_command(config.model_copy(update={"twin": f"{config.twin}-1", "observations": None}),
                                endpoint, args.secure)

@@ -79,6 +79,9 @@ _LARGEST = 1e12
 #: Rehearsals kept per process, by their inputs.
 _KEPT = 16
 _CACHE: dict[tuple, tuple[object, "Rehearsal"]] = {}
+#: Whether the last :func:`rehearse` of this process found its rehearsal kept (in the process or on disk) rather
+#: than making it.
+last_kept = False
 #: The format of a rehearsal's file; a file of another is written again.
 FILE_FORMAT = 1
 #: A rehearsal's file larger than this is not read (it holds a few hundred bytes).
@@ -159,6 +162,8 @@ def rehearse(model, arms, *, n: int, steps: int | None, runs: int | None = None,
         raise ValueError(f"a rehearsal needs at least 2 runs, got {runs!r}")
     key = (_identity(model), tuple(arms), int(n), length, runs, tuple(looks(runs)), DROP, threshold_rule, move, m, z,
            int(seed))
+    global last_kept
+    last_kept = True
     kept = _CACHE.get(key)
     if kept is not None and _same(kept[0], model):
         return kept[1]
@@ -167,6 +172,7 @@ def rehearse(model, arms, *, n: int, steps: int | None, runs: int | None = None,
     if result is not None:
         _keep(key, model, result)
         return result
+    last_kept = False
     settings = dict(n=int(n), m=m, steps=length, threshold_rule=threshold_rule, move=move, seed=int(seed))
     active = tuple(dict.fromkeys(arms))
     errors: dict[str, list[float]] = {}

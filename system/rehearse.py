@@ -360,8 +360,13 @@ def _start_helper(model, arms, part, settings: dict):
     import sys
     import tempfile
 
+    # A user's files (a model, move or rule given as path/to/file.py:NAME) are imported by the helper first, under
+    # the module names they have here, so that their objects unpickle there.
+    files = [module.__file__ for name, module in list(sys.modules.items())
+             if name.startswith("_dtpf_model_") and getattr(module, "__file__", None)]
     try:
-        task = pickle.dumps({"model": model, "arms": tuple(arms), "runs": part.tolist(), "settings": settings})
+        payload = pickle.dumps({"model": model, "arms": tuple(arms), "runs": part.tolist(), "settings": settings})
+        task = pickle.dumps({"files": files, "payload": payload})
     except Exception as error:  # noqa: BLE001 - any object a model holds may refuse pickling, in any way
         _say_once(f"the model does not pickle ({type(error).__name__}); the rehearsal runs on one core")
         return None

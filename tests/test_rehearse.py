@@ -398,3 +398,31 @@ def test_a_config_file_that_sets_ps_keeps_the_fixed_policy_and_one_that_sets_not
     help_text = " ".join(parser.format_help().split())
     assert "default: choose on a rehearsed base; fixed (PS 0.81, the paper's) with --ps, --weight-rule, " \
         "--move-rule, --move or --no-preprocess" in help_text
+
+
+def test_helper_processes_give_the_numbers_of_one_process_for_a_models_file_and_for_one_that_does_not_pickle(
+        few_runs, monkeypatch, tmp_path, caplog):
+    """A look shared among two cores: helper processes import the user's model file under its name here and make the
+    later runs; a model that does not pickle (a class defined in a function) is rehearsed here alone, with a word."""
+    from dtpf.entity import cores, model_ref
+
+    (tmp_path / "shifted.py").write_text("from dtpf.entity.models import DriftModel\n\nMODEL = DriftModel(prior_mean=100.0)\n")
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    monkeypatch.setattr(cores, "threads", lambda: 2)
+    model = model_ref.resolve(f"{tmp_path / 'shifted.py'}:MODEL")
+
+    class Local(models.DriftModel):
+        pass
+
+    for each in (model, Local(prior_mean=100.0)):
+        monkeypatch.setattr(rehearse, "SHARED_WORK", 10 ** 18)
+        rehearse._CACHE.clear()
+        alone = rehearse.rehearse(each, FIVE, n=40, steps=8, runs=60)
+        monkeypatch.setattr(rehearse, "SHARED_WORK", 0)
+        monkeypatch.setattr(rehearse, "_file_of", lambda *args: None)   # nothing read from disk
+        rehearse._CACHE.clear()
+        with caplog.at_level(logging.WARNING):
+            shared = rehearse.rehearse(each, FIVE, n=40, steps=8, runs=60)
+        assert shared == alone
+    assert "helper process failed" not in caplog.text
+    assert "does not pickle" in caplog.text

@@ -90,7 +90,7 @@ def rehearse_first(config, model=None) -> None:
         return
     how = "kept from an earlier run" if rehearse.last_kept else f"made in {time.perf_counter() - start:.1f} s"
     print(f"dtpf: rehearsal: base {rehearsal.arm} ({rehearsal.runs:,} simulated runs, T = {rehearsal.steps}, "
-          f"N = {rehearsal.particles}, {how})", file=sys.stderr, flush=True)
+          f"{rehearsal.particles} particles an arm, {how})", file=sys.stderr, flush=True)
 
 
 def settle_rehearsal(config, args: argparse.Namespace, model=None):

@@ -223,10 +223,12 @@ def cache_folder() -> Path:
 
 @functools.lru_cache(maxsize=1)
 def _code_digest() -> str:
-    """A digest of dtpf's own source (every .py file of the package): a rehearsal kept by other code is not used."""
+    """A digest of the source a rehearsal runs (every .py file of dtpf's entity, information, system and messages):
+    a rehearsal kept by other code is not used."""
     root = Path(__file__).resolve().parent.parent
     digest = hashlib.sha256()
-    for path in sorted(root.rglob("*.py")):
+    paths = [path for folder in ("entity", "information", "system", "messages") for path in (root / folder).rglob("*.py")]
+    for path in sorted(paths):
         if "__pycache__" in path.parts:
             continue
         digest.update(str(path.relative_to(root)).encode())

@@ -37,7 +37,7 @@ FILE_SECONDS = {
     "test_plot.py": 16, "test_guard.py": 16, "test_one_twin.py": 14, "test_tracking.py": 14, "test_replay.py": 12,
     "test_shared_sets.py": 10, "test_newcomer.py": 11, "test_ask.py": 9, "test_thresholds.py": 9, "test_filter.py": 8, "test_driven.py": 8,
     "test_fuzz.py": 8, "test_missed.py": 7, "test_choose.py": 7, "test_policy.py": 7, "test_resilience.py": 6,
-    "test_logfile.py": 5, "test_mcap_file.py": 2, "test_cores.py": 2, "test_choose_cost.py": 2, "test_rules.py": 1, "test_observations.py": 1,
+    "test_logfile.py": 5, "test_mcap_file.py": 2, "test_cores.py": 2, "test_choose_cost.py": 2, "test_rehearse.py": 12, "test_rules.py": 1, "test_observations.py": 1,
     "test_messages.py": 1, "test_resampling.py": 1,
     # files only the long tier runs
     "test_experiments.py": 39, "test_serve_again.py": 21,

@@ -26,14 +26,14 @@ observations: with the truth of a simulation the error of each arm's estimate is
    look, roughening stays. The chooser then neither copies nor enters the dropped arms (plain excepted: its
    copy is the reference every score is against), which is what a rehearsal saves per step.
 
-Cost, measured by ``python -m dtpf.scripts.bench.chooser_cost --rehearsal ungm drift+100 range-bearing``:
-20-44 ms a simulated run of 100 steps at N = 100 and 46-123 ms at N = 1000 (one core), so 6 to 35 s at N = 100
-and T = 100 (200 to 1,600 runs) and 9 to 25 s at N = 1000 (200 runs); once per (model, N, T, arms) in a process.
-Once per (model, N, T, arms) and dtpf's code on a machine: a rehearsal of a model that is a dataclass (every
-built-in one) is kept in a file of :func:`cache_folder`, named by a digest of those inputs and of the source of dtpf
-and of the model's module, so that a second launch of the same twin starts at once. A file that does not hold
-what its name promises (cut short, edited, another format) is ignored and written again. Any other model is
-rehearsed once per process.
+Cost, measured by ``python -m dtpf.scripts.bench.chooser_cost --where inprocess --rehearsal ungm drift+100
+range-bearing``: 3.7 to 20 s at N = 100 and T = 100 (200 to 1,600 runs) and 5.4 to 13 s at N = 1000 (200 runs) on
+2 cores, a look's runs shared among the process's cores by helper processes (:func:`_shared_runs`; 6 to 35 s and
+9 to 25 s on one). Once per (model, N, T, arms) and dtpf's code on a machine: a rehearsal of a model that is a
+dataclass (every built-in one) is kept in a file of :func:`cache_folder`, named by a digest of those inputs, of the
+model's pickled fields and its module's source, of a rule's or move's file, and of the source of dtpf's layers, so
+that a second launch of the same twin starts at once. A file that does not hold what its name promises (cut short,
+edited, another format) is ignored and written again. Any other model is rehearsed once per process.
 
 A model that cannot draw observations (``samples_observations`` False: the video, a twin of a real system
 without a sensor model), or that is driven or fused from several sensors, cannot be rehearsed: :func:`why_not`
@@ -58,8 +58,8 @@ from dtpf.entity import resampling
 from dtpf.messages.names import DEFAULT_CHOOSE_BASE
 from dtpf.system.choose import ArmEvidence
 
-__all__ = ["Rehearsal", "rehearse", "simulated_runs", "why_not", "most_runs", "looks", "cache_folder", "SEED", "BUDGET", "FEWEST", "MOST",
-           "STEPS", "Z"]
+__all__ = ["Rehearsal", "rehearse", "simulated_runs", "why_not", "most_runs", "looks", "cache_folder", "SEED",
+           "BUDGET", "FEWEST", "MOST", "STEPS", "Z"]
 
 #: The root seed of every rehearsal's runs (independent of the run's seed: see the module docstring).
 SEED = 20261205
@@ -238,15 +238,31 @@ def _code_digest() -> str:
 
 def _file_of(model, key: tuple) -> Path | None:
     """The file of a rehearsal of ``model`` with the inputs ``key``, or None when it is not kept on disk (a model
-    that is not a dataclass, a rule or move given as an object, a model whose module's source cannot be read)."""
+    that is not a dataclass or does not pickle, a rule or move given as an object, a model whose module's source
+    cannot be read). The model counts by its pickled fields (every element of an array, where its repr would
+    summarise) and its module's source; a rule or move named by a file, by that file's bytes too."""
+    import pickle
+
     if not dataclasses.is_dataclass(model) or not all(isinstance(part, (str, int, float, tuple)) for part in key[1:]):
         return None
     try:
-        source = Path(inspect.getsourcefile(type(model)) or "").read_bytes()
-        text = json.dumps([FILE_FORMAT, _code_digest(), hashlib.sha256(source).hexdigest(), list(key)], default=str)
-    except (OSError, TypeError, ValueError):
+        parts = [FILE_FORMAT, _code_digest(), hashlib.sha256(pickle.dumps(model, protocol=4)).hexdigest(),
+                 hashlib.sha256(Path(inspect.getsourcefile(type(model)) or "").read_bytes()).hexdigest(),
+                 *(_file_digest(part) for part in key[1:] if isinstance(part, str)), list(key)]
+        text = json.dumps(parts, default=str)
+    except Exception:  # noqa: BLE001 - whatever does not pickle or read is not kept on disk
         return None
     return cache_folder() / (hashlib.sha256(text.encode()).hexdigest()[:32] + ".json")
+
+
+def _file_digest(reference: str) -> str:
+    """The digest of the file a rule or move reference names (``path/to/file.py:NAME``), or "" for a name."""
+    from dtpf.messages.references import is_path, resolved_path
+
+    source = reference.rsplit(":", 1)[0]
+    if ":" not in reference or not is_path(source):
+        return ""
+    return hashlib.sha256(resolved_path(source).read_bytes()).hexdigest()
 
 
 def _read(file: Path) -> Rehearsal | None:

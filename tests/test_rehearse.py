@@ -1,6 +1,7 @@
 """The rehearsal (``--choose-base rehearse``): every arm on simulated runs of the model, the best becomes the base."""
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import math
@@ -426,3 +427,27 @@ def test_helper_processes_give_the_numbers_of_one_process_for_a_models_file_and_
         assert shared == alone
     assert "helper process failed" not in caplog.text
     assert "does not pickle" in caplog.text
+
+
+@dataclasses.dataclass(frozen=True)
+class Mapped(models.DriftModel):
+    """drift with a table it does not use: a model whose repr summarises a field."""
+    table: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(5000))
+
+
+def test_the_file_of_a_rehearsal_tells_models_apart_by_every_field_and_a_move_by_its_file(own_cache, tmp_path):
+    """Two models whose array field differs in one element deep inside (their reprs summarise it alike), and one
+    move file before and after an edit, are four rehearsals on disk."""
+    first, second = Mapped(), Mapped()
+    second.table[2500] = 1.0          # the array itself is writable
+    assert repr(first) == repr(second)
+    key = ("model", FIVE, 40, 8, 60, (60,), rehearse.DROP, "neff", "none", 40, rehearse.Z, rehearse.SEED)
+    assert rehearse._file_of(first, key) != rehearse._file_of(second, key) is not None
+    move = tmp_path / "mine.py"
+    move.write_text("def f(resampled, particles, weights, rng):\n    return resampled\n")
+    with_move = key[:8] + (f"{move}:f",) + key[9:]
+    before = rehearse._file_of(first, with_move)
+    move.write_text("def f(resampled, particles, weights, rng):\n    return resampled + 0.0\n")
+    assert before is not None and rehearse._file_of(first, with_move) != before
+    move.unlink()
+    assert rehearse._file_of(first, with_move) is None      # a file that is gone: nothing kept on disk

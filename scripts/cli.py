@@ -62,18 +62,22 @@ REHEARSING = ("dtpf: rehearsing the model (--choose-base rehearse: every arm on 
               "seconds to a minute or two, once per model, N and T (then kept in ~/.cache/dtpf/rehearsals)")
 
 
-def rehearse_first(config, model=None) -> None:
-    """Make the rehearsal of ``config``'s system layer here, before any service starts, and say its base: the
-    system service then reads it from the cache (:func:`dtpf.system.rehearse.cache_folder`) and starts at once.
-    Where it is kept already, one line says so; a model that cannot be rehearsed says nothing (its system layer
-    logs why); nor does one that fails to load or to rehearse (the run says what is wrong)."""
+def rehearse_first(config, model=None, *, for_services: bool = False) -> None:
+    """Make the rehearsal of ``config``'s system layer here and say its base (``dtpf run``; ``dtpf launch`` before
+    any service starts, ``for_services``: the system service then reads it from the cache,
+    :func:`dtpf.system.rehearse.cache_folder`, and starts at once). A model whose rehearsal is not kept on disk is
+    left to the system service, with the notice that it rehearses. Where it is kept already, one line says so; a
+    model that cannot be rehearsed says nothing (its system layer logs why); nor does one that fails to load or to
+    rehearse (the run says what is wrong)."""
+    import threading
     import time
 
     from dtpf.system import rehearse
     from dtpf.system.layer import SystemLayer
 
-    import threading
-
+    if for_services and model is not None and not rehearse.kept_on_disk(model):
+        print(REHEARSING, file=sys.stderr, flush=True)
+        return
     start = time.perf_counter()
     notice = threading.Timer(1.0, lambda: print(REHEARSING, file=sys.stderr, flush=True))  # a rehearsal being made
     notice.daemon = True
@@ -153,14 +157,17 @@ def cmd_run(args: argparse.Namespace) -> int:
            f"{len(result.steps)} steps moved particles (policy {config.policy}: off elsewhere)"]
           if config.preprocess and not family.POLICIES.trait(config.policy, "initial_preprocess", True) else []),
         *([f"arms in force   {', '.join(f'{arm} {count}' for arm, count in result.arms.items())} steps "
-           f"(policy {config.policy}; base {result.base[0]}: " + (result.base[1] if result.base[1] in ("named", "the default")
-                                                                   else f"from {result.base[1]}") + ")"]
-          if result.arms else []),
+           f"(policy {config.policy}; base {result.base[0]}: {_base_reached(result.base[1])})"] if result.arms else []),
         f"degraded steps  {result.degraded}",
         f"time            {result.elapsed:.3f} s ({1e3 * result.elapsed / max(1, len(result.steps)):.3f} ms/step)",
     ]
     print("\n".join(lines))
     return 0
+
+
+def _base_reached(how: str) -> str:
+    """How a choosing run's base was reached, for its summary: "named", "the default", or "from a rehearsal ..."."""
+    return how if how in ("named", "the default") else f"from {how}"
 
 
 def kernels_cold(config=None) -> list[str]:
@@ -246,7 +253,7 @@ def cmd_launch(args: argparse.Namespace) -> int:
         print("dtpf: compiling numba kernels on first use (once per install), this can take about 30 s",
               file=sys.stderr, flush=True)
     if config.rehearses:
-        rehearse_first(config, model)
+        rehearse_first(config, model, for_services=True)
     if config.live and args.twins is not None:
         first = sensor_command(config.model_copy(update={"twin": f"{config.twin}-1", "observations": None}),
                                endpoint, args.secure)

@@ -58,8 +58,8 @@ from dtpf.entity import resampling
 from dtpf.messages.names import DEFAULT_CHOOSE_BASE
 from dtpf.system.choose import ArmEvidence
 
-__all__ = ["Rehearsal", "rehearse", "simulated_runs", "why_not", "most_runs", "looks", "cache_folder", "SEED",
-           "BUDGET", "FEWEST", "MOST", "STEPS", "Z"]
+__all__ = ["Rehearsal", "rehearse", "simulated_runs", "why_not", "most_runs", "looks", "cache_folder", "kept_on_disk",
+           "SEED", "BUDGET", "FEWEST", "MOST", "STEPS", "Z"]
 
 #: The root seed of every rehearsal's runs (independent of the run's seed: see the module docstring).
 SEED = 20261205
@@ -234,6 +234,20 @@ def _code_digest() -> str:
         digest.update(str(path.relative_to(root)).encode())
         digest.update(path.read_bytes())
     return digest.hexdigest()
+
+
+def kept_on_disk(model) -> bool:
+    """Whether a rehearsal of ``model`` is kept in :func:`cache_folder` (a dataclass that pickles), so that another
+    process of the twin reads it rather than making it again."""
+    import pickle
+
+    if not dataclasses.is_dataclass(model):
+        return False
+    try:
+        pickle.dumps(model, protocol=4)
+    except Exception:  # noqa: BLE001 - any object a model holds may refuse pickling, in any way
+        return False
+    return True
 
 
 def _file_of(model, key: tuple) -> Path | None:

@@ -451,3 +451,24 @@ def test_the_file_of_a_rehearsal_tells_models_apart_by_every_field_and_a_move_by
     assert before is not None and rehearse._file_of(first, with_move) != before
     move.unlink()
     assert rehearse._file_of(first, with_move) is None      # a file that is gone: nothing kept on disk
+
+
+def test_dtpf_launch_leaves_a_rehearsal_it_cannot_keep_to_the_system_service_and_makes_one_it_can(
+        own_cache, capsys):
+    """A model whose rehearsal is not kept on disk would be rehearsed twice (here, then in the system service): the
+    launcher only says that the service rehearses. A dataclass model is rehearsed here, and the line says so."""
+    from dtpf.scripts.cli import REHEARSING, rehearse_first
+
+    class Plain:
+        samples_observations = True
+
+        def __getattr__(self, name):
+            return getattr(models.DriftModel(prior_mean=100.0), name)
+
+    config = RunConfig(**SHIFTED, policy="choose", choose_base="rehearse", particles=40, steps=8)
+    rehearse_first(config, Plain(), for_services=True)
+    assert capsys.readouterr().err.strip() == REHEARSING and not rehearse._CACHE
+    rehearse_first(config, DRIFT_PLUS_100, for_services=True)
+    said = capsys.readouterr().err
+    assert re.search(r"dtpf: rehearsal: base \S+ \(60 simulated runs, T = 8, 40 particles an arm, made in", said)
+    assert rehearse.kept_on_disk(DRIFT_PLUS_100) and not rehearse.kept_on_disk(Plain())

@@ -176,7 +176,6 @@ class SystemLayer:
         self.decisions.append(decision)
         return decision
 
-
     def _model_failed(self, step: int, error: Exception) -> None:
         """A model call of the forecast (the what-if simulations, the arms' copies) raised at ``step``: logged once
         a twin, and the step's forecast holds the history figures only (the policy keeps what it has)."""

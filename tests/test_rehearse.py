@@ -472,3 +472,33 @@ def test_dtpf_launch_leaves_a_rehearsal_it_cannot_keep_to_the_system_service_and
     said = capsys.readouterr().err
     assert re.search(r"dtpf: rehearsal: base \S+ \(60 simulated runs, T = 8, 40 particles an arm, made in", said)
     assert rehearse.kept_on_disk(DRIFT_PLUS_100) and not rehearse.kept_on_disk(Plain())
+
+
+def test_a_model_that_raises_in_the_system_layers_forecast_is_said_once_counted_and_the_layer_decides_on(caplog):
+    """The arms' copies call the model: a propagate that raises at steps 3 and 4 gives those steps a forecast of the
+    weight history alone (one warning, then counted); the policy keeps deciding, and the copies start again."""
+    from dtpf.information.mirror import summarise
+    from dtpf.system.predict import Snapshot
+
+    class Failing(models.DriftModel):
+        def propagate(self, particles, k, rng, noise=None):
+            if k in (3, 4):
+                raise IndexError("a bug of the model's")
+            return super().propagate(particles, k, rng, noise=noise)
+
+    model = Failing(prior_mean=100.0)
+    layer = SystemLayer.from_config(RunConfig(policy="choose", particles=50, steps=8, seed=1), model=model)
+    rng = np.random.default_rng(0)
+    truth, z = model.simulate(8, rng)
+    particles = np.asarray(model.initial_particles(50, rng), dtype=np.float64).reshape(50, -1)
+    weights = np.full(50, 1 / 50)
+    decisions = []
+    with caplog.at_level(logging.WARNING):
+        for k in range(1, 9):
+            summary = summarise(particles, weights, "neff", 50)
+            decisions.append(layer.observe(k, summary, Snapshot.of(particles, weights, z[k - 1])))
+            kept = [step for step, _ in layer.predictor.history]    # each step once, a failed one too
+            assert kept == list(range(k + 1 - len(kept), k + 1)), kept
+    assert [d.applies_from_step for d in decisions] == list(range(2, 10)) and layer.model_failures == 2
+    assert caplog.text.count("the model raised IndexError: a bug of the model's") == 1
+    assert layer.forecasts[-1].arm_evidence is not None

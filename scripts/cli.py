@@ -83,8 +83,7 @@ def rehearse_first(config, model=None, *, for_services: bool = False) -> None:
     notice.daemon = True
     notice.start()
     try:
-        if model is None:
-            model = sources.load_model(config, check=False)
+        model = model if model is not None else sources.load_model(config, check=False)
         rehearsal = getattr(SystemLayer.from_config(config, model=model).policy, "rehearsal", None)
     except Exception:  # noqa: BLE001 - a model or setting that fails here fails the run, which says it in one line
         return
@@ -97,6 +96,14 @@ def rehearse_first(config, model=None, *, for_services: bool = False) -> None:
           f"{rehearsal.particles} particles an arm, {how})", file=sys.stderr, flush=True)
 
 
+def _model_or_none(config):
+    """The run's model, or None when it does not load (the run then says why, in one line)."""
+    try:
+        return sources.load_model(config, check=False)
+    except Exception:  # noqa: BLE001 - a user's model may fail to load in any way
+        return None
+
+
 def settle_rehearsal(config, args: argparse.Namespace, model=None):
     """The run's config once its model is known: a rehearsal the command line chose by default (no --choose-base)
     for a model that cannot be rehearsed (:func:`dtpf.system.rehearse.why_not`: no sample_observation, driven, several
@@ -106,10 +113,10 @@ def settle_rehearsal(config, args: argparse.Namespace, model=None):
         return config
     from dtpf.system.rehearse import why_not
 
-    try:
-        reason = why_not(model if model is not None else sources.load_model(config, check=False))
-    except Exception:  # noqa: BLE001 - the run reports a model that does not load, in one line
+    model = model if model is not None else _model_or_none(config)
+    if model is None:
         return config
+    reason = why_not(model)
     if reason is not None and getattr(args, "choose_base", None) is None:
         return config.model_copy(update={"choose_base": None})
     return config
@@ -121,9 +128,12 @@ def cmd_run(args: argparse.Namespace) -> int:
 
     cores.set_threads(args.threads)
     # run() reads the file once; T is its rows unless --steps is smaller
-    config = settle_rehearsal(fit_simulation(config_from_args(args, choose_by_default=True), args), args)
-    if config.rehearses and not args.quiet:
-        rehearse_first(config)
+    config = fit_simulation(config_from_args(args, choose_by_default=True), args)
+    if config.rehearses:  # the model, loaded once for both (run() loads and checks it again, as for any run)
+        model = _model_or_none(config)
+        config = settle_rehearsal(config, args, model)
+        if config.rehearses and not args.quiet and model is not None:
+            rehearse_first(config, model)
     result = run(config, progress=None if args.quiet else ProgressBar(),
                  note=lambda problem: print(f"dtpf: note: {problem}", file=sys.stderr))
     ps = result.ps

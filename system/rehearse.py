@@ -55,6 +55,7 @@ from pathlib import Path
 import numpy as np
 
 from dtpf.entity import resampling
+from dtpf.messages.names import ARMS as ARM_NAMES
 from dtpf.messages.names import DEFAULT_CHOOSE_BASE
 from dtpf.system.choose import ArmEvidence
 
@@ -315,6 +316,9 @@ def _rehearsal_of(value) -> Rehearsal:
     names = {arm, against, *map(str, dropped)}
     if not names <= set(errors) | set(dropped) or arm not in errors:
         raise ValueError("arms that were not rehearsed")
+    unknown = sorted((names | set(errors) | set(pairs)) - set(ARM_NAMES))
+    if unknown:
+        raise ValueError(f"unknown arm {unknown[0]!r}")
     return Rehearsal(arm, against, errors=errors, differences=pairs, dropped=tuple(map(str, dropped)), **ints)
 
 

@@ -292,7 +292,7 @@ def test_a_rehearsal_is_kept_on_disk_and_another_process_reads_it_instead_of_reh
 
 
 @pytest.mark.parametrize("damage", ["cut short", "not json", "another format", "wrong kinds", "unknown arm",
-                                    "too large", "deep nesting", "a folder"])
+                                    "an arm no run has", "too large", "deep nesting", "a folder"])
 def test_a_damaged_rehearsal_file_is_not_used_and_is_written_again(own_cache, damage, caplog):
     model = models.DriftModel(prior_mean=100.0)
     first = rehearse.rehearse(model, FIVE, n=40, steps=8)
@@ -309,6 +309,10 @@ def test_a_damaged_rehearsal_file_is_not_used_and_is_written_again(own_cache, da
         file.write_text(json.dumps({**good, "rehearsal": {**good["rehearsal"], "runs": "many"}}))
     elif damage == "unknown arm":
         file.write_text(json.dumps({**good, "rehearsal": {**good["rehearsal"], "arm": "teleport"}}))
+    elif damage == "an arm no run has":   # a well-formed file whose base is no arm at all
+        rehearsal = good["rehearsal"]
+        file.write_text(json.dumps({**good, "rehearsal": {**rehearsal, "arm": "teleport",
+                                                          "errors": {**rehearsal["errors"], "teleport": 0.0}}}))
     elif damage == "too large":
         file.write_text(text + " " * (rehearse._LARGEST_FILE + 1))
     elif damage == "deep nesting":
